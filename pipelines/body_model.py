@@ -1,0 +1,168 @@
+"""SMPL body model glue: ZJU-style parameters -> posed vertices, part transforms, zeta, xi, part boxes.
+
+Model files are read here (pipelines); the kinematics are the pure functions of ``narf.kinematics``. The
+ZJU / EasyMocap convention is ``V_world = R(Rh) X + Th`` with ``X = SMPL(poses, shapes)`` without translation
+(data-formats.md §1.6).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import smplx
+import torch
+from smplx.lbs import lbs
+from smplx.utils import Struct
+
+from narf.geometry import so3_log
+from narf.kinematics import (
+    N_JOINTS,
+    bone_lengths,
+    fit_part_boxes,
+    kinematic_reach,
+    part_pose_features,
+    parts_from_joints,
+    rigid_from_rotvec_translation,
+    vertex_parts,
+    world_from_joints,
+)
+from pipelines.smpl_files import load_smpl_dict, resolve_smpl_file
+
+
+@dataclass
+class PosedBody:
+    """A batch of posed bodies (B frames), everything in world units.
+
+    Attributes:
+        vertices: (B, V, 3) world vertices.
+        world_from_joint: (B, 24, 4, 4) chained rotation, origin at the posed joint.
+        world_from_part: (B, 19, 4, 4) the NARF parts (joints with children).
+        rest_joints: (B, 24, 3) rest joints in the SMPL frame (shape applied).
+        bone_lengths: (B, 19) zeta.
+        reach: (B,) kinematic reach s.
+        pose_features: (B, 19, 6) xi = se(3) log of each part in the body frame (divide by pi to encode).
+    """
+
+    vertices: torch.Tensor
+    world_from_joint: torch.Tensor
+    world_from_part: torch.Tensor
+    rest_joints: torch.Tensor
+    bone_lengths: torch.Tensor
+    reach: torch.Tensor
+    pose_features: torch.Tensor
+
+
+def _as_tensor(name: str, value, shape_tail: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
+    tensor = torch.as_tensor(np.asarray(value), dtype=dtype)
+    if tensor.ndim == len(shape_tail):
+        tensor = tensor[None]
+    if tensor.ndim != len(shape_tail) + 1 or tuple(tensor.shape[1:]) != shape_tail:
+        raise ValueError(f"{name}: expected shape (B, {', '.join(map(str, shape_tail))}), got {tuple(tensor.shape)}")
+    if not torch.isfinite(tensor).all():
+        raise ValueError(f"{name}: contains NaN or infinite values")
+    return tensor
+
+
+class BodyModel:
+    """An SMPL-format body model (a user's SMPL or the generated stand-in).
+
+    Args:
+        smpl_path: model file or folder; ``None`` resolves ``$NARF_SMPL_DIR`` then the stand-in.
+        dtype: float32 (default) or float64.
+    """
+
+    def __init__(self, smpl_path: str | Path | None = None, dtype: torch.dtype = torch.float32):
+        self.path = resolve_smpl_file(smpl_path)
+        self.dtype = dtype
+        data = load_smpl_dict(self.path)
+        with warnings.catch_warnings(), contextlib.redirect_stdout(io.StringIO()):  # smplx prints a beta warning
+            warnings.simplefilter("ignore")
+            self.smpl = smplx.SMPL(str(self.path), data_struct=Struct(**data), dtype=dtype, num_betas=10)
+        self.faces = np.asarray(data["f"]).astype(np.int64)
+        self.skinning_weights = self.smpl.lbs_weights
+        self.parts_of_vertices = vertex_parts(self.skinning_weights)
+
+    @property
+    def n_vertices(self) -> int:
+        return self.smpl.v_template.shape[0]
+
+    def rest_joints(self, betas: torch.Tensor) -> torch.Tensor:
+        """(B, 10) betas -> (B, 24, 3) rest joints ``J_regressor (v_template + shapedirs beta)``."""
+        v_shaped = self.smpl.v_template + smplx.lbs.blend_shapes(betas, self.smpl.shapedirs)
+        return smplx.lbs.vertices2joints(self.smpl.J_regressor, v_shaped)
+
+    def pose_zju(self, poses, rh, th, shapes, pose_blendshapes: bool = True) -> PosedBody:
+        """Pose ZJU-MoCap parameters.
+
+        Args:
+            poses: (B, 72) axis-angle (``poses[:, :3]`` is usually 0; the global orientation is in Rh).
+            rh: (B, 3) global rotation vector, about the SMPL origin.
+            th: (B, 3) global translation, metres.
+            shapes: (B, 10) betas.
+            pose_blendshapes: False for the old ``params/`` fits (no pose blend shapes).
+
+        Returns:
+            A :class:`PosedBody`.
+        """
+        poses = _as_tensor("poses", poses, (72,), self.dtype)
+        rh = _as_tensor("Rh", rh, (3,), self.dtype)
+        th = _as_tensor("Th", th, (3,), self.dtype)
+        shapes = _as_tensor("shapes", shapes, (10,), self.dtype)
+        if not poses.shape[0] == rh.shape[0] == th.shape[0] == shapes.shape[0]:
+            raise ValueError(f"batch sizes differ: poses {poses.shape[0]}, Rh {rh.shape[0]}, Th {th.shape[0]}, "
+                             f"shapes {shapes.shape[0]}")  # fmt: skip
+        posedirs = self.smpl.posedirs if pose_blendshapes else torch.zeros_like(self.smpl.posedirs)
+        vertices_smpl, _ = lbs(shapes, poses, self.smpl.v_template, self.smpl.shapedirs, posedirs,
+                               self.smpl.J_regressor, self.smpl.parents, self.smpl.lbs_weights)  # fmt: skip
+        world_from_smpl = rigid_from_rotvec_translation(rh, th)
+        vertices = vertices_smpl @ world_from_smpl[:, :3, :3].transpose(1, 2) + th[:, None]
+        rest = self.rest_joints(shapes)
+        world_from_joint = world_from_joints(poses.reshape(-1, N_JOINTS, 3), rest, world_from_smpl)
+        world_from_part = parts_from_joints(world_from_joint)
+        joints = world_from_joint[..., :3, 3]
+        reach = kinematic_reach(joints)
+        return PosedBody(
+            vertices=vertices, world_from_joint=world_from_joint, world_from_part=world_from_part,
+            rest_joints=rest, bone_lengths=bone_lengths(joints), reach=reach,
+            pose_features=part_pose_features(world_from_part, reach),
+        )  # fmt: skip
+
+    def rest_body(self, shapes) -> PosedBody:
+        """The rest pose (identity rotations, no global transform) for the given betas."""
+        shapes = _as_tensor("shapes", shapes, (10,), self.dtype)
+        zeros = torch.zeros(shapes.shape[0], 3, dtype=self.dtype)
+        return self.pose_zju(torch.zeros(shapes.shape[0], 72, dtype=self.dtype), zeros, zeros, shapes)
+
+    def part_boxes(self, bodies: list[PosedBody], scale_pad: float = 1.1, abs_pad: float = 0.03):
+        """Fit part boxes over the rest pose(s) and the given posed frames (use at most 100 training frames).
+
+        Returns:
+            centres (19, 3), half_extents (19, 3) in body units.
+        """
+        vertices = torch.cat([b.vertices for b in bodies])
+        world_from_part = torch.cat([b.world_from_part for b in bodies])
+        reach = torch.cat([b.reach for b in bodies])
+        return fit_part_boxes(vertices, world_from_part, reach, self.parts_of_vertices, scale_pad, abs_pad)
+
+
+def smplx_params_from_zju(model: BodyModel, poses, rh, th, shapes) -> dict[str, torch.Tensor]:
+    """Convert ZJU parameters to smplx ``SMPL.forward`` keywords (data-formats.md §1.6).
+
+    global_orient = rotvec(R(Rh) R(poses[:3])); body_pose = poses[3:]; betas = shapes;
+    transl = Th + R(Rh) J0 - J0 with J0 the shaped rest pelvis.
+    """
+    poses = _as_tensor("poses", poses, (72,), model.dtype)
+    rh = _as_tensor("Rh", rh, (3,), model.dtype)
+    th = _as_tensor("Th", th, (3,), model.dtype)
+    shapes = _as_tensor("shapes", shapes, (10,), model.dtype)
+    rot_rh = rigid_from_rotvec_translation(rh, torch.zeros_like(rh))[:, :3, :3]
+    rot_root = rigid_from_rotvec_translation(poses[:, :3], torch.zeros_like(rh))[:, :3, :3]
+    pelvis = model.rest_joints(shapes)[:, 0]
+    transl = th + (rot_rh @ pelvis[..., None])[..., 0] - pelvis
+    return {"global_orient": so3_log(rot_rh @ rot_root), "body_pose": poses[:, 3:], "betas": shapes,
+            "transl": transl}  # fmt: skip

@@ -1,0 +1,171 @@
+"""SMPL model files: writing the stand-in, finding a user's model, loading it with smplx, converting
+official chumpy pickles (data-formats.md §3).
+
+Resolution order of :func:`resolve_smpl_file`: an explicit ``--smpl-dir`` / file, then ``$NARF_SMPL_DIR``, then
+the generated stand-in in the cache (``$NARF_CACHE`` or ``~/.cache/narf-avatar``), generated on first use.
+"""
+
+from __future__ import annotations
+
+import io
+import os
+import pickle
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse
+
+REQUIRED_KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
+#: Module renames so that pickles written under numpy 2 / new scipy load under numpy 1.x / older scipy too.
+_LEGACY_MODULES = {"numpy._core.multiarray": "numpy.core.multiarray", "numpy._core.numeric": "numpy.core.numeric",
+                   "numpy._core": "numpy.core", "scipy.sparse._csc": "scipy.sparse.csc"}  # fmt: skip
+
+
+class SmplFileError(ValueError):
+    """An SMPL model file is missing, unreadable or malformed (the message names the file)."""
+
+
+def cache_dir() -> Path:
+    """Project cache folder: ``$NARF_CACHE`` or ``~/.cache/narf-avatar``."""
+    return Path(os.environ.get("NARF_CACHE", Path.home() / ".cache" / "narf-avatar"))
+
+
+class _LegacyPickler(pickle._Pickler):  # the pure-Python pickler lets us rename modules of globals
+    def save_global(self, obj, name=None):
+        module = getattr(obj, "__module__", None)
+        if module in _LEGACY_MODULES:
+            self.write(pickle.GLOBAL + f"{_LEGACY_MODULES[module]}\n{name or obj.__name__}\n".encode())
+            self.memoize(obj)
+            return
+        super().save_global(obj, name)
+
+    dispatch = dict(pickle._Pickler.dispatch)
+
+
+def atomic_write_bytes(path: Path, data: bytes) -> None:
+    """Write ``data`` to ``path`` through a temporary file in the same folder and a rename."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_smpl_pickle(model: dict, path: Path) -> None:
+    """Write an SMPL dict as a plain numpy/scipy pickle (protocol 2, numpy-1-loadable), atomically."""
+    buffer = io.BytesIO()
+    _LegacyPickler(buffer, protocol=2).dump(model)
+    atomic_write_bytes(Path(path), buffer.getvalue())
+
+
+def validate_smpl_dict(model: dict, source: str) -> None:
+    """Check the keys and shapes smplx needs; raise :class:`SmplFileError` naming ``source``."""
+    missing = [k for k in REQUIRED_KEYS if k not in model]
+    if missing:
+        raise SmplFileError(f"{source}: missing SMPL keys {missing}")
+    n_verts = np.asarray(model["v_template"]).shape[0]
+    checks = {
+        "v_template": (n_verts, 3), "weights": (n_verts, 24), "J_regressor": (24, n_verts),
+        "kintree_table": (2, 24),
+    }  # fmt: skip
+    for key, shape in checks.items():
+        got = model[key].shape
+        if tuple(got) != shape:
+            raise SmplFileError(f"{source}: '{key}' has shape {tuple(got)}, expected {shape}")
+    if n_verts != 6890:
+        raise SmplFileError(f"{source}: {n_verts} vertices; smplx's SMPL needs 6890 (extra-joint vertex ids)")
+    if np.asarray(model["shapedirs"]).shape[:2] != (n_verts, 3) or np.asarray(model["shapedirs"]).shape[2] < 10:
+        raise SmplFileError(f"{source}: 'shapedirs' has shape {np.shape(model['shapedirs'])}, expected (6890,3,>=10)")
+
+
+class _ChumpyStub:
+    """Stands in for chumpy objects while unpickling: keeps the wrapped array ``x``."""
+
+    def __init__(self, *args, **kwargs):
+        pass
+
+    def __setstate__(self, state):
+        self.__dict__.update(state if isinstance(state, dict) else {"x": state})
+
+
+class _ChumpyFreeUnpickler(pickle.Unpickler):
+    def find_class(self, module, name):
+        if module.startswith("chumpy"):
+            return _ChumpyStub
+        if module.startswith("scipy.sparse.") and name.endswith("_matrix"):
+            return getattr(scipy.sparse, name)
+        return super().find_class(module, name)
+
+
+def _unwrap(value):
+    if isinstance(value, _ChumpyStub):
+        if "x" not in value.__dict__:
+            raise SmplFileError(f"a chumpy object without an array 'x' (has {sorted(value.__dict__)})")
+        return np.asarray(value.__dict__["x"])
+    return value
+
+
+def load_smpl_dict(path: Path) -> dict:
+    """Read an SMPL pickle (official chumpy-based or plain) into a plain dict of numpy/scipy objects."""
+    path = Path(path)
+    if not path.is_file():
+        raise SmplFileError(f"{path}: no such SMPL model file")
+    try:
+        with open(path, "rb") as handle:
+            raw = _ChumpyFreeUnpickler(handle, encoding="latin1").load()
+    except (pickle.UnpicklingError, EOFError, ModuleNotFoundError, AttributeError) as err:
+        raise SmplFileError(f"{path}: not a readable SMPL pickle ({err})") from err
+    if not isinstance(raw, dict):
+        raise SmplFileError(f"{path}: expected a pickled dict, got {type(raw).__name__}")
+    model = {key: _unwrap(value) for key, value in raw.items()}
+    validate_smpl_dict(model, str(path))
+    return model
+
+
+def convert_official_pickle(src: Path, dst: Path) -> Path:
+    """Convert an official (chumpy) SMPL pickle to a plain one that smplx loads without chumpy."""
+    model = load_smpl_dict(src)
+    if not scipy.sparse.issparse(model["J_regressor"]):
+        model["J_regressor"] = scipy.sparse.csc_matrix(model["J_regressor"])
+    model["f"] = np.asarray(model["f"]).astype(np.uint32)
+    write_smpl_pickle(model, Path(dst))
+    return Path(dst)
+
+
+def standin_path() -> Path:
+    """Path of the generated stand-in ``SMPL_NEUTRAL.pkl`` inside the cache (smplx ``create`` layout)."""
+    return cache_dir() / "body_models" / "smpl" / "SMPL_NEUTRAL.pkl"
+
+
+def ensure_standin(path: Path | None = None) -> Path:
+    """Generate the stand-in body model once (atomically) and return its path."""
+    path = Path(path) if path else standin_path()
+    if not path.is_file():
+        from pipelines.standin_body import build_standin_model
+
+        print(f"narf: generating the stand-in SMPL body model at {path}", file=sys.stderr)
+        write_smpl_pickle(build_standin_model(), path)
+    return path
+
+
+def resolve_smpl_file(smpl_dir: str | Path | None = None, gender: str = "neutral") -> Path:
+    """Find the SMPL model: explicit path/dir, then ``$NARF_SMPL_DIR``, then the generated stand-in."""
+    for candidate in (smpl_dir, os.environ.get("NARF_SMPL_DIR")):
+        if not candidate:
+            continue
+        candidate = Path(candidate)
+        if candidate.is_file():
+            return candidate
+        names = [f"SMPL_{gender.upper()}.pkl", f"smpl/SMPL_{gender.upper()}.pkl",
+                 f"basicModel_{gender[0]}_lbs_10_207_0_v1.0.0.pkl", f"basicmodel_{gender[0]}_lbs_10_207_0_v1.1.0.pkl"]
+        for name in names:
+            if (candidate / name).is_file():
+                return candidate / name
+        raise SmplFileError(f"{candidate}: no SMPL model file for gender '{gender}' (looked for {names})")
+    return ensure_standin()
