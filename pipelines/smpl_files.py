@@ -162,10 +162,14 @@ def resolve_smpl_file(smpl_dir: str | Path | None = None, gender: str = "neutral
         candidate = Path(candidate)
         if candidate.is_file():
             return candidate
+        short = {"female": "f", "male": "m"}.get(gender.lower(), gender.lower())
         names = [f"SMPL_{gender.upper()}.pkl", f"smpl/SMPL_{gender.upper()}.pkl",
-                 f"basicModel_{gender[0]}_lbs_10_207_0_v1.0.0.pkl", f"basicmodel_{gender[0]}_lbs_10_207_0_v1.1.0.pkl"]
+                 f"basicmodel_{short}_lbs_10_207_0_v1.0.0.pkl", f"basicmodel_{short}_lbs_10_207_0_v1.1.0.pkl"]
+        present = {p.name.lower(): p for p in candidate.glob("*.pkl")} if candidate.is_dir() else {}
         for name in names:
             if (candidate / name).is_file():
                 return candidate / name
+            if name.lower() in present:
+                return present[name.lower()]
         raise SmplFileError(f"{candidate}: no SMPL model file for gender '{gender}' (looked for {names})")
     return ensure_standin()
