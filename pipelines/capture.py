@@ -1,0 +1,202 @@
+"""A ZJU-MoCap-layout capture on disk: frames, cameras, SMPL fits and evaluation protocols.
+
+``ZjuCapture(root).load_frame(f, c)`` returns a :class:`pipelines.zju_mocap.Frame` processed in the Neural Body
+order. Protocols (data-formats.md §1.8) list the (frame, camera) pairs of each split.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from functools import cached_property
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipelines.zju_mocap import (
+    CaptureError,
+    Frame,
+    SmplParams,
+    boundary_band,
+    param_index_from_image,
+    read_annots,
+    read_params,
+)
+
+MASK_SOURCES = ("cihp", "mask", "union")
+#: Neural Body frame ranges per subject id: (train begin, n train, novel-pose begin, n novel).
+NEURALBODY_FRAMES = {313: (0, 60, 60, 1000), 315: (0, 400, 400, 1000), 377: (0, 300, 300, 317),
+                     386: (0, 300, 300, 346), 387: (0, 300, 300, 354), 390: (700, 300, 0, 700),
+                     392: (0, 300, 300, 256), 393: (0, 300, 300, 358), 394: (0, 300, 300, 559)}  # fmt: skip
+SPLITS = ("train", "same_pose_same_view", "same_pose_novel_view", "novel_pose_same_view", "novel_pose_novel_view",
+          "novel_pose", "novel_view")  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Protocol:
+    """Which frames and views train and test.
+
+    Attributes:
+        name: ``neuralbody`` or ``narf``.
+        train_views / test_views: camera indices.
+        train_frames / novel_frames: frame indices (training poses, held-out poses).
+        interval: evaluation uses every ``interval``-th frame of a range.
+    """
+
+    name: str
+    train_views: tuple[int, ...]
+    test_views: tuple[int, ...]
+    train_frames: tuple[int, ...]
+    novel_frames: tuple[int, ...]
+    interval: int = 30
+
+    def split(self, name: str) -> list[tuple[int, int]]:
+        """(frame, camera) pairs of a split. ``novel_pose`` = novel poses x test views (Neural Body);
+        ``novel_view`` = training poses x test views; ``train`` = every training frame x training view."""
+        if name not in SPLITS:
+            raise ValueError(f"unknown split '{name}'; choose from {', '.join(SPLITS)}")
+        if name == "train":
+            return [(f, c) for f in self.train_frames for c in self.train_views]
+        alias = {"novel_pose": "novel_pose_novel_view", "novel_view": "same_pose_novel_view"}
+        pose, view = alias.get(name, name).split("_pose_")
+        frames = (self.train_frames if pose == "same" else self.novel_frames)[:: self.interval]
+        views = self.train_views if view == "same_view" else self.test_views
+        return [(f, c) for f in frames for c in views]
+
+
+def make_protocol(name: str, n_frames: int, n_cameras: int, subject_id: int | None = None) -> Protocol:
+    """Neural Body protocol (training views 0, 6, 12, 18; per-subject frame ranges) or the NARF supplement's
+    (first 90 % of frames train, last 10 % novel pose, same views)."""
+    train_views = tuple(v for v in (0, 6, 12, 18) if v < n_cameras)
+    if not train_views:
+        raise CaptureError(f"a protocol needs at least one camera, the capture has {n_cameras}")
+    test_views = tuple(v for v in range(n_cameras) if v not in train_views)
+    if name == "neuralbody" and subject_id in NEURALBODY_FRAMES:
+        begin, n_train, novel_begin, n_novel = NEURALBODY_FRAMES[subject_id]
+        train = range(begin, min(begin + n_train, n_frames))
+        novel = range(novel_begin, min(novel_begin + n_novel, n_frames))
+    elif name in ("neuralbody", "narf"):
+        n_train = max(1, int(round(0.9 * n_frames)))
+        train, novel = range(0, n_train), range(n_train, n_frames)
+    else:
+        raise ValueError(f"unknown protocol '{name}'; choose neuralbody or narf")
+    return Protocol(name, train_views, test_views, tuple(train), tuple(novel))
+
+
+class ZjuCapture:
+    """A ZJU-MoCap-layout subject folder.
+
+    Args:
+        root: the ``CoreView_*`` (or synthetic) folder holding ``annots.npy``.
+        ratio: resize ratio (Neural Body uses 0.5 on 1024^2 images).
+        mask_source: ``cihp`` (mask_cihp != 0), ``mask`` (binary) or ``union``.
+        new_params: read ``new_params/`` (with pose blend shapes) instead of ``params/``.
+        white_background: composite onto white instead of black.
+    """
+
+    def __init__(self, root: str | Path, ratio: float = 0.5, mask_source: str = "cihp", new_params: bool = True,
+                 white_background: bool = False):  # fmt: skip
+        self.root = Path(root)
+        if not (self.root / "annots.npy").is_file():
+            raise CaptureError(f"{self.root}: no annots.npy (not a ZJU-MoCap subject folder)")
+        if mask_source not in MASK_SOURCES:
+            raise ValueError(f"mask_source must be one of {MASK_SOURCES}, got '{mask_source}'")
+        if not 0 < ratio <= 1:
+            raise ValueError(f"ratio must be in (0, 1], got {ratio}")
+        self.ratio, self.mask_source, self.white_background = ratio, mask_source, white_background
+        self.params_dir = "new_params" if new_params and (self.root / "new_params").is_dir() else "params"
+        self.vertices_dir = self.params_dir.replace("params", "vertices")
+        self.cameras, self.ims = read_annots(self.root / "annots.npy")
+        for cam in self.cameras:
+            if not (self.root / cam.name).is_dir():
+                raise CaptureError(f"{self.root / cam.name}: camera folder listed in annots.npy is missing")
+        self._frame_of_entry = [param_index_from_image(entry[0]) for entry in self.ims]
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.ims)
+
+    @property
+    def n_cameras(self) -> int:
+        return len(self.cameras)
+
+    @cached_property
+    def subject_id(self) -> int | None:
+        digits = "".join(ch for ch in self.root.name.split("_")[-1] if ch.isdigit())
+        return int(digits) if digits else None
+
+    def protocol(self, name: str = "neuralbody") -> Protocol:
+        return make_protocol(name, self.n_frames, self.n_cameras, self.subject_id)
+
+    def params(self, frame: int) -> SmplParams:
+        """SMPL parameters of frame ``frame`` (0-based annots entry)."""
+        self._check_frame(frame)
+        return read_params(self.root / self.params_dir / f"{self._frame_of_entry[frame][1]}.npy")
+
+    def vertices(self, frame: int) -> np.ndarray:
+        """(6890, 3) world vertices of frame ``frame``."""
+        self._check_frame(frame)
+        path = self.root / self.vertices_dir / f"{self._frame_of_entry[frame][1]}.npy"
+        if not path.is_file():
+            raise CaptureError(f"{path}: missing")
+        verts = np.load(path)
+        if verts.ndim != 2 or verts.shape[1] != 3 or not np.isfinite(verts).all():
+            raise CaptureError(f"{path}: expected finite (V, 3) vertices, got shape {verts.shape}")
+        return verts.astype(np.float32)
+
+    def _check_frame(self, frame: int) -> None:
+        if not 0 <= frame < self.n_frames:
+            raise CaptureError(f"{self.root}: frame {frame} out of range (annots lists {self.n_frames} frames)")
+
+    def _read_mask(self, frame: int, cam: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        rel = Path(self.ims[frame][cam]).with_suffix(".png")
+        sources = {"cihp": ["mask_cihp"], "mask": ["mask"], "union": ["mask", "mask_cihp"]}[self.mask_source]
+        masks, labels = [], np.zeros(shape, np.uint8)
+        for folder in sources:
+            path = self.root / folder / rel
+            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if raw is None:
+                raise CaptureError(f"{path}: missing or unreadable mask")
+            raw = raw[..., 0] if raw.ndim == 3 else raw
+            if raw.shape != shape:
+                raise CaptureError(f"{path}: mask is {raw.shape[1]}x{raw.shape[0]} but the image is "
+                                   f"{shape[1]}x{shape[0]}")  # fmt: skip
+            masks.append(raw != 0)
+            if folder == "mask_cihp":
+                labels = raw.astype(np.uint8)
+        return np.logical_or.reduce(masks), labels
+
+    def load_frame(self, frame: int, cam: int) -> Frame:
+        """Load one view in the Neural Body order (module docstring)."""
+        self._check_frame(frame)
+        if not 0 <= cam < self.n_cameras:
+            raise CaptureError(f"{self.root}: camera {cam} out of range ({self.n_cameras} cameras)")
+        path = self.root / self.ims[frame][cam]
+        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if bgr is None:
+            raise CaptureError(f"{path}: missing or unreadable image")
+        camera = self.cameras[cam]
+        if (bgr.shape[1], bgr.shape[0]) != (camera.width, camera.height):
+            raise CaptureError(f"{path}: image is {bgr.shape[1]}x{bgr.shape[0]}, camera {camera.name} images are "
+                               f"{camera.width}x{camera.height}")  # fmt: skip
+        image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
+        mask, labels = self._read_mask(frame, cam, image.shape[:2])
+        if np.any(camera.dist != 0):
+            image = cv2.undistort(image, camera.K, camera.dist)
+            maps = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, camera.K, (camera.width, camera.height),
+                                               cv2.CV_32FC1)  # fmt: skip
+            mask = cv2.remap(mask.astype(np.uint8), *maps, cv2.INTER_NEAREST) > 0
+            labels = cv2.remap(labels, *maps, cv2.INTER_NEAREST)
+        band = boundary_band(mask)
+        if self.ratio != 1:
+            size = (int(round(camera.width * self.ratio)), int(round(camera.height * self.ratio)))
+            image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+            mask = cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+            band = cv2.resize(band.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+            labels = cv2.resize(labels, size, interpolation=cv2.INTER_NEAREST)
+        background = 1.0 if self.white_background else 0.0
+        image[~mask & ~band] = background
+        return Frame(frame_index=self._frame_of_entry[frame][0], camera_index=cam, image=image,
+                     mask=mask.astype(np.float32), band=band, labels=labels,
+                     camera=camera.undistorted().scaled(self.ratio), params=self.params(frame),
+                     image_path=path)  # fmt: skip

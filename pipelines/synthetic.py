@@ -1,0 +1,260 @@
+"""Synthetic multi-view capture of the stand-in body in the real ZJU-MoCap layout (data-formats.md §6).
+
+``generate_capture(out, SynthConfig(...))`` renders with trimesh + embree (ray casting through the distorted
+pixel grid of every camera), writes images, CIHP and binary masks, ``params`` / ``vertices`` (no pose blend
+shapes), ``new_params`` / ``new_vertices`` (with), ``annots.npy``, EasyMocap cameras and ChArUco calibration
+shots under ``calib/``. The capture is written into a hidden ``.partial`` folder and renamed when complete, so
+an interrupted run leaves nothing that looks finished; a finished capture with the same settings is reused.
+"""
+
+from __future__ import annotations
+
+import json
+import multiprocessing as mp
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import trimesh
+from tqdm import tqdm
+
+from pipelines.body_model import BodyModel
+from pipelines.synthetic_scene import albedo, ring_cameras, shade, studio_background, taichi_motion, vertex_regions
+from pipelines.zju_mocap import Camera, SmplParams, write_annots, write_easymocap_cameras, write_params
+
+GENERATOR_VERSION = 1
+MARKER = "synthetic.json"
+
+
+@dataclass(frozen=True)
+class SynthConfig:
+    """Settings of a synthetic capture.
+
+    Attributes:
+        subject: name written into the marker (the motion is the taichi sequence).
+        resolution: square image size in pixels.
+        frames: number of frames (30 fps).
+        cameras: number of ring cameras.
+        seed: seed of rig, motion and appearance jitter.
+        layout: ``standard`` (``Camera_B1/000000.jpg``) or ``313`` (``Camera (1)/..._0001_<time>.jpg``, 1-based).
+        calib_shots: ChArUco board poses under ``calib/`` (0 to skip).
+        jpeg_quality: JPEG quality of the images.
+        workers: render processes.
+    """
+
+    subject: str = "taichi"
+    resolution: int = 512
+    frames: int = 240
+    cameras: int = 21
+    seed: int = 0
+    layout: str = "standard"
+    calib_shots: int = 30
+    jpeg_quality: int = 95
+    workers: int = 2
+
+    def validate(self) -> None:
+        if self.resolution < 32 or self.frames < 1 or self.cameras < 1:
+            raise ValueError(f"resolution >= 32, frames >= 1 and cameras >= 1 are required, got {self}")
+        if self.layout not in ("standard", "313"):
+            raise ValueError(f"layout must be 'standard' or '313', got '{self.layout}'")
+        if not 1 <= self.jpeg_quality <= 100:
+            raise ValueError(f"jpeg_quality must be in [1, 100], got {self.jpeg_quality}")
+
+
+def image_relpath(layout: str, cam: int, frame: int) -> str:
+    """Relative image path of (camera index, frame index) in the given naming layout."""
+    if layout == "313":
+        return f"Camera ({cam + 1})/CoreView_313_Camera_({cam + 1})_{frame + 1:04d}_2019-08-23_16-08-50.592.jpg"
+    return f"Camera_B{cam + 1}/{frame:06d}.jpg"
+
+
+def pixel_directions(camera: Camera) -> np.ndarray:
+    """(H, W, 3) unit world directions of the rays through every (distorted) pixel centre."""
+    ys, xs = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
+    pixels = np.stack([xs.ravel(), ys.ravel()], axis=1)[:, None]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
+    normalised = cv2.undistortPoints(pixels, camera.K, camera.dist, None, None, None, criteria)[:, 0]
+    dirs_cam = np.concatenate([normalised, np.ones((len(normalised), 1))], axis=1)
+    dirs_world = dirs_cam @ camera.cam_from_world[:3, :3]
+    dirs_world /= np.linalg.norm(dirs_world, axis=1, keepdims=True)
+    return dirs_world.reshape(camera.height, camera.width, 3).astype(np.float32)
+
+
+_STATE: dict = {}
+
+
+def _prepare_state(state: dict) -> None:
+    """Fill the module state used by the render functions (inherited by forked workers)."""
+    _STATE.clear()
+    _STATE.update(state)
+    _STATE["dirs"] = [pixel_directions(cam) for cam in state["cameras"]]
+    _STATE["backgrounds"] = [studio_background(cam, d) for cam, d in zip(state["cameras"], _STATE["dirs"])]
+
+
+def _init_worker() -> None:
+    cv2.setNumThreads(1)
+    torch.set_num_threads(1)
+
+
+def _bbox_pixels(camera: Camera, vertices: np.ndarray, pad: int = 6) -> tuple[int, int, int, int] | None:
+    corners = np.array(np.meshgrid(*zip(vertices.min(0), vertices.max(0)))).T.reshape(-1, 3)
+    rvec = cv2.Rodrigues(camera.cam_from_world[:3, :3])[0]
+    if np.any((corners @ camera.cam_from_world[:3, :3].T + camera.cam_from_world[:3, 3])[:, 2] <= 0.05):
+        return 0, 0, camera.width, camera.height
+    pts = cv2.projectPoints(corners, rvec, camera.cam_from_world[:3, 3], camera.K, camera.dist)[0][:, 0]
+    x0, y0 = np.floor(pts.min(0)).astype(int) - pad
+    x1, y1 = np.ceil(pts.max(0)).astype(int) + pad
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, camera.width), min(y1, camera.height)
+    return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1, y1)
+
+
+def render_view(mesh: trimesh.Trimesh, cam: int) -> tuple[np.ndarray, np.ndarray]:
+    """Render one camera of the current frame: (H, W, 3) float RGB and (H, W) uint8 CIHP labels."""
+    camera = _STATE["cameras"][cam]
+    image = _STATE["backgrounds"][cam].copy()
+    labels = np.zeros((camera.height, camera.width), np.uint8)
+    box = _bbox_pixels(camera, mesh.vertices)
+    if box is None:
+        return image, labels
+    x0, y0, x1, y1 = box
+    dirs = _STATE["dirs"][cam][y0:y1, x0:x1].reshape(-1, 3).astype(np.float64)
+    origins = np.broadcast_to(camera.centre, dirs.shape)
+    tri, ray, loc = mesh.ray.intersects_id(origins, dirs, multiple_hits=False, return_locations=True)
+    if len(ray) == 0:
+        return image, labels
+    faces = mesh.faces[tri]
+    bary = trimesh.triangles.points_to_barycentric(mesh.vertices[faces], loc)
+    rest = np.einsum("nk,nkd->nd", bary, _STATE["rest_vertices"][faces])
+    label = _STATE["labels"][faces[np.arange(len(faces)), bary.argmax(1)]]
+    normals = np.einsum("nk,nkd->nd", bary, mesh.vertex_normals[faces])
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-9)
+    flip = np.einsum("nd,nd->n", normals, dirs[ray]) > 0
+    normals[flip] *= -1
+    colour = shade(albedo(rest, label), normals)
+    rows, cols = ray // (x1 - x0) + y0, ray % (x1 - x0) + x0
+    image[rows, cols] = colour
+    labels[rows, cols] = label
+    return image, labels
+
+
+def _render_frame(task: tuple[int, np.ndarray]) -> int:
+    frame, vertices = task
+    mesh = trimesh.Trimesh(vertices.astype(np.float64), _STATE["faces"], process=False)
+    root, layout, quality = _STATE["root"], _STATE["layout"], _STATE["jpeg_quality"]
+    for cam in range(len(_STATE["cameras"])):
+        image, labels = render_view(mesh, cam)
+        rel = Path(image_relpath(layout, cam, frame))
+        bgr = cv2.cvtColor((image * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)
+        cv2.imwrite(str(root / rel), bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
+        cv2.imwrite(str(root / "mask_cihp" / rel.with_suffix(".png")), labels)
+        cv2.imwrite(str(root / "mask" / rel.with_suffix(".png")), (labels > 0).astype(np.uint8))
+    return frame
+
+
+def pose_sequence(body: BodyModel, motion: dict[str, np.ndarray]) -> tuple[list[SmplParams], np.ndarray, np.ndarray]:
+    """Pose the motion, put the feet on the floor (z = 0), return params and vertices without / with pose
+    blend shapes, (F, V, 3) each."""
+    args = [torch.as_tensor(motion[k], dtype=torch.float32) for k in ("poses", "Rh", "Th", "shapes")]
+    old, new = [], []
+    for start in range(0, len(args[0]), 64):
+        chunk = [a[start : start + 64] for a in args]
+        with torch.no_grad():
+            old.append(body.pose_zju(*chunk, pose_blendshapes=False).vertices.numpy())
+            new.append(body.pose_zju(*chunk, pose_blendshapes=True).vertices.numpy())
+    old, new = np.concatenate(old), np.concatenate(new)
+    lift = new[..., 2].max(axis=1)  # z is down: the lowest point has the largest z
+    old[..., 2] -= lift[:, None]
+    new[..., 2] -= lift[:, None]
+    th = motion["Th"].copy()
+    th[:, 2] -= lift
+    params = [SmplParams(motion["poses"][f].astype(np.float32), motion["Rh"][f].astype(np.float32),
+                         th[f].astype(np.float32), motion["shapes"][f].astype(np.float32))
+              for f in range(len(th))]  # fmt: skip
+    return params, old, new
+
+
+def is_complete(out: Path, config: SynthConfig | None = None) -> bool:
+    """True when ``out`` holds a finished capture (with the same settings, if ``config`` is given)."""
+    marker = Path(out) / MARKER
+    if not marker.is_file():
+        return False
+    if config is None:
+        return True
+    try:
+        written = json.loads(marker.read_text())
+    except (OSError, json.JSONDecodeError):
+        return False
+    return written.get("config") == asdict(config) and written.get("version") == GENERATOR_VERSION
+
+
+def _write_sequence(root: Path, layout: str, params: list[SmplParams], old: np.ndarray, new: np.ndarray) -> None:
+    for folder in ("params", "new_params", "vertices", "new_vertices"):
+        (root / folder).mkdir(parents=True, exist_ok=True)
+    base = 1 if layout == "313" else 0
+    for f, p in enumerate(params):
+        write_params(root / "params" / f"{f + base}.npy", p)
+        write_params(root / "new_params" / f"{f + base}.npy", p)
+        np.save(root / "vertices" / f"{f + base}.npy", old[f].astype(np.float32))
+        np.save(root / "new_vertices" / f"{f + base}.npy", new[f].astype(np.float32))
+
+
+def generate_capture(out: str | Path, config: SynthConfig = SynthConfig(), smpl_path: str | Path | None = None,
+                     progress: bool = True) -> Path:  # fmt: skip
+    """Generate (or reuse) a synthetic capture at ``out``; returns ``out``."""
+    config.validate()
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out}: exists and is not a folder")
+    if is_complete(out, config):
+        return out
+    if out.exists() and any(out.iterdir()):
+        if not is_complete(out):
+            raise FileExistsError(f"{out}: folder is not empty and holds no finished synthetic capture; "
+                                  "choose another --out or remove it")  # fmt: skip
+        shutil.rmtree(out)  # a finished capture with other settings: regenerate
+    partial = out.parent / f".{out.name}.partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    body = BodyModel(smpl_path)
+    params, old, new = pose_sequence(body, taichi_motion(config.frames, config.seed))
+    cameras = ring_cameras(config.cameras, config.resolution, config.seed)
+    if config.layout == "313":
+        cameras = [Camera(f"Camera ({c + 1})", cam.K, cam.dist, cam.cam_from_world, cam.width, cam.height)
+                   for c, cam in enumerate(cameras)]  # fmt: skip
+    _write_sequence(partial, config.layout, params, old, new)
+    ims = [[image_relpath(config.layout, c, f) for c in range(config.cameras)] for f in range(config.frames)]
+    for folder in ("", "mask_cihp", "mask"):
+        for cam in cameras:
+            (partial / folder / cam.name).mkdir(parents=True, exist_ok=True)
+    write_annots(partial / "annots.npy", cameras, ims)
+    write_easymocap_cameras(partial, cameras)
+    rest = body.rest_body(torch.as_tensor(params[0].shapes)[None]).vertices[0].numpy()
+    state = {"root": partial, "layout": config.layout, "jpeg_quality": config.jpeg_quality, "cameras": cameras,
+             "faces": body.faces, "rest_vertices": rest,
+             "labels": vertex_regions(rest, body.skinning_weights.numpy())}  # fmt: skip
+    tasks = [(f, new[f]) for f in range(config.frames)]
+    bar = tqdm(total=config.frames, desc=f"rendering {config.frames} frames x {config.cameras} cameras",
+               unit="frame", disable=not progress)  # fmt: skip
+    _prepare_state(state)
+    if config.workers > 1:
+        with mp.get_context("fork").Pool(config.workers, _init_worker) as pool:
+            for _ in pool.imap_unordered(_render_frame, tasks, chunksize=2):
+                bar.update()
+    else:
+        for task in tasks:
+            _render_frame(task)
+            bar.update()
+    bar.close()
+    if config.calib_shots > 0:
+        from pipelines.synthetic_calib import write_calibration_shots
+
+        write_calibration_shots(partial / "calib", cameras, config.calib_shots, config.seed, progress=progress)
+    (partial / MARKER).write_text(json.dumps({"version": GENERATOR_VERSION, "config": asdict(config),
+                                              "smpl": str(body.path)}, indent=2))  # fmt: skip
+    if out.exists():
+        out.rmdir()
+    partial.rename(out)
+    return out

@@ -1,0 +1,284 @@
+"""ZJU-MoCap (CoreView_*) reader and writer, exactly as data-formats.md §1.
+
+The reader follows the Neural Body loader order (§1.7): read /255 -> mask from ``mask_cihp`` (and/or ``mask``)
+-> undistort image and mask -> resize by ``ratio`` (INTER_AREA / NEAREST) -> background outside the mask ->
+scale K. The 5x5 dilate-minus-erode boundary band is returned separately so that losses can skip it.
+Project decision: the mask is undistorted with nearest-neighbour remapping (neuralbody interpolates its uint8
+labels bilinearly, which invents intermediate labels on edges).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipelines.smpl_files import atomic_write_bytes
+
+
+class CaptureError(ValueError):
+    """A capture file is missing or malformed; the message names the file and the problem."""
+
+
+@dataclass(frozen=True)
+class Camera:
+    """An OpenCV pinhole camera. ``x_cam = R x_world + t`` with t in metres; pixel centres at integers.
+
+    Attributes:
+        name: camera folder name, e.g. ``Camera_B1``.
+        K: (3, 3) intrinsics.
+        dist: (5,) k1, k2, p1, p2, k3.
+        cam_from_world: (4, 4) extrinsics, metres.
+        width, height: image size in pixels.
+    """
+
+    name: str
+    K: np.ndarray
+    dist: np.ndarray
+    cam_from_world: np.ndarray
+    width: int
+    height: int
+
+    @property
+    def centre(self) -> np.ndarray:
+        """Camera centre in world coordinates, ``-R^T t``."""
+        return -self.cam_from_world[:3, :3].T @ self.cam_from_world[:3, 3]
+
+    def scaled(self, ratio: float) -> "Camera":
+        """The camera after resizing the image by ``ratio`` (first two rows of K scaled)."""
+        K = self.K.copy()
+        K[:2] *= ratio
+        return replace(self, K=K, width=int(round(self.width * ratio)), height=int(round(self.height * ratio)))
+
+    def undistorted(self) -> "Camera":
+        return replace(self, dist=np.zeros(5))
+
+
+@dataclass(frozen=True)
+class SmplParams:
+    """One frame's SMPL fit (EasyMocap convention ``V_world = R(Rh) X + Th``): poses (72,), Rh (3,), Th (3,),
+    shapes (10,), float32."""
+
+    poses: np.ndarray
+    rh: np.ndarray
+    th: np.ndarray
+    shapes: np.ndarray
+
+
+@dataclass
+class Frame:
+    """One (frame, camera) view after loading.
+
+    Attributes:
+        frame_index: 0-based frame index.
+        camera_index: index into the annots camera list.
+        image: (H, W, 3) float32 RGB in [0, 1], background composited.
+        mask: (H, W) float32 in {0, 1}.
+        band: (H, W) bool, the 5-px boundary band (skipped by the mask loss).
+        labels: (H, W) uint8 CIHP labels (0 where unknown).
+        camera: the camera of this image (undistorted, resized).
+        params: the frame's SMPL parameters.
+        image_path: source image.
+    """
+
+    frame_index: int
+    camera_index: int
+    image: np.ndarray
+    mask: np.ndarray
+    band: np.ndarray
+    labels: np.ndarray
+    camera: Camera
+    params: SmplParams
+    image_path: Path = field(default=Path())
+
+
+_313_PATTERN = re.compile(r"^(?P<prefix>.+?)_(?P<index>\d{4})_[^_]*$")
+
+
+def param_index_from_image(rel_path: str) -> tuple[int, int]:
+    """(frame_index, params file index) of an image path in ``annots['ims']`` (§1.2).
+
+    Standard subjects: ``Camera_B1/000012.jpg`` -> (12, 12). 313/315: the fifth underscore-separated field of
+    ``CoreView_313_Camera_(1)_0013_<timestamp>.jpg`` is 1-based -> (12, 13).
+    """
+    stem = Path(rel_path).stem
+    if stem.isdigit():
+        return int(stem), int(stem)
+    fields = stem.split("_")
+    if len(fields) >= 5 and fields[4].isdigit():
+        one_based = int(fields[4])
+        return one_based - 1, one_based
+    raise CaptureError(f"cannot read a frame index from image name '{rel_path}'")
+
+
+def _read_npy_dict(path: Path) -> dict:
+    if not path.is_file():
+        raise CaptureError(f"{path}: missing")
+    try:
+        value = np.load(path, allow_pickle=True)
+        return value.item() if value.dtype == object and value.shape == () else {"__array__": value}
+    except (OSError, ValueError) as err:
+        raise CaptureError(f"{path}: unreadable ({err})") from err
+
+
+def read_params(path: Path) -> SmplParams:
+    """Read ``params/{i}.npy`` or ``new_params/{i}.npy``; check keys, shapes and finiteness."""
+    data = _read_npy_dict(path)
+    want = {"poses": 72, "Rh": 3, "Th": 3, "shapes": 10}
+    values = {}
+    for key, size in want.items():
+        if key not in data:
+            raise CaptureError(f"{path}: missing key '{key}' (has {sorted(data)})")
+        arr = np.asarray(data[key], dtype=np.float64)
+        if arr.size != size:
+            raise CaptureError(f"{path}: '{key}' has shape {arr.shape}, expected (1, {size})")
+        if not np.isfinite(arr).all():
+            raise CaptureError(f"{path}: '{key}' contains NaN or infinite values")
+        values[key] = arr.reshape(size).astype(np.float32)
+    return SmplParams(values["poses"], values["Rh"], values["Th"], values["shapes"])
+
+
+def write_params(path: Path, params: SmplParams) -> None:
+    """Write an EasyMocap/ZJU params file: a dict of (1, n) float64 arrays."""
+    data = {"poses": params.poses[None].astype(np.float64), "Rh": params.rh[None].astype(np.float64),
+            "Th": params.th[None].astype(np.float64), "shapes": params.shapes[None].astype(np.float64)}  # fmt: skip
+    _save_npy(path, np.array(data, dtype=object))
+
+
+def _save_npy(path: Path, array: np.ndarray) -> None:
+    import io
+
+    buffer = io.BytesIO()
+    np.save(buffer, array, allow_pickle=True)
+    atomic_write_bytes(Path(path), buffer.getvalue())
+
+
+def write_annots(path: Path, cameras: list[Camera], ims: list[list[str]]) -> None:
+    """Write ``annots.npy``: cams K, D (5,1), R, T (3,1) in millimetres; ims per frame."""
+    cams = {"K": [c.K.astype(np.float64) for c in cameras], "D": [c.dist.reshape(5, 1) for c in cameras],
+            "R": [c.cam_from_world[:3, :3].copy() for c in cameras],
+            "T": [c.cam_from_world[:3, 3:4] * 1000.0 for c in cameras]}  # fmt: skip
+    for frame_ims in ims:
+        if len(frame_ims) != len(cameras):
+            raise ValueError(f"each ims entry must list {len(cameras)} paths, got {len(frame_ims)}")
+    _save_npy(path, np.array({"cams": cams, "ims": [{"ims": list(f)} for f in ims]}, dtype=object))
+
+
+def _orthonormalise(rotation: np.ndarray) -> np.ndarray:
+    u, _, vt = np.linalg.svd(rotation)
+    fixed = u @ vt
+    if np.linalg.det(fixed) < 0:  # keep a proper rotation (SURREAL-style det -1 matrices are not ZJU's)
+        u[:, -1] *= -1
+        fixed = u @ vt
+    return fixed
+
+
+def read_annots(path: Path, image_size: tuple[int, int] | None = None) -> tuple[list[Camera], list[list[str]]]:
+    """Read ``annots.npy`` into cameras (T converted to metres, R re-orthonormalised) and per-frame image paths.
+
+    Args:
+        path: the annots file.
+        image_size: (width, height) of the images; ``None`` reads the first image of each camera.
+    """
+    data = _read_npy_dict(Path(path))
+    if "cams" not in data or "ims" not in data:
+        raise CaptureError(f"{path}: expected keys 'cams' and 'ims', got {sorted(data)}")
+    cams = data["cams"]
+    for key in ("K", "D", "R", "T"):
+        if key not in cams:
+            raise CaptureError(f"{path}: cams lacks '{key}'")
+    n_cams = len(cams["K"])
+    if not all(len(cams[k]) == n_cams for k in ("D", "R", "T")):
+        raise CaptureError(f"{path}: cams K/D/R/T list different numbers of cameras "
+                           f"({[len(cams[k]) for k in ('K', 'D', 'R', 'T')]})")  # fmt: skip
+    ims = [list(entry["ims"]) for entry in data["ims"]]
+    for f, entry in enumerate(ims):
+        if len(entry) != n_cams:
+            raise CaptureError(f"{path}: ims[{f}] lists {len(entry)} images but cams has {n_cams} cameras")
+    root = Path(path).parent
+    cameras = []
+    for c in range(n_cams):
+        folder = Path(ims[0][c]).parent.as_posix() if ims else f"camera_{c}"
+        if image_size is None:
+            first = root / ims[0][c]
+            probe = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)
+            if probe is None:
+                raise CaptureError(f"{first}: missing or unreadable image (camera {c} of {path})")
+            width, height = probe.shape[1], probe.shape[0]
+        else:
+            width, height = image_size
+        cam_from_world = np.eye(4)
+        cam_from_world[:3, :3] = _orthonormalise(np.asarray(cams["R"][c], dtype=np.float64).reshape(3, 3))
+        cam_from_world[:3, 3] = np.asarray(cams["T"][c], dtype=np.float64).reshape(3) / 1000.0
+        dist = np.asarray(cams["D"][c], dtype=np.float64).reshape(-1)
+        dist = np.pad(dist, (0, max(0, 5 - dist.size)))[:5]
+        cameras.append(Camera(folder, np.asarray(cams["K"][c], dtype=np.float64).reshape(3, 3), dist,
+                              cam_from_world, width, height))  # fmt: skip
+    return cameras, ims
+
+
+def boundary_band(mask: np.ndarray, width: int = 5) -> np.ndarray:
+    """The ``width x width`` dilate-minus-erode ring of a binary mask (bool)."""
+    kernel = np.ones((width, width), np.uint8)
+    mask_u8 = (mask > 0).astype(np.uint8)
+    return (cv2.dilate(mask_u8, kernel) - cv2.erode(mask_u8, kernel)) > 0
+
+
+def write_easymocap_cameras(folder: Path, cameras: list[Camera]) -> None:
+    """Write EasyMocap ``intri.yml`` / ``extri.yml`` (OpenCV FileStorage; R_ Rodrigues and Rot_ consistent)."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    names = [c.name.replace(" ", "_").replace("(", "").replace(")", "") for c in cameras]
+    for kind in ("intri", "extri"):
+        tmp = folder / f".{kind}.tmp.yml"
+        storage = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
+        storage.startWriteStruct("names", cv2.FileNode_SEQ)
+        for name in names:
+            storage.write("", name)
+        storage.endWriteStruct()
+        for name, cam in zip(names, cameras):
+            if kind == "intri":
+                storage.write(f"K_{name}", cam.K)
+                storage.write(f"dist_{name}", cam.dist.reshape(1, 5))
+                storage.write(f"H_{name}", int(cam.height))
+                storage.write(f"W_{name}", int(cam.width))
+            else:
+                rotation = cam.cam_from_world[:3, :3]
+                storage.write(f"R_{name}", cv2.Rodrigues(rotation)[0])
+                storage.write(f"Rot_{name}", rotation)
+                storage.write(f"T_{name}", cam.cam_from_world[:3, 3:4].copy())
+        storage.release()
+        tmp.replace(folder / f"{kind}.yml")
+
+
+def read_easymocap_cameras(folder: Path) -> list[Camera]:
+    """Read EasyMocap ``intri.yml`` / ``extri.yml`` (rotation rebuilt from ``R_`` as EasyMocap does)."""
+    folder = Path(folder)
+    files = {}
+    for kind in ("intri", "extri"):
+        path = folder / f"{kind}.yml"
+        storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ) if path.is_file() else None
+        if storage is None or not storage.isOpened():
+            raise CaptureError(f"{path}: missing or not an OpenCV YAML file")
+        files[kind] = storage
+    names_node = files["intri"].getNode("names")
+    names = [names_node.at(i).string() for i in range(names_node.size())]
+    cameras = []
+    for name in names:
+        K = files["intri"].getNode(f"K_{name}").mat()
+        dist = files["intri"].getNode(f"dist_{name}").mat()
+        if dist is None:
+            dist = files["intri"].getNode(f"D_{name}").mat()
+        rvec, tvec = files["extri"].getNode(f"R_{name}").mat(), files["extri"].getNode(f"T_{name}").mat()
+        if K is None or dist is None or rvec is None or tvec is None:
+            raise CaptureError(f"{folder}: camera '{name}' lacks K/dist in intri.yml or R/T in extri.yml")
+        cam_from_world = np.eye(4)
+        cam_from_world[:3, :3] = cv2.Rodrigues(rvec)[0]
+        cam_from_world[:3, 3] = tvec.reshape(3)
+        width = int(files["intri"].getNode(f"W_{name}").real() or 0)
+        height = int(files["intri"].getNode(f"H_{name}").real() or 0)
+        cameras.append(Camera(name, K, dist.reshape(-1)[:5], cam_from_world, width, height))
+    return cameras
