@@ -40,7 +40,7 @@ class Protocol:
         name: ``neuralbody`` or ``narf``.
         train_views / test_views: camera indices.
         train_frames / novel_frames: frame indices (training poses, held-out poses).
-        interval: evaluation uses every ``interval``-th frame of a range.
+        interval: evaluation uses every ``interval``-th frame of a range (30; less for short captures).
     """
 
     name: str
@@ -80,7 +80,9 @@ def make_protocol(name: str, n_frames: int, n_cameras: int, subject_id: int | No
         train, novel = range(0, n_train), range(n_train, n_frames)
     else:
         raise ValueError(f"unknown protocol '{name}'; choose neuralbody or narf")
-    return Protocol(name, train_views, test_views, tuple(train), tuple(novel))
+    # Every 30th frame, as the protocols; shorter captures keep at least ~5 evaluation frames per range.
+    interval = 30 if len(novel) >= 150 else max(1, len(novel) // 5)
+    return Protocol(name, train_views, test_views, tuple(train), tuple(novel), interval)
 
 
 class ZjuCapture:

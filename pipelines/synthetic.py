@@ -47,7 +47,7 @@ class SynthConfig:
 
     subject: str = "taichi"
     resolution: int = 512
-    frames: int = 240
+    frames: int = 300
     cameras: int = 21
     seed: int = 0
     layout: str = "standard"

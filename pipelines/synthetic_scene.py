@@ -170,7 +170,7 @@ def studio_background(camera: Camera, pixel_dirs_world: np.ndarray) -> np.ndarra
     dirs = pixel_dirs_world.reshape(-1, 3)
     centre = camera.centre
     t_floor = np.where(dirs[:, 2] > 1e-6, -centre[2] / np.maximum(dirs[:, 2], 1e-6), np.inf)
-    hit = centre + t_floor[:, None] * dirs
+    hit = centre + np.where(np.isfinite(t_floor), t_floor, 0.0)[:, None] * dirs
     on_floor = np.isfinite(t_floor) & (np.hypot(hit[:, 0], hit[:, 1]) < 6)
     checker = (np.floor(hit[:, 0] / 0.5) + np.floor(hit[:, 1] / 0.5)) % 2
     wall = 0.35 + 0.25 * (-dirs[:, 2]).clip(-1, 1)

@@ -202,6 +202,8 @@ def read_annots(path: Path, image_size: tuple[int, int] | None = None) -> tuple[
     cameras = []
     for c in range(n_cams):
         folder = Path(ims[0][c]).parent.as_posix() if ims else f"camera_{c}"
+        if ims and not (root / folder).is_dir():
+            raise CaptureError(f"{root / folder}: camera folder listed in {Path(path).name} is missing")
         if image_size is None:
             first = root / ims[0][c]
             probe = cv2.imread(str(first), cv2.IMREAD_UNCHANGED)

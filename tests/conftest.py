@@ -24,3 +24,22 @@ def body_model64():
     from pipelines.body_model import BodyModel
 
     return BodyModel(dtype=torch.float64)
+
+
+@pytest.fixture(scope="session")
+def tiny_capture(tmp_path_factory):
+    """A small synthetic capture: 4 frames x 4 cameras at 256^2, 3 calibration shots."""
+    from pipelines.synthetic import SynthConfig, generate_capture
+
+    out = tmp_path_factory.mktemp("capture") / "taichi"
+    return generate_capture(out, SynthConfig(resolution=256, frames=4, cameras=4, calib_shots=3, workers=1),
+                            progress=False)
+
+
+@pytest.fixture(scope="session")
+def tiny_capture_313(tmp_path_factory):
+    from pipelines.synthetic import SynthConfig, generate_capture
+
+    out = tmp_path_factory.mktemp("capture313") / "CoreView_313"
+    return generate_capture(out, SynthConfig(resolution=64, frames=3, cameras=2, calib_shots=0, layout="313",
+                                             workers=1), progress=False)

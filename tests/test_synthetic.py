@@ -1,0 +1,135 @@
+import hashlib
+import json
+import os
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from pipelines.capture import ZjuCapture
+from pipelines.synthetic import SynthConfig, generate_capture, is_complete
+from pipelines.zju_mocap import read_annots, read_easymocap_cameras
+
+
+def _rasterise(vertices, faces, camera_K, dist, rvec, tvec, size):
+    pts = cv2.projectPoints(vertices.astype(np.float64), rvec, tvec, camera_K, dist)[0][:, 0]
+    # fillPoly also covers pixels that an edge merely touches: rasterise at 9x and keep each block's centre
+    # (pixel centres at integer coordinates map to 9u + 4), which tests pixel-centre coverage.
+    scale, shift = 9, 4
+    mask = np.zeros((size * scale, size * scale), np.uint8)
+    polys = np.round((pts[faces] * scale + (scale - 1) / 2) * (1 << shift)).astype(np.int32)
+    for poly in polys:  # one call per triangle: fillPoly with many contours fills by parity
+        cv2.fillConvexPoly(mask, poly, 1, lineType=cv2.LINE_8, shift=shift)
+    return mask[scale // 2 :: scale, scale // 2 :: scale].astype(bool)
+
+
+def test_projected_vertices_reproduce_masks(tiny_capture, body_model):
+    annots = np.load(tiny_capture / "annots.npy", allow_pickle=True).item()
+    cams = annots["cams"]
+    ious = []
+    for frame in range(4):
+        vertices = np.load(tiny_capture / "new_vertices" / f"{frame}.npy")
+        for c in range(4):
+            R, T = np.array(cams["R"][c]), np.array(cams["T"][c]) / 1000.0
+            rendered = cv2.imread(str(tiny_capture / "mask" / annots["ims"][frame]["ims"][c].replace(".jpg", ".png")),
+                                  cv2.IMREAD_UNCHANGED).astype(bool)
+            projected = _rasterise(vertices, body_model.faces, np.array(cams["K"][c]), np.array(cams["D"][c]),
+                                   cv2.Rodrigues(R)[0], T, 256)
+            ious.append((rendered & projected).sum() / (rendered | projected).sum())
+    assert min(ious) >= 0.98, ious
+
+
+def test_neuralbody_style_reading(tiny_capture):
+    """Replicates neuralbody multi_view_dataset's reads: annots, image path, mask_cihp, params, vertices."""
+    annots = np.load(os.path.join(tiny_capture, "annots.npy"), allow_pickle=True).item()
+    cams = annots["cams"]
+    assert len(cams["K"]) == 4 and np.array(cams["T"][0]).shape == (3, 1) and np.array(cams["D"][0]).shape == (5, 1)
+    ims = np.array([np.array(d["ims"])[[0, 1]] for d in annots["ims"][0:4][::1]]).ravel()
+    img_path = os.path.join(tiny_capture, ims[3])
+    img = cv2.imread(img_path)
+    assert img.shape == (256, 256, 3)
+    msk = cv2.imread(os.path.join(tiny_capture, "mask_cihp", ims[3])[:-4] + ".png", cv2.IMREAD_UNCHANGED)
+    assert msk.shape == (256, 256) and set(np.unique(msk)) >= {0, 2, 5, 9, 13}  # hair, shirt, pants, face
+    i = int(os.path.basename(img_path)[:-4])
+    params = np.load(os.path.join(tiny_capture, "params", f"{i}.npy"), allow_pickle=True).item()
+    assert params["poses"].shape == (1, 72) and params["Rh"].shape == (1, 3) and params["shapes"].shape == (1, 10)
+    xyz = np.load(os.path.join(tiny_capture, "vertices", f"{i}.npy"))
+    R = cv2.Rodrigues(params["Rh"])[0].astype(np.float32)
+    smpl_frame = np.dot(xyz - params["Th"].astype(np.float32), R)
+    assert np.abs(smpl_frame).max() < 2.0  # body-sized in the SMPL frame
+    centre = -np.array(cams["R"][0]).T @ np.array(cams["T"][0]) / 1000.0
+    assert 2.5 < np.hypot(centre[0, 0], centre[1, 0]) < 3.5 and -2.1 < centre[2, 0] < -1.7  # z-down ring
+
+
+def test_params_reproduce_vertices(tiny_capture, body_model64):
+    cap = ZjuCapture(tiny_capture)
+    for frame in (0, 3):
+        p = cap.params(frame)
+        args = [torch.as_tensor(v, dtype=torch.float64) for v in (p.poses, p.rh, p.th, p.shapes)]
+        new = body_model64.pose_zju(*args).vertices[0].numpy()
+        old = body_model64.pose_zju(*args, pose_blendshapes=False).vertices[0].numpy()
+        assert np.abs(new - np.load(tiny_capture / "new_vertices" / f"{frame}.npy")).max() < 1e-5
+        assert np.abs(old - np.load(tiny_capture / "vertices" / f"{frame}.npy")).max() < 1e-5
+        assert np.abs(new - old).max() > 1e-3  # pose blend shapes are not trivial
+        assert new[:, 2].max() == pytest.approx(0.0, abs=1e-5)  # feet on the floor, z down
+
+
+def test_easymocap_cameras_match_annots(tiny_capture):
+    cameras, _ = read_annots(tiny_capture / "annots.npy")
+    easy = read_easymocap_cameras(tiny_capture)
+    assert [c.name for c in easy] == [c.name for c in cameras]
+    for a, b in zip(cameras, easy):
+        assert np.allclose(a.K, b.K) and np.allclose(a.dist, b.dist)
+        assert np.allclose(a.cam_from_world, b.cam_from_world, atol=1e-9)
+        assert (b.width, b.height) == (256, 256)
+
+
+def test_calibration_shots_detectable(tiny_capture):
+    from pipelines.synthetic_calib import BoardSpec
+
+    spec = json.loads((tiny_capture / "calib" / "board.json").read_text())
+    board = BoardSpec(**{k: spec[k] for k in ("squares_x", "squares_y", "square_length", "marker_length",
+                                              "dictionary")}).board()  # fmt: skip
+    detector = cv2.aruco.CharucoDetector(board)
+    cameras, _ = read_annots(tiny_capture / "annots.npy")
+    truth = np.load(tiny_capture / "calib" / "ground_truth.npz")["world_from_board"]
+    found = 0
+    for cam, shot in [(cam, shot) for cam in cameras for shot in range(len(truth))]:
+        image = cv2.imread(str(tiny_capture / "calib" / cam.name / f"{shot:03d}.jpg"), cv2.IMREAD_GRAYSCALE)
+        corners, ids, _, _ = detector.detectBoard(image)
+        if ids is None or len(ids) < 6:
+            continue
+        found += 1
+        object_points = board.getChessboardCorners()[ids.ravel()]
+        world = object_points @ truth[shot][:3, :3].T + truth[shot][:3, 3]
+        rvec = cv2.Rodrigues(cam.cam_from_world[:3, :3])[0]
+        projected = cv2.projectPoints(world, rvec, cam.cam_from_world[:3, 3], cam.K, cam.dist)[0][:, 0]
+        assert np.abs(projected - corners.reshape(-1, 2)).max() < 1.0  # rendered corners sit where the truth projects
+    assert found >= 1
+
+
+def test_generation_is_deterministic_and_reused(tmp_path):
+    config = SynthConfig(resolution=48, frames=2, cameras=2, calib_shots=0, workers=1)
+    a = generate_capture(tmp_path / "a", config, progress=False)
+    b = generate_capture(tmp_path / "b", config, progress=False)
+    digest = lambda p: hashlib.md5(p.read_bytes()).hexdigest()  # noqa: E731
+    for rel in ("Camera_B2/000001.jpg", "mask_cihp/Camera_B1/000000.png", "new_params/1.npy", "annots.npy"):
+        assert digest(a / rel) == digest(b / rel)
+    assert is_complete(a, config)
+    mtime = (a / "annots.npy").stat().st_mtime
+    generate_capture(a, config, progress=False)
+    assert (a / "annots.npy").stat().st_mtime == mtime  # reused, not regenerated
+    assert not list(tmp_path.glob(".*.partial"))
+
+
+def test_generation_refuses_foreign_folder_and_bad_config(tmp_path):
+    (tmp_path / "mine").mkdir()
+    (tmp_path / "mine" / "notes.txt").write_text("keep me")
+    with pytest.raises(FileExistsError, match="not empty"):
+        generate_capture(tmp_path / "mine", SynthConfig(resolution=48, frames=1, cameras=1, calib_shots=0))
+    (tmp_path / "file").write_text("")
+    with pytest.raises(FileExistsError, match="not a folder"):
+        generate_capture(tmp_path / "file", SynthConfig(resolution=48, frames=1, cameras=1, calib_shots=0))
+    with pytest.raises(ValueError, match="layout"):
+        generate_capture(tmp_path / "x", SynthConfig(layout="weird"))

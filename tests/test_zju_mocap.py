@@ -1,0 +1,126 @@
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+
+from pipelines.capture import ZjuCapture, make_protocol
+from pipelines.zju_mocap import CaptureError, param_index_from_image, read_annots, write_annots
+
+
+@pytest.fixture
+def capture_copy(tiny_capture, tmp_path):
+    dst = tmp_path / "copy"
+    shutil.copytree(tiny_capture, dst, ignore=shutil.ignore_patterns("calib"))
+    return dst
+
+
+def test_load_frame_follows_neuralbody_order(tiny_capture):
+    cap = ZjuCapture(tiny_capture, ratio=0.5)
+    frame = cap.load_frame(2, 1)
+    assert frame.image.shape == (128, 128, 3) and frame.image.dtype == np.float32
+    assert set(np.unique(frame.mask)) <= {0.0, 1.0} and frame.mask.sum() > 100
+    outside = (frame.mask == 0) & ~frame.band
+    assert np.all(frame.image[outside] == 0.0)  # black background
+    assert frame.band.any() and not frame.band[frame.mask.astype(bool) & ~frame.band].any()
+    raw_cameras, _ = read_annots(tiny_capture / "annots.npy")
+    assert np.allclose(frame.camera.K[:2], raw_cameras[1].K[:2] * 0.5) and np.all(frame.camera.dist == 0)
+    assert 2.5 < np.linalg.norm(frame.camera.centre[:2]) < 3.5  # T converted from millimetres
+    white = ZjuCapture(tiny_capture, ratio=0.5, white_background=True).load_frame(2, 1)
+    assert np.all(white.image[outside] == 1.0)
+    undistorted = cv2.undistort(cv2.cvtColor(cv2.imread(str(frame.image_path)), cv2.COLOR_BGR2RGB).astype(np.float32)
+                                / 255, raw_cameras[1].K, raw_cameras[1].dist)
+    expected = cv2.resize(undistorted, (128, 128), interpolation=cv2.INTER_AREA)
+    inside = frame.mask.astype(bool)
+    assert np.abs(expected[inside] - frame.image[inside]).max() < 1e-6
+
+
+def test_mask_sources(tiny_capture):
+    cihp = ZjuCapture(tiny_capture, ratio=1.0).load_frame(0, 0)
+    binary = ZjuCapture(tiny_capture, ratio=1.0, mask_source="mask").load_frame(0, 0)
+    union = ZjuCapture(tiny_capture, ratio=1.0, mask_source="union").load_frame(0, 0)
+    assert np.array_equal(cihp.mask, binary.mask) and np.array_equal(union.mask, cihp.mask)
+    assert cihp.labels.max() >= 13
+
+
+def test_313_layout(tiny_capture_313):
+    cap = ZjuCapture(tiny_capture_313, ratio=1.0)
+    assert cap.ims[0][1] == "Camera (2)/CoreView_313_Camera_(2)_0001_2019-08-23_16-08-50.592.jpg"
+    frame = cap.load_frame(2, 1)
+    assert frame.frame_index == 2
+    assert (tiny_capture_313 / "params" / "3.npy").is_file() and not (tiny_capture_313 / "params" / "0.npy").exists()
+    assert np.allclose(cap.params(2).poses, np.load(tiny_capture_313 / "params" / "3.npy", allow_pickle=True)
+                       .item()["poses"][0])
+    assert cap.vertices(2).shape == (6890, 3)
+
+
+def test_param_index_from_image():
+    assert param_index_from_image("Camera_B1/000012.jpg") == (12, 12)
+    assert param_index_from_image("Camera (3)/CoreView_315_Camera_(3)_0013_2019-08-23_16-08-50.592.jpg") == (12, 13)
+    with pytest.raises(CaptureError, match="cannot read a frame index"):
+        param_index_from_image("Camera_B1/image.jpg")
+
+
+def test_protocols():
+    narf = make_protocol("narf", 240, 21)
+    assert narf.train_views == (0, 6, 12, 18) and len(narf.test_views) == 17
+    assert narf.train_frames == tuple(range(216)) and narf.novel_frames == tuple(range(216, 240))
+    assert narf.interval == 4  # 24 novel frames: every 4th keeps 6 evaluation frames
+    assert narf.split("novel_pose") == [(f, c) for f in range(216, 240, 4) for c in narf.test_views]
+    assert narf.split("same_pose_novel_view")[:2] == [(0, 1), (0, 2)]
+    assert len(narf.split("novel_pose_same_view")) == 6 * 4
+    nb = make_protocol("neuralbody", 2185, 21, subject_id=315)
+    assert nb.train_frames == tuple(range(400)) and nb.novel_frames == tuple(range(400, 1400)) and nb.interval == 30
+    kick = make_protocol("neuralbody", 1171, 23, subject_id=390)
+    assert kick.train_frames[0] == 700 and kick.novel_frames == tuple(range(0, 700))
+    with pytest.raises(ValueError, match="unknown split"):
+        narf.split("everything")
+
+
+class TestBadInput:
+    def test_missing_camera_folder(self, capture_copy):
+        shutil.rmtree(capture_copy / "Camera_B3")
+        with pytest.raises(CaptureError, match=r"Camera_B3: camera folder listed in annots.npy is missing"):
+            ZjuCapture(capture_copy)
+
+    def test_unreadable_image(self, capture_copy):
+        (capture_copy / "Camera_B2" / "000001.jpg").write_bytes(b"garbage")
+        with pytest.raises(CaptureError, match=r"000001.jpg: missing or unreadable image"):
+            ZjuCapture(capture_copy).load_frame(1, 1)
+
+    def test_mask_size_mismatch(self, capture_copy):
+        path = capture_copy / "mask_cihp" / "Camera_B1" / "000000.png"
+        cv2.imwrite(str(path), np.zeros((100, 80), np.uint8))
+        with pytest.raises(CaptureError, match=r"000000.png: mask is 80x100 but the image is 256x256"):
+            ZjuCapture(capture_copy).load_frame(0, 0)
+
+    def test_params_wrong_shape_or_nan(self, capture_copy):
+        path = capture_copy / "new_params" / "1.npy"
+        data = np.load(path, allow_pickle=True).item()
+        np.save(path, dict(data, poses=np.zeros((1, 69))))
+        with pytest.raises(CaptureError, match=r"1.npy: 'poses' has shape \(1, 69\)"):
+            ZjuCapture(capture_copy).params(1)
+        np.save(path, dict(data, Th=np.array([[0.0, np.nan, 0.0]])))
+        with pytest.raises(CaptureError, match=r"1.npy: 'Th' contains NaN"):
+            ZjuCapture(capture_copy).params(1)
+        (capture_copy / "new_params" / "2.npy").unlink()
+        with pytest.raises(CaptureError, match=r"2.npy: missing"):
+            ZjuCapture(capture_copy).params(2)
+
+    def test_frame_count_mismatch(self, capture_copy):
+        cameras, ims = read_annots(capture_copy / "annots.npy")
+        annots = np.load(capture_copy / "annots.npy", allow_pickle=True).item()
+        annots["ims"][2]["ims"] = annots["ims"][2]["ims"][:3]
+        np.save(capture_copy / "annots.npy", annots)
+        with pytest.raises(CaptureError, match=r"annots.npy: ims\[2\] lists 3 images but cams has 4 cameras"):
+            ZjuCapture(capture_copy)
+        with pytest.raises(ValueError, match="each ims entry"):
+            write_annots(capture_copy / "x.npy", cameras, [ims[0][:2]])
+
+    def test_not_a_subject_folder(self, tmp_path):
+        with pytest.raises(CaptureError, match="no annots.npy"):
+            ZjuCapture(tmp_path)
+
+    def test_out_of_range(self, tiny_capture):
+        with pytest.raises(CaptureError, match="frame 9 out of range"):
+            ZjuCapture(tiny_capture).load_frame(9, 0)
