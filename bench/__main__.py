@@ -1,0 +1,28 @@
+"""Run benchmarks and print one Markdown table: ``python -m bench [synth ...]`` (default: all)."""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+
+BENCHMARKS = {"synth": "bench.bench_synth"}
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
+    parser.add_argument("names", nargs="*", choices=[*BENCHMARKS, []], help="benchmarks to run (default: all)")
+    args = parser.parse_args()
+    os.environ.setdefault("NARF_CACHE", os.path.join(os.getcwd(), ".cache", "bench"))
+    rows = []
+    for name in args.names or list(BENCHMARKS):
+        rows += importlib.import_module(BENCHMARKS[name]).run()
+    columns = list(dict.fromkeys(k for row in rows for k in row))
+    print("| " + " | ".join(columns) + " |")
+    print("|" + "---|" * len(columns))
+    for row in rows:
+        print("| " + " | ".join(str(row.get(c, "")) for c in columns) + " |")
+
+
+if __name__ == "__main__":
+    main()

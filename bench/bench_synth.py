@@ -1,0 +1,26 @@
+"""Time and size of generating the default synthetic ``taichi`` capture (issue: under 3 minutes at 512^2)."""
+
+from __future__ import annotations
+
+import resource
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from pipelines.synthetic import SynthConfig, generate_capture
+
+
+def run(resolution: int = 512) -> list[dict]:
+    config = SynthConfig(resolution=resolution)
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "taichi"
+        start = time.perf_counter()
+        generate_capture(out, config, progress=False)
+        seconds = time.perf_counter() - start
+        size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file()) / 1e6
+        shutil.rmtree(out)
+    peak = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+    return [{"benchmark": "narf-synth taichi", "setting": f"{config.frames} frames x {config.cameras} cams, "
+             f"{resolution}^2, {config.calib_shots} calib shots", "value": f"{seconds:.0f} s, {size:.0f} MB",
+             "peak RSS": f"{peak / 1024:.0f} MB"}]  # fmt: skip
