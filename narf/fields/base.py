@@ -1,0 +1,136 @@
+"""Base class of the NeRF-type fields: part boxes, box coordinates, outputs and cost accounting."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from narf.encodings import positional_encoding
+from narf.fields.common import PoseBatch, RadianceHead, part_local
+from narf.geometry import check_shape
+from narf.layers import GroupedLinear
+
+
+@dataclass
+class FieldOutput:
+    """sigma (R, S) >= 0; rgb (R, S, 3) in [0, 1]; part_probs (R, S, P) for segmentation, or None."""
+
+    sigma: torch.Tensor
+    rgb: torch.Tensor
+    part_probs: torch.Tensor | None = None
+
+
+@dataclass(frozen=True)
+class Cost:
+    """Costs under the upstream rules (model.md §8): parameters, per-ray FLOPs and activation memory."""
+
+    params: int
+    flops_per_ray: int
+    memory_per_ray: int
+    flops_per_ray_complete: int
+
+
+SAMPLES_FOR_COST = 96
+
+
+class Field(nn.Module):
+    """A NeRF-type field over P parts with fixed boxes (centres, half-extents in body units).
+
+    Subclasses implement ``_forward(points, dirs, pose, local, z)``.
+    """
+
+    uses_zeta = True
+
+    def __init__(self, n_parts: int, latent_dim: int = 0):
+        super().__init__()
+        self.n_parts, self.latent_dim = n_parts, latent_dim
+        self.register_buffer("box_centres", torch.zeros(n_parts, 3))
+        self.register_buffer("box_half_extents", torch.ones(n_parts, 3))
+
+    def set_boxes(self, centres: torch.Tensor, half_extents: torch.Tensor) -> None:
+        check_shape("centres", centres, (self.n_parts, 3))
+        check_shape("half_extents", half_extents, (self.n_parts, 3))
+        if (half_extents <= 0).any():
+            raise ValueError("box half-extents must be positive")
+        self.box_centres.copy_(centres)
+        self.box_half_extents.copy_(half_extents)
+
+    def box_coordinates(self, x_local: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """u_i = (x_i - c_i) / h_i and the in-box indicator ``max|u_i| <= 1``: (R, S, P, 3), (R, S, P)."""
+        u = (x_local - self.box_centres) / self.box_half_extents
+        return u, u.abs().amax(dim=-1) <= 1
+
+    @staticmethod
+    def zeta_encoding(pose: PoseBatch) -> torch.Tensor:
+        """gamma_4(zeta) per ray: (R, 1, 152)."""
+        return positional_encoding(pose.bone_lengths, 4)[:, None]
+
+    def forward(self, points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch,
+                latent: torch.Tensor | None = None) -> FieldOutput:  # fmt: skip
+        """Evaluate the field.
+
+        Args:
+            points: (R, S, 3) world samples along R rays.
+            dirs: (R, 3) unit world ray directions.
+            pose: per-ray PoseBatch (R entries).
+            latent: optional (R, 2 * latent_dim) autoencoder code z = [z_s, z_a].
+
+        Returns:
+            FieldOutput; sigma is 0 wherever no part box contains the point.
+        """
+        check_shape("points", points, (-1, -1, 3))
+        check_shape("dirs", dirs, (points.shape[0], 3))
+        if pose.world_from_part.shape[:2] != (points.shape[0], self.n_parts):
+            raise ValueError(f"pose: expected {points.shape[0]} per-ray entries of {self.n_parts} parts, got "
+                             f"{tuple(pose.world_from_part.shape[:2])}")  # fmt: skip
+        x_local, d_local = part_local(points, dirs, pose)
+        u, in_box = self.box_coordinates(x_local)
+        z_s = z_a = None
+        if latent is not None and self.latent_dim:
+            check_shape("latent", latent, (points.shape[0], 2 * self.latent_dim))
+            z_s, z_a = latent[None, :, None, : self.latent_dim], latent[None, :, None, self.latent_dim :]
+        out = self._forward(points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a)
+        out.sigma = torch.where(in_box.any(dim=-1), out.sigma, torch.zeros_like(out.sigma))
+        return out
+
+    def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+        raise NotImplementedError
+
+    def cost(self) -> Cost:
+        """#params (all field parameters), paper-comparable FLOPs and memory per ray, complete FLOPs per ray."""
+        params = sum(p.numel() for p in self.parameters())
+        flops = complete = memory = 0
+        for module in self.modules():
+            if isinstance(module, GroupedLinear):
+                complete += module.flops()
+                if not module.paper_skip:
+                    flops += module.flops()
+                    memory += module.outputs()
+            elif isinstance(module, RadianceHead):
+                extra_paper, extra_complete, extra_memory = module.extra_costs()
+                flops += extra_paper
+                complete += extra_complete - 0
+                memory += extra_memory
+        complete += self._extra_complete_flops()
+        n = SAMPLES_FOR_COST
+        return Cost(params, flops * n, memory * n, complete * n)
+
+    def _extra_complete_flops(self) -> int:
+        return 0
+
+
+def masked_softmax(logits: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    """Softmax over the last dim restricted to ``mask``; all-zero where nothing is masked in."""
+    logits = logits.masked_fill(~mask, float("-inf"))
+    has_any = mask.any(dim=-1, keepdim=True)
+    probs = torch.softmax(torch.where(has_any, logits, torch.zeros_like(logits)), dim=-1)
+    return torch.where(mask, probs, torch.zeros_like(probs))
+
+
+def rescale_selection(probs: torch.Tensor) -> torch.Tensor:
+    """p <- p sqrt(N) / |p| (NARF_D), zero where p is zero."""
+    norm = probs.norm(dim=-1, keepdim=True)
+    return probs * math.sqrt(probs.shape[-1]) / norm.clamp_min(1e-12)

@@ -1,0 +1,137 @@
+"""Building blocks shared by the fields: per-frame pose inputs, part-local coordinates, the radiance head."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from narf.geometry import check_shape
+from narf.layers import EqualLinear, Trunk, WNLinear, density_activation
+
+
+@dataclass
+class PoseBatch:
+    """Per-frame articulation inputs for B frames (model.md §1).
+
+    Attributes:
+        world_from_part: (B, P, 4, 4) part transforms (P = 19 for bodies, 1 for rigid objects).
+        reach: (B,) kinematic reach s (body unit).
+        bone_lengths: (B, P_zeta) zeta (19 for bodies; may be (B, 0) for rigid objects).
+        pose_features: (B, P, 6) xi (se(3) log in the body frame).
+        rest_offsets: (B, P, 3) rest joints relative to the pelvis, in body units (D-NARF's t_can).
+    """
+
+    world_from_part: torch.Tensor
+    reach: torch.Tensor
+    bone_lengths: torch.Tensor
+    pose_features: torch.Tensor
+    rest_offsets: torch.Tensor
+
+    def __post_init__(self):
+        check_shape("world_from_part", self.world_from_part, (-1, -1, 4, 4))
+        n_frames, n_parts = self.world_from_part.shape[:2]
+        check_shape("reach", self.reach, (n_frames,))
+        check_shape("bone_lengths", self.bone_lengths, (n_frames, -1))
+        check_shape("pose_features", self.pose_features, (n_frames, n_parts, 6))
+        check_shape("rest_offsets", self.rest_offsets, (n_frames, n_parts, 3))
+
+    def select(self, frames: torch.Tensor) -> "PoseBatch":
+        """Gather per-ray poses: ``frames`` (R,) long -> a PoseBatch of R entries."""
+        return PoseBatch(*(getattr(self, k)[frames] for k in self.__dataclass_fields__))
+
+    def to(self, device) -> "PoseBatch":
+        return PoseBatch(*(getattr(self, k).to(device) for k in self.__dataclass_fields__))
+
+
+def part_local(points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch) -> tuple[torch.Tensor, torch.Tensor]:
+    """Points and directions in every part frame: x_i = R_i^T (x - t_i) / s, d_i = R_i^T d.
+
+    Args:
+        points: (R, S, 3) world samples of R rays.
+        dirs: (R, 3) unit world directions.
+        pose: per-ray PoseBatch (R entries).
+
+    Returns:
+        x_local (R, S, P, 3) in body units, d_local (R, P, 3) unit length.
+    """
+    rotation = pose.world_from_part[:, :, :3, :3]  # (R, P, 3, 3)
+    origin = pose.world_from_part[:, :, :3, 3]  # (R, P, 3)
+    offset = points[:, :, None, :] - origin[:, None]  # (R, S, P, 3)
+    x_local = torch.einsum("rpji,rspj->rspi", rotation, offset) / pose.reach[:, None, None, None]
+    d_local = torch.einsum("rpji,rj->rpi", rotation, dirs)
+    return x_local, d_local
+
+
+class RadianceHead(nn.Module):
+    """Trunk, density and colour branch (model.md §3), over ``groups`` independent copies.
+
+    Density: e = sum_k W_k X_k (+ W_s z_s) -> trunk -> sigma = act(Lin_{H->1}(h)).
+    Colour: h1 = LReLU_0.2(sqrt(H) h/|h| + W_a z_a); h2 = Lin_{H->H/2}(h1);
+    h3 = LReLU_0.2(h2 + sum_k W_k Y_k); c = sigmoid(Lin_{H/2->3}(h3)).
+
+    Inputs are (G, R, S, dim) per sample or (G, R, 1, dim) per ray (embedded once, then broadcast).
+
+    Args:
+        density_dims / color_dims: input block name -> width.
+        width: H.
+        groups: G independent heads (NARF_P: 19).
+        latent_dim: size of z_s and z_a (0: no autoencoder latents).
+        density_act: ``leaky_backward`` or ``softplus``.
+    """
+
+    def __init__(self, density_dims: dict[str, int], color_dims: dict[str, int], width: int, groups: int = 1,
+                 latent_dim: int = 0, density_act: str = "leaky_backward"):  # fmt: skip
+        super().__init__()
+        self.width, self.groups, self.latent_dim = width, groups, latent_dim
+        self.density_embed = nn.ModuleDict({k: WNLinear(d, width, groups) for k, d in density_dims.items()})
+        self.color_embed = nn.ModuleDict({k: WNLinear(d, width // 2, groups) for k, d in color_dims.items()})
+        self.latent_shape = EqualLinear(latent_dim, width, groups) if latent_dim else None
+        self.latent_appearance = EqualLinear(latent_dim, width, groups) if latent_dim else None
+        self.trunk = Trunk(width, groups)
+        self.sigma_out = WNLinear(width, 1, groups)
+        self.color_hidden = WNLinear(width, width // 2, groups, paper_skip=True)
+        self.rgb_out = WNLinear(width // 2, 3, groups)
+        self.density_act = density_activation(density_act)
+
+    @staticmethod
+    def _apply(layer, inputs: torch.Tensor) -> torch.Tensor:
+        g, r, s, d = inputs.shape
+        return layer(inputs.reshape(g, r * s, d)).reshape(g, r, s, -1)
+
+    def _embed_sum(self, layers: nn.ModuleDict, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
+        total = None
+        for name, value in inputs.items():
+            embedded = self._apply(layers[name], value)
+            total = embedded if total is None else total + embedded
+        return total
+
+    def forward(self, density_inputs: dict[str, torch.Tensor], color_inputs: dict[str, torch.Tensor],
+                z_s: torch.Tensor | None = None, z_a: torch.Tensor | None = None):  # fmt: skip
+        """Returns sigma (G, R, S) and rgb (G, R, S, 3). Latents are (G or 1, R, 1, latent_dim)."""
+        embedded = self._embed_sum(self.density_embed, density_inputs)
+        if self.latent_shape is not None and z_s is not None:
+            embedded = embedded + self._apply(self.latent_shape, z_s.expand(self.groups, -1, -1, -1))
+        n_samples = max(v.shape[2] for v in density_inputs.values())
+        embedded = embedded.expand(-1, -1, n_samples, -1)
+        g, r, s, h = embedded.shape
+        hidden = self.trunk(embedded.reshape(g, r * s, h))
+        sigma = self.density_act(self.sigma_out(hidden))[..., 0].reshape(g, r, s)
+        h1 = math.sqrt(self.width) * hidden / hidden.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        h1 = h1.reshape(g, r, s, h)
+        if self.latent_appearance is not None and z_a is not None:
+            h1 = h1 + self._apply(self.latent_appearance, z_a.expand(self.groups, -1, -1, -1))
+        h2 = self._apply(self.color_hidden, nn.functional.leaky_relu(h1, 0.2))
+        h3 = nn.functional.leaky_relu(h2 + self._embed_sum(self.color_embed, color_inputs), 0.2)
+        rgb = torch.sigmoid(self._apply(self.rgb_out, h3))
+        return sigma, rgb
+
+    def extra_costs(self) -> tuple[int, int, int]:
+        """(paper FLOPs, complete FLOPs, memory) beyond the linear layers: ReLUs, residual adds, feature sums."""
+        n_sums = len(self.density_embed) - 1 + (1 if self.latent_shape is not None else 0)
+        paper = self.trunk.extra_flops() + self.groups * self.width * n_sums
+        half = self.width // 2
+        colour = self.groups * (self.width + half + half * len(self.color_embed) + self.width)  # lrelu x2, sums, norm
+        return paper, paper + colour, self.trunk.extra_memory()

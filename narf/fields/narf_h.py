@@ -1,0 +1,46 @@
+"""NARF_H: the concatenated per-part inputs masked by the in-box indicator, one shared network (model.md §4)."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from narf.encodings import positional_encoding
+from narf.fields.base import Field, FieldOutput
+from narf.fields.common import RadianceHead
+
+
+class NarfH(Field):
+    """Density from [b_i gamma(u_i)] (P*60) + gamma(zeta) (152); colour from [b_i gamma(xi_i/pi)] (P*48) and
+    [b_i gamma(d_i)] (P*24).
+
+    Args:
+        n_parts: P (19).
+        width: H (256 paper, smaller on CPU).
+        latent_dim: autoencoder latent size per half (0: none).
+        density_act: ``leaky_backward`` (upstream) or ``softplus``.
+    """
+
+    def __init__(self, n_parts: int = 19, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward"):
+        super().__init__(n_parts, latent_dim)
+        self.head = RadianceHead({"parts": 60 * n_parts, "zeta": 152}, {"pose": 48 * n_parts, "dirs": 24 * n_parts},
+                                 width, latent_dim=latent_dim, density_act=density_act)  # fmt: skip
+
+    def part_weights(self, encoded_u, in_box, pose):
+        """Per-sample part weights used to mask the blocks (R, S, P) and the segmentation probabilities."""
+        weights = in_box.to(encoded_u.dtype)
+        return weights, weights / weights.sum(-1, keepdim=True).clamp_min(1)
+
+    def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+        r, s, p, _ = u.shape
+        encoded_u = positional_encoding(u, 10)  # (R, S, P, 60)
+        encoded_zeta = self.zeta_encoding(pose)
+        weights, probs = self.part_weights(encoded_u, in_box, encoded_zeta)
+        masked_u = (weights[..., None] * encoded_u).reshape(1, r, s, p * 60)
+        encoded_xi = positional_encoding(pose.pose_features / math.pi, 4)[:, None]  # (R, 1, P, 48)
+        encoded_d = positional_encoding(d_local, 4)[:, None]  # (R, 1, P, 24)
+        colour = {"pose": (weights[..., None] * encoded_xi).reshape(1, r, s, p * 48),
+                  "dirs": (weights[..., None] * encoded_d).reshape(1, r, s, p * 24)}  # fmt: skip
+        sigma, rgb = self.head({"parts": masked_u, "zeta": encoded_zeta[None]}, colour, z_s, z_a)
+        return FieldOutput(sigma[0], rgb[0], probs)

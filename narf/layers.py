@@ -1,0 +1,112 @@
+"""Layers shared by the NARF fields (model.md §3).
+
+Every linear layer is *grouped*: ``groups`` independent layers applied to inputs shaped (G, N, in), so that
+NARF_P's 19 per-part networks and the per-part selector run as one batched matmul. Each layer reports its cost
+under the upstream accounting rules (model.md §8).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+class GroupedLinear(nn.Module):
+    """``groups`` linear layers: (G, N, in) -> (G, N, out). Base of the two parametrisations below.
+
+    Args:
+        in_features / out_features: per group.
+        groups: number of independent layers.
+        paper_skip: excluded from the paper-comparable FLOP/memory count (upstream skips the colour H->H/2).
+    """
+
+    def __init__(self, in_features: int, out_features: int, groups: int = 1, bias: bool = True,
+                 paper_skip: bool = False):  # fmt: skip
+        super().__init__()
+        self.in_features, self.out_features, self.groups, self.paper_skip = in_features, out_features, groups, paper_skip
+        self.weight = nn.Parameter(torch.randn(groups, out_features, in_features))
+        self.bias = nn.Parameter(torch.zeros(groups, 1, out_features)) if bias else None
+
+    def effective_weight(self) -> torch.Tensor:
+        raise NotImplementedError
+
+    def forward(self, inputs: torch.Tensor) -> torch.Tensor:
+        weight = self.effective_weight().transpose(1, 2)
+        if self.bias is None:
+            return torch.bmm(inputs, weight)
+        return torch.baddbmm(self.bias, inputs, weight)
+
+    def flops(self) -> int:
+        """2 * in * out / groups with in, out the totals over groups."""
+        return 2 * self.groups * self.in_features * self.out_features
+
+    def outputs(self) -> int:
+        return self.groups * self.out_features
+
+
+class WNLinear(GroupedLinear):
+    """Weight-normalised: each unit's weight vector has unit norm at run time (N(0, 1) init)."""
+
+    def effective_weight(self) -> torch.Tensor:
+        return self.weight / self.weight.norm(dim=2, keepdim=True).clamp_min(1e-12)
+
+
+class EqualLinear(GroupedLinear):
+    """Equalised learning rate: N(0, 1) weights times 1/sqrt(fan_in) at run time."""
+
+    def effective_weight(self) -> torch.Tensor:
+        return self.weight / math.sqrt(self.in_features)
+
+
+class _LeakyBackwardReLU(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, inputs):
+        ctx.save_for_backward(inputs)
+        return inputs.clamp_min(0)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (inputs,) = ctx.saved_tensors
+        negative_push = (inputs < 0) & (grad < 0)  # lets negative pre-activations rise, never fall further
+        return torch.where(inputs >= 0, grad, torch.where(negative_push, 0.1 * grad, torch.zeros_like(grad)))
+
+
+def leaky_backward_relu(inputs: torch.Tensor) -> torch.Tensor:
+    """Forward max(0, a); backward g for a >= 0, 0.1 g for a < 0 when g < 0, else 0 (upstream density act)."""
+    return _LeakyBackwardReLU.apply(inputs)
+
+
+def density_activation(name: str):
+    if name == "leaky_backward":
+        return leaky_backward_relu
+    if name == "softplus":
+        return nn.functional.softplus
+    raise ValueError(f"density activation must be 'leaky_backward' or 'softplus', got '{name}'")
+
+
+class Trunk(nn.Module):
+    """8 linear layers of width H: Linear+ReLU, 3 residual blocks h + ReLU(Lin(ReLU(Lin(h)))), Linear+ReLU."""
+
+    def __init__(self, width: int, groups: int = 1):
+        super().__init__()
+        self.width, self.groups = width, groups
+        self.first = WNLinear(width, width, groups)
+        self.blocks = nn.ModuleList(nn.ModuleList([WNLinear(width, width, groups), WNLinear(width, width, groups)])
+                                    for _ in range(3))  # fmt: skip
+        self.last = WNLinear(width, width, groups)
+
+    def forward(self, hidden: torch.Tensor) -> torch.Tensor:
+        hidden = torch.relu(self.first(hidden))
+        for lin_a, lin_b in self.blocks:
+            hidden = hidden + torch.relu(lin_b(torch.relu(lin_a(hidden))))
+        return torch.relu(self.last(hidden))
+
+    def extra_flops(self) -> int:
+        """+H per ReLU module (8) and per residual add (3)."""
+        return self.groups * self.width * (8 + 3)
+
+    def extra_memory(self) -> int:
+        """+H per residual block."""
+        return self.groups * self.width * 3
