@@ -19,6 +19,7 @@ import torch
 from smplx.lbs import lbs
 from smplx.utils import Struct
 
+from narf.fields.common import PoseBatch
 from narf.geometry import so3_log
 from narf.kinematics import (
     N_JOINTS,
@@ -166,3 +167,12 @@ def smplx_params_from_zju(model: BodyModel, poses, rh, th, shapes) -> dict[str, 
     transl = th + (rot_rh @ pelvis[..., None])[..., 0] - pelvis
     return {"global_orient": so3_log(rot_rh @ rot_root), "body_pose": poses[:, 3:], "betas": shapes,
             "transl": transl}  # fmt: skip
+
+
+def pose_batch(body: PosedBody) -> PoseBatch:
+    """The model inputs of posed bodies: part transforms, reach, zeta, xi and rest offsets (J_i - J_0)/s."""
+    from narf.kinematics import PART_JOINTS
+
+    rest = body.rest_joints[:, list(PART_JOINTS)]
+    offsets = (rest - body.rest_joints[:, :1]) / body.reach[:, None, None]
+    return PoseBatch(body.world_from_part, body.reach, body.bone_lengths, body.pose_features, offsets)

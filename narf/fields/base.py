@@ -112,7 +112,7 @@ class Field(nn.Module):
             elif isinstance(module, RadianceHead):
                 extra_paper, extra_complete, extra_memory = module.extra_costs()
                 flops += extra_paper
-                complete += extra_complete - 0
+                complete += extra_complete
                 memory += extra_memory
         complete += self._extra_complete_flops()
         n = SAMPLES_FOR_COST

@@ -97,14 +97,14 @@ class RadianceHead(nn.Module):
         self.density_act = density_activation(density_act)
 
     @staticmethod
-    def _apply(layer, inputs: torch.Tensor) -> torch.Tensor:
+    def _embed(layer, inputs: torch.Tensor) -> torch.Tensor:
         g, r, s, d = inputs.shape
         return layer(inputs.reshape(g, r * s, d)).reshape(g, r, s, -1)
 
     def _embed_sum(self, layers: nn.ModuleDict, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
         total = None
         for name, value in inputs.items():
-            embedded = self._apply(layers[name], value)
+            embedded = self._embed(layers[name], value)
             total = embedded if total is None else total + embedded
         return total
 
@@ -113,7 +113,7 @@ class RadianceHead(nn.Module):
         """Returns sigma (G, R, S) and rgb (G, R, S, 3). Latents are (G or 1, R, 1, latent_dim)."""
         embedded = self._embed_sum(self.density_embed, density_inputs)
         if self.latent_shape is not None and z_s is not None:
-            embedded = embedded + self._apply(self.latent_shape, z_s.expand(self.groups, -1, -1, -1))
+            embedded = embedded + self._embed(self.latent_shape, z_s.expand(self.groups, -1, -1, -1))
         n_samples = max(v.shape[2] for v in density_inputs.values())
         embedded = embedded.expand(-1, -1, n_samples, -1)
         g, r, s, h = embedded.shape
@@ -122,10 +122,10 @@ class RadianceHead(nn.Module):
         h1 = math.sqrt(self.width) * hidden / hidden.norm(dim=-1, keepdim=True).clamp_min(1e-6)
         h1 = h1.reshape(g, r, s, h)
         if self.latent_appearance is not None and z_a is not None:
-            h1 = h1 + self._apply(self.latent_appearance, z_a.expand(self.groups, -1, -1, -1))
-        h2 = self._apply(self.color_hidden, nn.functional.leaky_relu(h1, 0.2))
+            h1 = h1 + self._embed(self.latent_appearance, z_a.expand(self.groups, -1, -1, -1))
+        h2 = self._embed(self.color_hidden, nn.functional.leaky_relu(h1, 0.2))
         h3 = nn.functional.leaky_relu(h2 + self._embed_sum(self.color_embed, color_inputs), 0.2)
-        rgb = torch.sigmoid(self._apply(self.rgb_out, h3))
+        rgb = torch.sigmoid(self._embed(self.rgb_out, h3))
         return sigma, rgb
 
     def extra_costs(self) -> tuple[int, int, int]:

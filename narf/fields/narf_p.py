@@ -30,7 +30,6 @@ class NarfP(Field):
                                  latent_dim=latent_dim, density_act=density_act)  # fmt: skip
 
     def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
-        r = u.shape[0]
         p = self.n_parts
         density = {"u": positional_encoding(u, 10).permute(2, 0, 1, 3),
                    "zeta": self.zeta_encoding(pose)[None].expand(p, -1, -1, -1)}  # fmt: skip
@@ -43,5 +42,4 @@ class NarfP(Field):
         sigma = (probs * sigma_parts).sum(-1)
         rgb = torch.einsum("rsp,prsc->rsc", probs, rgb_parts)
         segmentation = masked_softmax(sigma_parts.detach() / 0.01, in_box)
-        del r
         return FieldOutput(sigma, rgb, segmentation)

@@ -1,0 +1,148 @@
+"""Volume rendering shared by every NeRF-type model (model.md §5). The field is passed as a callable.
+
+``field_fn(points (R', S, 3), ray_ids (R',)) -> FieldOutput`` evaluates the samples of the rays ``ray_ids``
+(indices into the ray batch), so the caller binds directions, poses and latents (see :func:`bind_field`).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from narf.geometry import check_shape
+from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
+from narf.sampling import importance_depths, stratified_depths
+
+
+@dataclass
+class RenderOutput:
+    """rgb (R, 3); mask (R,) accumulated alpha; depth (R,) expected depth; part_weights (R, P) = sum_k w_k p_k
+    (None when the field has no parts)."""
+
+    rgb: torch.Tensor
+    mask: torch.Tensor
+    depth: torch.Tensor
+    part_weights: torch.Tensor | None = None
+
+    def segmentation(self) -> torch.Tensor:
+        """(R,) argmax part where mask >= 0.5, else -1."""
+        if self.part_weights is None:
+            raise ValueError("this model has no part probabilities: no segmentation")
+        labels = self.part_weights.argmax(dim=-1)
+        return torch.where(self.mask >= 0.5, labels, torch.full_like(labels, -1))
+
+
+def weights_from_density(sigmas: torch.Tensor, depths: torch.Tensor, far: torch.Tensor) -> torch.Tensor:
+    """w_k = alpha_k prod_{j<k} (1 - alpha_j), alpha_k = 1 - exp(-sigma_k delta_k), delta_k = t_{k+1} - t_k with
+    t_{K+1} = far.
+
+    Args:
+        sigmas, depths: (R, K). far: (R,).
+
+    Returns:
+        (R, K) weights.
+    """
+    deltas = torch.diff(torch.cat([depths, far[:, None]], dim=-1), dim=-1).clamp_min(0)
+    alphas = 1 - torch.exp(-sigmas * deltas)
+    transmittance = torch.cumprod(torch.cat([torch.ones_like(alphas[:, :1]), 1 - alphas + 1e-10], dim=-1), dim=-1)
+    return alphas * transmittance[:, :-1]
+
+
+def composite(weights: torch.Tensor, colours: torch.Tensor, depths: torch.Tensor, background: float | torch.Tensor):
+    """C = sum w c + (1 - M) bg, M = sum w, D = sum w t. Returns rgb (R, 3), mask (R,), depth (R,)."""
+    mask = weights.sum(dim=-1)
+    rgb = (weights[..., None] * colours).sum(dim=-2) + (1 - mask)[:, None] * background
+    return rgb, mask, (weights * depths).sum(dim=-1)
+
+
+def render_rays(field_fn: Callable, origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
+                hit: torch.Tensor, n_coarse: int, n_fine: int, background: float = 0.0, randomized: bool = True,
+                generator: torch.Generator | None = None) -> RenderOutput:  # fmt: skip
+    """Coarse pass without gradient, importance samples, then one final pass over all sorted samples with
+    gradient through the same network. Rays that miss every box are not evaluated (C = bg, M = 0).
+
+    Args:
+        field_fn: see module docstring. origins, dirs: (R, 3). near, far: (R,). hit: (R,) bool.
+        n_coarse, n_fine: samples per ray. background: 0 (black) or 1 (white).
+        randomized: jittered strata and random inverse-CDF draws (training); False is deterministic.
+    """
+    check_shape("origins", origins, (-1, 3))
+    n_rays = origins.shape[0]
+    dtype, device = origins.dtype, origins.device
+    rgb = torch.full((n_rays, 3), float(background), dtype=dtype, device=device)
+    mask = torch.zeros(n_rays, dtype=dtype, device=device)
+    depth = torch.zeros(n_rays, dtype=dtype, device=device)
+    ids = hit.nonzero()[:, 0]
+    if ids.numel() == 0:
+        return RenderOutput(rgb, mask, depth, None)
+    o, d, t_near, t_far = origins[ids], dirs[ids], near[ids], far[ids]
+
+    def rand(n):
+        return torch.rand(ids.numel(), n, dtype=dtype, device=device, generator=generator) if randomized else None
+
+    with torch.no_grad():
+        coarse = stratified_depths(t_near, t_far, n_coarse, rand(n_coarse))
+        out = field_fn(o[:, None] + coarse[..., None] * d[:, None], ids)
+        coarse_weights = weights_from_density(out.sigma, coarse, t_far)
+        edges = torch.cat([coarse, t_far[:, None]], dim=-1)
+        fine = importance_depths(edges, coarse_weights, n_fine, rand(n_fine)) if n_fine else coarse[:, :0]
+        depths = torch.sort(torch.cat([coarse, fine], dim=-1), dim=-1).values
+    out = field_fn(o[:, None] + depths[..., None] * d[:, None], ids)
+    weights = weights_from_density(out.sigma, depths, t_far)
+    rgb_hit, mask_hit, depth_hit = composite(weights, out.rgb, depths, background)
+    rgb = rgb.index_put((ids,), rgb_hit)
+    mask = mask.index_put((ids,), mask_hit)
+    depth = depth.index_put((ids,), depth_hit)
+    part_weights = None
+    if out.part_probs is not None:
+        part_weights = torch.zeros(n_rays, out.part_probs.shape[-1], dtype=dtype, device=device)
+        part_weights = part_weights.index_put((ids,), (weights[..., None] * out.part_probs).sum(dim=1))
+    return RenderOutput(rgb, mask, depth, part_weights)
+
+
+def bind_field(field, dirs: torch.Tensor, pose, frame_of_ray: torch.Tensor, latent: torch.Tensor | None = None):
+    """Adapt a field module to ``field_fn``: gathers each ray's direction, pose (``pose.select``) and latent."""
+
+    def field_fn(points: torch.Tensor, ray_ids: torch.Tensor):
+        frames = frame_of_ray[ray_ids]
+        return field(points, dirs[ray_ids], pose.select(frames), None if latent is None else latent[frames])
+
+    return field_fn
+
+
+@torch.no_grad()
+def render_image(field, K: torch.Tensor, cam_from_world: torch.Tensor, height: int, width: int, pose, n_coarse: int = 64,
+                 n_fine: int = 128, background: float = 0.0, chunk: int = 4096,
+                 latent: torch.Tensor | None = None) -> dict[str, torch.Tensor]:  # fmt: skip
+    """Render a full image of one frame in chunks of rays (bounded memory), deterministically.
+
+    Args:
+        field: a Field module. K, cam_from_world: undistorted camera. pose: PoseBatch with one frame.
+        latent: optional (1, 2 * latent_dim).
+
+    Returns:
+        rgb (H, W, 3), mask (H, W), depth (H, W), segmentation (H, W) long (-1 = background; only for part models).
+    """
+    device = next(field.parameters()).device
+    dtype = next(field.parameters()).dtype
+    pixels = image_pixels(height, width, device=device, dtype=dtype)
+    origins, dirs = rays_from_pixels(K.to(device, dtype), cam_from_world.to(device, dtype), pixels)
+    pose = pose.to(device)
+    outputs: dict[str, list] = {"rgb": [], "mask": [], "depth": [], "segmentation": []}
+    for start in range(0, pixels.shape[0], chunk):
+        o, d = origins[start : start + chunk], dirs[start : start + chunk]
+        frames = torch.zeros(o.shape[0], dtype=torch.long, device=device)
+        per_ray = pose.select(frames)
+        near, far, hit = ray_box_intersect(o, d, per_ray.world_from_part, per_ray.reach, field.box_centres,
+                                           field.box_half_extents)  # fmt: skip
+        result = render_rays(bind_field(field, d, pose, frames, latent), o, d, near, far, hit, n_coarse, n_fine,
+                             background, randomized=False)  # fmt: skip
+        outputs["rgb"].append(result.rgb)
+        outputs["mask"].append(result.mask)
+        outputs["depth"].append(result.depth)
+        if result.part_weights is not None:
+            outputs["segmentation"].append(result.segmentation())
+    image = {k: torch.cat(v).reshape(height, width, *torch.cat(v).shape[1:]) for k, v in outputs.items() if v}
+    return image

@@ -1,0 +1,192 @@
+import math
+
+import pytest
+import torch
+
+from narf.fields import ARTICULATED, MODELS, PAPER_COSTS, PoseBatch, build_field, paper_presets
+from narf.fields.base import masked_softmax, rescale_selection
+from narf.fields.common import part_local
+from narf.geometry import invert_rigid, se3_exp, transform_points
+from narf.layers import EqualLinear, WNLinear, leaky_backward_relu
+from narf.renderer import render_image
+
+torch.set_default_dtype(torch.float32)
+
+
+def _random_pose(n_frames=1, n_parts=19, seed=0, dtype=torch.float32):
+    gen = torch.Generator().manual_seed(seed)
+    xi = torch.randn(n_frames, n_parts, 6, generator=gen) * 0.3
+    world_from_part = se3_exp(xi).to(dtype)
+    return PoseBatch(world_from_part, torch.ones(n_frames, dtype=dtype), torch.rand(n_frames, 19, generator=gen).to(dtype),
+                     (xi * 0.5).to(dtype), (torch.randn(n_frames, n_parts, 3, generator=gen) * 0.2).to(dtype))
+
+
+def _field(name, width=16, n_parts=19, dtype=torch.float32, **kwargs):
+    torch.manual_seed(0)
+    field = build_field(name, width=width, **kwargs) if name in ARTICULATED else build_field(name, width=width)
+    field.set_boxes(torch.zeros(field.n_parts, 3), torch.full((field.n_parts, 3), 0.6))
+    return field.to(dtype)
+
+
+def _points(n_rays=4, n_samples=6, seed=1, dtype=torch.float32):
+    gen = torch.Generator().manual_seed(seed)
+    points = (torch.rand(n_rays, n_samples, 3, generator=gen) * 2 - 1).to(dtype)
+    dirs = torch.randn(n_rays, 3, generator=gen).to(dtype)
+    return points, dirs / dirs.norm(dim=1, keepdim=True)
+
+
+@pytest.mark.parametrize("name", list(MODELS))
+def test_every_model_runs_and_masks_outside_boxes(name):
+    field = _field(name)
+    points, dirs = _points()
+    points[0, 0] = 50.0  # far outside every box
+    pose = _random_pose(n_parts=field.n_parts).select(torch.zeros(4, dtype=torch.long))
+    out = field(points, dirs, pose)
+    assert out.sigma.shape == (4, 6) and out.rgb.shape == (4, 6, 3)
+    assert (out.sigma >= 0).all() and ((out.rgb >= 0) & (out.rgb <= 1)).all()
+    assert out.sigma[0, 0] == 0
+    latent_field = build_field(name, width=16, latent_dim=8) if name not in ("rt_nerf", "rt_nerf_no_pose", "rp_nerf") \
+        else build_field(name, width=16, latent_dim=8)
+    latent_field.set_boxes(torch.zeros(latent_field.n_parts, 3), torch.full((latent_field.n_parts, 3), 0.6))
+    z = torch.randn(4, 16)
+    assert not torch.allclose(latent_field(points, dirs, pose, z).rgb, latent_field(points, dirs, pose, -z).rgb)
+
+
+@pytest.mark.parametrize("name, reference", sorted(PAPER_COSTS.items()))
+def test_paper_costs_within_five_percent(name, reference):
+    cost = paper_presets()[name].cost()
+    for ours, theirs in zip((cost.params, cost.flops_per_ray, cost.memory_per_ray), reference):
+        assert abs(ours / theirs - 1) < 0.05, (name, ours, theirs)
+
+
+def test_selector_size_and_probabilities():
+    field = _field("narf_d")
+    assert sum(p.numel() for p in field.selector.parameters()) == pytest.approx(41_000, rel=0.02)
+    logits = torch.randn(5, 7, 19)
+    mask = torch.rand(5, 7, 19) > 0.6
+    mask[0, 0] = False
+    probs = masked_softmax(logits, mask)
+    has = mask.any(-1)
+    assert torch.allclose(probs.sum(-1)[has], torch.ones(int(has.sum())), atol=1e-6)
+    assert (probs[~mask] == 0).all() and (probs[0, 0] == 0).all()
+    rescaled = rescale_selection(probs)
+    assert torch.allclose(rescaled.norm(dim=-1)[has], torch.full((int(has.sum()),), math.sqrt(19)), atol=1e-4)
+
+
+def test_layers():
+    layer = WNLinear(5, 4, groups=3)
+    assert torch.allclose(layer.effective_weight().norm(dim=2), torch.ones(3, 4))
+    x = torch.randn(3, 10, 5)
+    reference = torch.stack([torch.nn.functional.linear(x[g], layer.effective_weight()[g], layer.bias[g, 0])
+                             for g in range(3)])  # fmt: skip
+    assert torch.allclose(layer(x), reference, atol=1e-6)  # grouped fast path vs per-group loop
+    eq = EqualLinear(16, 2)
+    assert torch.allclose(eq.effective_weight(), eq.weight / 4)
+    a = torch.tensor([-1.0, -1.0, 2.0], requires_grad=True)
+    leaky_backward_relu(a).backward(torch.tensor([-1.0, 1.0, 3.0]))
+    assert torch.equal(a.grad, torch.tensor([-0.1, 0.0, 3.0]))  # negative pre-activations can only rise
+
+
+def test_part_local_matches_loop():
+    pose = _random_pose(n_frames=3, n_parts=4)
+    points, dirs = _points(3, 5)
+    x_local, d_local = part_local(points, dirs, pose)
+    for r in range(3):
+        for p in range(4):
+            part_from_world = invert_rigid(pose.world_from_part[r, p])
+            assert torch.allclose(x_local[r, :, p], transform_points(part_from_world, points[r]) / pose.reach[r],
+                                  atol=1e-5)  # fmt: skip
+            assert torch.allclose(d_local[r, p], part_from_world[:3, :3] @ dirs[r], atol=1e-6)
+
+
+@pytest.mark.parametrize("name", ["narf_d", "narf_p", "d_narf", "p_nerf"])
+def test_gradcheck_small_fields(name):
+    field = _field(name, width=4, dtype=torch.float64, density_act="softplus")
+    points, dirs = _points(2, 3, dtype=torch.float64)
+    pose = _random_pose(n_parts=19, dtype=torch.float64).select(torch.zeros(2, dtype=torch.long))
+    points.requires_grad_(True)
+
+    def fn(p):
+        out = field(p, dirs, pose)
+        return out.sigma, out.rgb
+
+    # gamma_10 has frequencies up to 2^9 pi: Jacobian entries reach 1e3-1e4, so compare relatively
+    assert torch.autograd.gradcheck(fn, (points,), eps=1e-7, atol=1e-4, rtol=1e-3)
+
+
+@pytest.mark.parametrize("name", ["narf_d", "narf_h", "narf_p", "d_narf"])
+def test_rigid_motion_of_body_and_camera_leaves_pixels_unchanged(name):
+    # float64: in float32 the box edges and the inverse-CDF sampler turn rounding into visible differences
+    dt = torch.float64
+    field = _field(name, width=16, dtype=dt)
+    pose = _random_pose(dtype=dt)
+    K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]], dtype=dt)
+    cam_from_world = se3_exp(torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 4.0], dtype=dt))
+    motion = se3_exp(torch.tensor([0.4, -0.7, 0.2, 1.0, -2.0, 0.5], dtype=dt))
+    moved = PoseBatch(motion @ pose.world_from_part, pose.reach, pose.bone_lengths, pose.pose_features,
+                      pose.rest_offsets)  # fmt: skip
+    a = render_image(field, K, cam_from_world, 32, 32, pose, n_coarse=8, n_fine=8)
+    b = render_image(field, K, cam_from_world @ invert_rigid(motion), 32, 32, moved, n_coarse=8, n_fine=8)
+    assert a["mask"].max() > 0.01
+    for key in ("rgb", "mask"):
+        assert torch.allclose(a[key], b[key], atol=1e-8), key
+    assert torch.allclose(a["depth"], b["depth"], atol=1e-8)
+
+
+def _density_change(field, part, points, dirs):
+    pose = _random_pose()
+    changed = PoseBatch(pose.world_from_part.clone(), pose.reach, pose.bone_lengths, pose.pose_features,
+                        pose.rest_offsets)  # fmt: skip
+    changed.world_from_part[0, part] = changed.world_from_part[0, part] @ se3_exp(
+        torch.tensor([0.0, 0.5, 0.3, 0.1, 0.0, 0.0]))
+    frames = torch.zeros(points.shape[0], dtype=torch.long)
+    before, after = pose.select(frames), changed.select(frames)
+    with torch.no_grad():
+        delta = (field(points, dirs, before).sigma - field(points, dirs, after).sigma).abs()
+    in_box_before = field.box_coordinates(part_local(points, dirs, before)[0])[1]
+    in_box_after = field.box_coordinates(part_local(points, dirs, after)[0])[1]
+    return delta, in_box_before, in_box_after
+
+
+@pytest.mark.parametrize("name", ["narf_d", "narf_p", "narf_h"])
+def test_changing_one_part_changes_density_only_in_its_box(name):
+    field = _field(name, width=16)
+    field.set_boxes(torch.zeros(19, 3), torch.full((19, 3), 0.3))
+    points, dirs = _points(64, 16, seed=3)
+    delta, before, after = _density_change(field, 5, points, dirs)
+    outside = ~before[..., 5] & ~after[..., 5]
+    assert outside.sum() > 100 and (~outside).sum() > 10
+    assert delta[outside].max() < 1e-6
+    assert delta[~outside].max() > 1e-4
+
+
+def test_selector_gates_out_a_part_where_narf_h_cannot():
+    """With part 5's selector logit pushed down, NARF_D's density ignores part 5 wherever another part's box also
+    contains the point; NARF_H (no selector) changes throughout part 5's box."""
+    narf_d, narf_h = _field("narf_d", width=16), _field("narf_h", width=16)
+    for field in (narf_d, narf_h):
+        field.set_boxes(torch.zeros(19, 3), torch.full((19, 3), 0.3))
+    with torch.no_grad():
+        narf_d.selector.out.bias[5] = -40.0
+    points, dirs = _points(64, 16, seed=3)
+    delta_d, before, after = _density_change(narf_d, 5, points, dirs)
+    delta_h, _, _ = _density_change(narf_h, 5, points, dirs)
+    others = torch.cat([before[..., :5], before[..., 6:]], -1).any(-1) & torch.cat([after[..., :5], after[..., 6:]],
+                                                                                    -1).any(-1)  # fmt: skip
+    shared = (before[..., 5] | after[..., 5]) & others
+    assert shared.sum() > 10
+    assert delta_d[shared].max() < 1e-4
+    assert delta_h[shared].max() > 1e-3
+
+
+def test_bad_inputs():
+    field = _field("narf_d")
+    points, dirs = _points()
+    with pytest.raises(ValueError, match="pose: expected 4 per-ray entries of 19 parts"):
+        field(points, dirs, _random_pose())
+    with pytest.raises(ValueError, match="unknown model"):
+        build_field("narf_x")
+    with pytest.raises(ValueError, match="selector"):
+        build_field("narf_d", selector="max")
+    with pytest.raises(ValueError, match="half-extents"):
+        field.set_boxes(torch.zeros(19, 3), torch.zeros(19, 3))
