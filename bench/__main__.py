@@ -6,7 +6,7 @@ import argparse
 import importlib
 import os
 
-BENCHMARKS = {"synth": "bench.bench_synth"}
+BENCHMARKS = {"synth": "bench.bench_synth", "models": "bench.bench_models"}
 
 
 def main() -> None:

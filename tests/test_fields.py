@@ -190,3 +190,48 @@ def test_bad_inputs():
         build_field("narf_d", selector="max")
     with pytest.raises(ValueError, match="half-extents"):
         field.set_boxes(torch.zeros(19, 3), torch.zeros(19, 3))
+
+
+@pytest.mark.parametrize("name", ["narf_d", "narf_d_sigmoid", "narf_h"])
+def test_sparse_fast_path_matches_dense_reference(name):
+    fast = _field(name, width=16, dtype=torch.float64, latent_dim=4)
+    dense = _field(name, width=16, dtype=torch.float64, latent_dim=4)
+    dense.load_state_dict(fast.state_dict())
+    dense.fast = False
+    fast.set_boxes(torch.zeros(19, 3, dtype=torch.float64), torch.full((19, 3), 0.4, dtype=torch.float64))
+    dense.set_boxes(fast.box_centres, fast.box_half_extents)
+    points, dirs = _points(8, 12, seed=5, dtype=torch.float64)
+    pose = _random_pose(n_frames=2, dtype=torch.float64).select(torch.tensor([0, 1] * 4))
+    latent = torch.randn(8, 8, dtype=torch.float64)
+    points.requires_grad_(True)
+    a, b = fast(points, dirs, pose, latent), dense(points, dirs, pose, latent)
+    assert torch.allclose(a.sigma, b.sigma, atol=1e-10) and torch.allclose(a.rgb, b.rgb, atol=1e-10)
+    assert torch.allclose(a.part_probs, b.part_probs, atol=1e-10)
+    grad_a = torch.autograd.grad(a.sigma.sum() + a.rgb.sum(), [points, *fast.parameters()], allow_unused=True)
+    grad_b = torch.autograd.grad(b.sigma.sum() + b.rgb.sum(), [points, *dense.parameters()], allow_unused=True)
+    for ga, gb in zip(grad_a, grad_b):
+        if ga is None or gb is None:
+            assert (ga is None or ga.abs().max() == 0) and (gb is None or gb.abs().max() == 0)
+        else:
+            assert torch.allclose(ga, gb, atol=1e-8)
+
+
+def test_image_encoder_size_and_shapes():
+    from narf.fields.encoder import ImageEncoder
+
+    encoder = ImageEncoder()
+    assert sum(p.numel() for p in encoder.parameters()) == pytest.approx(13.8e6, rel=0.01)
+    assert encoder(torch.rand(2, 3, 128, 128)).shape == (2, 512)
+    with pytest.raises(ValueError, match=r"images: expected shape \(\*, 3, 128, 128\)"):
+        encoder(torch.rand(2, 3, 64, 64))
+
+
+def test_cost_cli_prints_every_model(capsys):
+    from pipelines.cli_cost import main
+
+    assert main([]) == 0
+    table = capsys.readouterr().out
+    assert "| NARF_D | 1.11M | 206M | 383K | 1.10M / 205M / 382K |" in table
+    assert table.count("\n") == 2 + len(paper_presets())
+    assert main(["--model", "d_narf"]) == 0
+    assert capsys.readouterr().out.count("D-NARF") == 1

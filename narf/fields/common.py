@@ -112,9 +112,17 @@ class RadianceHead(nn.Module):
                 z_s: torch.Tensor | None = None, z_a: torch.Tensor | None = None):  # fmt: skip
         """Returns sigma (G, R, S) and rgb (G, R, S, 3). Latents are (G or 1, R, 1, latent_dim)."""
         embedded = self._embed_sum(self.density_embed, density_inputs)
+        return self.forward_embedded(embedded, self._embed_sum(self.color_embed, color_inputs), {}, z_s, z_a)
+
+    def forward_embedded(self, embedded: torch.Tensor, color_embedded: torch.Tensor,
+                         extra_density: dict[str, torch.Tensor], z_s=None, z_a=None):  # fmt: skip
+        """As ``forward`` from already embedded sums (G, R, S or 1, H) and (G, R, S or 1, H/2); blocks in
+        ``extra_density`` are embedded and added here."""
+        if extra_density:
+            embedded = embedded + self._embed_sum(self.density_embed, extra_density)
         if self.latent_shape is not None and z_s is not None:
             embedded = embedded + self._embed(self.latent_shape, z_s.expand(self.groups, -1, -1, -1))
-        n_samples = max(v.shape[2] for v in density_inputs.values())
+        n_samples = max(embedded.shape[2], color_embedded.shape[2])
         embedded = embedded.expand(-1, -1, n_samples, -1)
         g, r, s, h = embedded.shape
         hidden = self.trunk(embedded.reshape(g, r * s, h))
@@ -124,7 +132,7 @@ class RadianceHead(nn.Module):
         if self.latent_appearance is not None and z_a is not None:
             h1 = h1 + self._embed(self.latent_appearance, z_a.expand(self.groups, -1, -1, -1))
         h2 = self._embed(self.color_hidden, nn.functional.leaky_relu(h1, 0.2))
-        h3 = nn.functional.leaky_relu(h2 + self._embed_sum(self.color_embed, color_inputs), 0.2)
+        h3 = nn.functional.leaky_relu(h2 + color_embedded, 0.2)
         rgb = torch.sigmoid(self._embed(self.rgb_out, h3))
         return sigma, rgb
 

@@ -9,6 +9,7 @@ import torch
 from narf.encodings import positional_encoding
 from narf.fields.base import Field, FieldOutput
 from narf.fields.common import RadianceHead
+from narf.fields.sparse_parts import sparse_masked_inputs
 
 
 class NarfH(Field):
@@ -20,10 +21,13 @@ class NarfH(Field):
         width: H (256 paper, smaller on CPU).
         latent_dim: autoencoder latent size per half (0: none).
         density_act: ``leaky_backward`` (upstream) or ``softplus``.
+        fast: evaluate only in-box (sample, part) pairs (``sparse_parts``); False runs the dense reference.
     """
 
-    def __init__(self, n_parts: int = 19, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward"):
+    def __init__(self, n_parts: int = 19, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward",
+                 fast: bool = True):  # fmt: skip
         super().__init__(n_parts, latent_dim)
+        self.fast = fast
         self.head = RadianceHead({"parts": 60 * n_parts, "zeta": 152}, {"pose": 48 * n_parts, "dirs": 24 * n_parts},
                                  width, latent_dim=latent_dim, density_act=density_act)  # fmt: skip
 
@@ -33,6 +37,11 @@ class NarfH(Field):
         return weights, weights / weights.sum(-1, keepdim=True).clamp_min(1)
 
     def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+        if self.fast:
+            encoded_zeta = self.zeta_encoding(pose)
+            density, colour, probs = sparse_masked_inputs(self, u, in_box, d_local, pose, encoded_zeta)
+            sigma, rgb = self.head.forward_embedded(density, colour, {"zeta": encoded_zeta[None]}, z_s, z_a)
+            return FieldOutput(sigma[0], rgb[0], probs)
         r, s, p, _ = u.shape
         encoded_u = positional_encoding(u, 10)  # (R, S, P, 60)
         encoded_zeta = self.zeta_encoding(pose)

@@ -1,0 +1,124 @@
+"""Training and rendering speed of every model at paper size and at the CPU default size.
+
+Each configuration runs in its own process (so peak RSS is per configuration) on real stand-in poses: the
+taichi motion posed through the body model, part boxes fitted as in model.md, rays from a ring camera aimed at
+the body (only rays that hit a box are counted, as in training). A "train step" is the full step: coarse pass,
+importance sampling, final pass with gradient, colour + mask loss, backward and Adam.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+
+#: (row label, model, constructor kwargs, train (Nc, Nf), render (Nc, Nf), rays per train step)
+CONFIGS = [
+    ("NARF_D cpu-default", "narf_d", {"width": 64}, (16, 16), (16, 16), 1024),
+    ("NARF_D paper", "narf_d", {"width": 256}, (48, 48), (64, 128), 256),
+    ("NARF_D dense reference", "narf_d", {"width": 64, "fast": False}, (16, 16), (32, 32), 1024),
+    ("NARF_H cpu-default", "narf_h", {"width": 64}, (16, 16), (32, 32), 1024),
+    ("NARF_H paper", "narf_h", {"width": 256}, (48, 48), (64, 128), 256),
+    ("NARF_P cpu-default (32)", "narf_p", {"width": 32}, (16, 16), (32, 32), 256),
+    ("NARF_P paper (256)", "narf_p", {"width": 256}, (48, 48), (64, 128), 32),
+    ("P-NeRF cpu-default", "p_nerf", {"width": 64}, (16, 16), (32, 32), 1024),
+    ("P-NeRF paper", "p_nerf", {"width": 256}, (48, 48), (64, 128), 256),
+    ("D-NARF cpu-default", "d_narf", {"width": 64}, (16, 16), (32, 32), 1024),
+    ("D-NARF paper", "d_narf", {"width": 256}, (48, 48), (64, 128), 256),
+]
+RENDER_SIZE = 256
+RENDER_RAY_BUDGET = 4096  # rays rendered for timing; the full-frame time is extrapolated from hit rays
+
+
+def _scene():
+    import numpy as np
+    import torch
+
+    from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
+    from pipelines.body_model import BodyModel, pose_batch
+    from pipelines.synthetic_scene import look_at, taichi_motion
+
+    body_model = BodyModel()
+    motion = taichi_motion(8, seed=0)
+    args = [torch.as_tensor(motion[k], dtype=torch.float32) for k in ("poses", "Rh", "Th", "shapes")]
+    args[2] = args[2] + torch.tensor([0.0, 0.0, -1.0])
+    with torch.no_grad():
+        bodies = body_model.pose_zju(*args)
+    centres, half = body_model.part_boxes([body_model.rest_body(args[3][:1]), bodies])
+    cam_from_world = torch.as_tensor(look_at(np.array([0.0, -3.0, -1.9]), np.array([0.0, 0.0, -0.9])),
+                                     dtype=torch.float32)  # fmt: skip
+    focal = 1100 * RENDER_SIZE / 1024
+    K = torch.tensor([[focal, 0, RENDER_SIZE / 2], [0, focal, RENDER_SIZE / 2], [0, 0, 1.0]])
+    origins, dirs = rays_from_pixels(K, cam_from_world, image_pixels(RENDER_SIZE, RENDER_SIZE))
+    pose = pose_batch(bodies)
+    frames = torch.zeros(origins.shape[0], dtype=torch.long)
+    per_ray = pose.select(frames)
+    near, far, hit = ray_box_intersect(origins, dirs, per_ray.world_from_part, per_ray.reach, centres, half)
+    return pose, centres, half, origins[hit], dirs[hit], near[hit], far[hit], int(hit.sum())
+
+
+def _measure(index: int) -> dict:
+    import resource
+
+    import torch
+
+    from narf.fields import build_field
+    from narf.renderer import bind_field, render_rays
+
+    torch.set_num_threads(2)
+    label, name, kwargs, (n_c, n_f), (r_c, r_f), n_rays = CONFIGS[index]
+    pose, centres, half, origins, dirs, near, far, n_hit = _scene()
+    field = build_field(name, **kwargs)
+    field.set_boxes(centres, half)
+    optimiser = torch.optim.Adam(field.parameters(), lr=1e-3)
+    gen = torch.Generator().manual_seed(0)
+    result = {"model": label, "params": f"{sum(p.numel() for p in field.parameters()) / 1e6:.2f}M",
+              "samples/ray train": n_c + n_f}  # fmt: skip
+    for precision in ("fp32", "bf16"):
+        times = []
+        for step in range(4):
+            pick = torch.randint(0, origins.shape[0], (n_rays,), generator=gen)
+            frames = torch.randint(0, pose.reach.shape[0], (n_rays,), generator=gen)
+            start = time.perf_counter()
+            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
+                out = render_rays(bind_field(field, dirs[pick], pose, frames), origins[pick], dirs[pick], near[pick],
+                                  far[pick], torch.ones(n_rays, dtype=torch.bool), n_c, n_f, generator=gen)
+                loss = (out.rgb.float() - 0.5).pow(2).mean() + (out.mask.float() - 1).pow(2).mean()
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+            if step:
+                times.append(time.perf_counter() - start)
+        rate = n_rays / (sum(times) / len(times))
+        result[f"train rays/s {precision}"] = f"{rate:,.0f}"
+        result[f"train samples/s {precision}"] = f"{rate * (n_c + n_f):,.0f}"
+    budget = min(RENDER_RAY_BUDGET, n_hit)
+    frames = torch.zeros(budget, dtype=torch.long)
+    with torch.no_grad():  # warm-up call (first no-grad shapes)
+        render_rays(bind_field(field, dirs[:64], pose, frames[:64]), origins[:64], dirs[:64], near[:64], far[:64],
+                    torch.ones(64, dtype=torch.bool), r_c, r_f, randomized=False)  # fmt: skip
+    start = time.perf_counter()
+    with torch.no_grad():
+        for chunk in range(0, budget, 4096):
+            sl = slice(chunk, min(chunk + 4096, budget))
+            render_rays(bind_field(field, dirs[sl], pose, frames[sl]), origins[sl], dirs[sl], near[sl], far[sl],
+                        torch.ones(sl.stop - sl.start, dtype=torch.bool), r_c, r_f, randomized=False)  # fmt: skip
+    seconds = (time.perf_counter() - start) * n_hit / budget
+    estimate = "" if budget == n_hit else " (est.)"
+    result[f"render {RENDER_SIZE}^2 s ({r_c}+{r_f} samples)"] = f"{seconds:.1f}{estimate}"
+    result["peak RSS MB"] = f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f}"
+    return result
+
+
+def run() -> list[dict]:
+    rows = []
+    for index in range(len(CONFIGS)):
+        command = [sys.executable, "-c", f"import json, bench.bench_models as b; print(json.dumps(b._measure({index})))"]
+        done = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
+        if done.returncode != 0:
+            rows.append({"model": CONFIGS[index][0], "params": "failed: " + done.stderr.strip().splitlines()[-1]})
+            continue
+        rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
+    return rows

@@ -1,0 +1,97 @@
+"""Fast path of the masked concatenation of NARF_D / NARF_H, exact against the dense reference.
+
+The dense models feed [p_i gamma(u_i)] (P*60 wide) to one linear layer, but p_i = 0 for every part whose box
+does not contain the sample, and a sample lies in only a few boxes. Since W [p_i gamma(u_i)]_i =
+sum_i p_i W_i gamma(u_i) (W_i the column block of part i), the fast path evaluates gamma(u_i), the selector and
+W_i gamma(u_i) only for in-box (sample, part) pairs, one small matmul per part. The colour blocks depend only on
+the ray (xi_i, d_i), so W_k [p_i Y_i] = sum_i p_i (W_k,i Y_i) is a p-weighted sum of a per-ray (P, H/2) table.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from narf.encodings import positional_encoding
+
+
+def _block(weight: torch.Tensor, part: int, width: int) -> torch.Tensor:
+    return weight[0, :, part * width : (part + 1) * width]
+
+
+def _segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: int) -> torch.Tensor:
+    peak = torch.full((n_segments,), float("-inf"), dtype=logits.dtype, device=logits.device)
+    peak = peak.scatter_reduce(0, segments, logits.detach(), reduce="amax")
+    exp = torch.exp(logits - peak[segments])
+    total = torch.zeros(n_segments, dtype=logits.dtype, device=logits.device).index_add(0, segments, exp)
+    return exp / total[segments]
+
+
+def sparse_masked_inputs(model, u: torch.Tensor, in_box: torch.Tensor, d_local: torch.Tensor, pose,
+                         encoded_zeta: torch.Tensor):  # fmt: skip
+    """Embedded density and colour inputs of NARF_D / NARF_H without the out-of-box zeros.
+
+    Args:
+        model: a NarfH or NarfD (``selector_kind`` and ``selector`` are read when present).
+        u: (R, S, P, 3) box coordinates. in_box: (R, S, P). d_local: (R, P, 3). encoded_zeta: (R, 1, 152).
+
+    Returns:
+        density (1, R, S, H) = W_parts [p gamma(u)] + b (without the zeta block), colour (1, R, S, H/2) =
+        W_pose [p gamma(xi)] + W_dirs [p gamma(d)] + biases, and the segmentation probabilities (R, S, P).
+    """
+    head = model.head
+    r_count, s_count, p_count, _ = u.shape
+    pairs = in_box.nonzero()  # (M, 3): ray, sample, part
+    order = torch.argsort(pairs[:, 2], stable=True)
+    pairs = pairs[order]
+    ray, part = pairs[:, 0], pairs[:, 2]
+    sample = pairs[:, 0] * s_count + pairs[:, 1]
+    encoded = positional_encoding(u[pairs[:, 0], pairs[:, 1], pairs[:, 2]], 10)  # (M, 60)
+    counts = torch.bincount(part, minlength=p_count).tolist()
+    chunks = torch.split(encoded, counts)
+    w_density = head.density_embed["parts"].effective_weight()
+    selector = getattr(model, "selector", None)
+    features, logits = [], []
+    for k, chunk in enumerate(chunks):
+        features.append(chunk @ _block(w_density, k, 60).T)
+        if selector is not None and counts[k]:
+            hidden = chunk @ selector.local.effective_weight()[k].T + selector.local.bias[k]
+            logits.append(hidden)
+    features = torch.cat(features)
+    if selector is not None:
+        bones = selector.bones(encoded_zeta.reshape(1, r_count, -1)).reshape(r_count, p_count, selector.hidden)
+        hidden = torch.relu(torch.cat(logits) + bones[ray, part])
+        out_w = selector.out.effective_weight()[:, 0, :]  # (P, hidden)
+        logit = (hidden * out_w[part]).sum(-1) + selector.out.bias[part, 0, 0]
+        if model.selector_kind == "softmax":
+            probs = _segment_softmax(logit, sample, r_count * s_count)
+        else:
+            probs = torch.sigmoid(logit)
+        norm = torch.zeros(r_count * s_count, dtype=u.dtype, device=u.device).index_add(0, sample, probs**2).sqrt()
+        weights = probs * math.sqrt(p_count) / norm[sample].clamp_min(1e-12)
+    else:
+        n_in = torch.zeros(r_count * s_count, dtype=u.dtype, device=u.device).index_add(
+            0, sample, torch.ones_like(sample, dtype=u.dtype))
+        weights, probs = torch.ones_like(sample, dtype=u.dtype), 1.0 / n_in[sample]
+    hidden_width = features.shape[-1]
+    density = torch.zeros(r_count * s_count, hidden_width, dtype=u.dtype, device=u.device)
+    density = density.index_add(0, sample, weights[:, None] * features) + head.density_embed["parts"].bias[0]
+    table = _colour_table(head, pose, d_local)  # (R, P, H/2)
+    colour = torch.zeros(r_count * s_count, table.shape[-1], dtype=u.dtype, device=u.device)
+    colour = colour.index_add(0, sample, weights[:, None] * table[ray, part])
+    colour = colour + head.color_embed["pose"].bias[0] + head.color_embed["dirs"].bias[0]
+    segmentation = torch.zeros(r_count * s_count, p_count, dtype=u.dtype, device=u.device)
+    segmentation = segmentation.index_put((sample, part), probs if torch.is_tensor(probs) else weights)
+    return (density.reshape(1, r_count, s_count, -1), colour.reshape(1, r_count, s_count, -1),
+            segmentation.reshape(r_count, s_count, p_count))  # fmt: skip
+
+
+def _colour_table(head, pose, d_local: torch.Tensor) -> torch.Tensor:
+    """Per ray and part: W_pose,i gamma(xi_i/pi) + W_dirs,i gamma(d_i), (R, P, H/2)."""
+    encoded_xi = positional_encoding(pose.pose_features / math.pi, 4)  # (R, P, 48)
+    encoded_d = positional_encoding(d_local, 4)  # (R, P, 24)
+    p_count = encoded_xi.shape[1]
+    w_pose = head.color_embed["pose"].effective_weight()[0].reshape(-1, p_count, 48)  # (H/2, P, 48)
+    w_dirs = head.color_embed["dirs"].effective_weight()[0].reshape(-1, p_count, 24)
+    return torch.einsum("hpk,rpk->rph", w_pose, encoded_xi) + torch.einsum("hpk,rpk->rph", w_dirs, encoded_d)
