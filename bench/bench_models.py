@@ -94,15 +94,17 @@ def _measure(index: int) -> dict:
         rate = n_rays / (sum(times) / len(times))
         result[f"train rays/s {precision}"] = f"{rate:,.0f}"
         result[f"train samples/s {precision}"] = f"{rate * (n_c + n_f):,.0f}"
-    budget = min(RENDER_RAY_BUDGET, n_hit)
+    heavy = kwargs.get("width", 64) * (19 if name == "narf_p" else 1) * (r_c + r_f)
+    chunk_rays = max(32, min(4096, (4096 * 64 * 32) // heavy))  # bounded activation memory per chunk
+    budget = min(RENDER_RAY_BUDGET if heavy <= 64 * 64 else 4 * chunk_rays, n_hit)
     frames = torch.zeros(budget, dtype=torch.long)
     with torch.no_grad():  # warm-up call (first no-grad shapes)
         render_rays(bind_field(field, dirs[:64], pose, frames[:64]), origins[:64], dirs[:64], near[:64], far[:64],
                     torch.ones(64, dtype=torch.bool), r_c, r_f, randomized=False)  # fmt: skip
     start = time.perf_counter()
     with torch.no_grad():
-        for chunk in range(0, budget, 4096):
-            sl = slice(chunk, min(chunk + 4096, budget))
+        for chunk in range(0, budget, chunk_rays):
+            sl = slice(chunk, min(chunk + chunk_rays, budget))
             render_rays(bind_field(field, dirs[sl], pose, frames[sl]), origins[sl], dirs[sl], near[sl], far[sl],
                         torch.ones(sl.stop - sl.start, dtype=torch.bool), r_c, r_f, randomized=False)  # fmt: skip
     seconds = (time.perf_counter() - start) * n_hit / budget
@@ -118,7 +120,9 @@ def run() -> list[dict]:
         command = [sys.executable, "-c", f"import json, bench.bench_models as b; print(json.dumps(b._measure({index})))"]
         done = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
         if done.returncode != 0:
-            rows.append({"model": CONFIGS[index][0], "params": "failed: " + done.stderr.strip().splitlines()[-1]})
+            lines = done.stderr.strip().splitlines()
+            reason = lines[-1] if lines else f"killed by signal {-done.returncode}"
+            rows.append({"model": CONFIGS[index][0], "params": f"failed: {reason}"})
             continue
         rows.append(json.loads(done.stdout.strip().splitlines()[-1]))
     return rows

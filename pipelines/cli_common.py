@@ -8,7 +8,7 @@ from collections.abc import Callable
 from pipelines.smpl_files import SmplFileError
 from pipelines.zju_mocap import CaptureError
 
-KNOWN_ERRORS = (CaptureError, SmplFileError, ValueError, FileExistsError, FileNotFoundError, NotADirectoryError,
+KNOWN_ERRORS = (CaptureError, SmplFileError, ValueError, RuntimeError, IsADirectoryError, FileExistsError, FileNotFoundError, NotADirectoryError,
                 PermissionError, KeyError)  # fmt: skip
 
 

@@ -43,3 +43,14 @@ def tiny_capture_313(tmp_path_factory):
     out = tmp_path_factory.mktemp("capture313") / "CoreView_313"
     return generate_capture(out, SynthConfig(resolution=64, frames=3, cameras=2, calib_shots=0, layout="313",
                                              workers=1), progress=False)
+
+
+@pytest.fixture(scope="session")
+def data_root_64(tmp_path_factory):
+    """A data root whose synthetic taichi capture is 10 frames x 4 cameras at 64^2."""
+    from pipelines.synthetic import SynthConfig, generate_capture
+
+    root = tmp_path_factory.mktemp("data64")
+    generate_capture(root / "synthetic" / "taichi", SynthConfig(resolution=64, frames=10, cameras=4, calib_shots=0,
+                                                                workers=1), progress=False)
+    return root

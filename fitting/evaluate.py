@@ -1,0 +1,169 @@
+"""Evaluation of a fitted run on the protocol splits (model.md §7): full-image and Neural Body crop metrics."""
+
+from __future__ import annotations
+
+import json
+import platform
+from pathlib import Path
+
+import cv2
+import numpy as np
+import skimage
+import torch
+from skimage.metrics import structural_similarity
+from tqdm import tqdm
+
+from fitting.checkpoint import load_checkpoint
+from fitting.config import FitConfig, load_config
+from fitting.data import poses_for_frames
+from fitting.plots import grid, save_png, to_numpy
+from fitting.trainer import make_field, open_capture
+from narf.metrics import mask_l2, psnr_of
+from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
+from narf.renderer import render_image
+from pipelines.body_model import BodyModel
+
+EVAL_SPLITS = ("same_pose_same_view", "same_pose_novel_view", "novel_pose_same_view", "novel_pose_novel_view")
+ALL_SPLITS = (*EVAL_SPLITS, "novel_pose", "novel_view", "all")
+_SHORT = {"same_pose_same_view": "SS", "novel_pose_same_view": "NS", "same_pose_novel_view": "SN",
+          "novel_pose_novel_view": "NN", "novel_pose": "novel pose (NB)", "novel_view": "novel view (NB)"}  # fmt: skip
+
+
+def render_view(field, camera, pose, config: FitConfig) -> dict[str, torch.Tensor]:
+    """Full-image render of one (undistorted) camera and one-frame pose at the evaluation sample counts."""
+    device = next(field.parameters()).device
+    K = torch.as_tensor(camera.K, dtype=torch.float32, device=device)
+    cam_from_world = torch.as_tensor(camera.cam_from_world, dtype=torch.float32, device=device)
+    background = 1.0 if config.data.white_background else 0.0
+    return render_image(field, K, cam_from_world, camera.height, camera.width, pose, config.render.eval_coarse,
+                        config.render.eval_fine, background, config.render.chunk)  # fmt: skip
+
+
+def nb_crop_region(camera, vertices: np.ndarray, pad: float = 0.05) -> np.ndarray:
+    """Pixels whose rays hit the world box of the body vertices, padded ``pad`` metres along z (Neural Body)."""
+    low, high = vertices.min(0).astype(np.float64), vertices.max(0).astype(np.float64)
+    low[2] -= pad
+    high[2] += pad
+    K = torch.as_tensor(camera.K, dtype=torch.float64)
+    origins, dirs = rays_from_pixels(K, torch.as_tensor(camera.cam_from_world), image_pixels(camera.height,
+                                     camera.width, dtype=torch.float64))  # fmt: skip
+    n = origins.shape[0]
+    eye = torch.eye(4, dtype=torch.float64).expand(n, 1, 4, 4)
+    centre = torch.as_tensor((low + high) / 2)[None]
+    half = torch.as_tensor((high - low) / 2)[None]
+    _, _, hit = ray_box_intersect(origins, dirs, eye, torch.ones(n, dtype=torch.float64), centre, half)
+    return hit.reshape(camera.height, camera.width).numpy()
+
+
+def ssim(prediction: np.ndarray, target: np.ndarray) -> float:
+    """scikit-image SSIM with the project's settings (Gaussian 1.5, population covariance, data range 1)."""
+    return float(structural_similarity(prediction, target, gaussian_weights=True, sigma=1.5,
+                                       use_sample_covariance=False, data_range=1.0, channel_axis=-1))  # fmt: skip
+
+
+def frame_metrics(render: dict, gt_rgb: np.ndarray, gt_mask: np.ndarray, region: np.ndarray, bg: float) -> dict:
+    """Both protocols for one view: full image, and the Neural Body crop (PSNR, Mask L2 over R; SSIM on R's
+    bounding rectangle with pixels outside R set to the background)."""
+    rgb, mask = render["rgb"], render["mask"]
+    t = lambda a: torch.as_tensor(a)  # noqa: E731
+    full = {"psnr": float(psnr_of(t(rgb), t(gt_rgb))), "ssim": ssim(rgb, gt_rgb),
+            "mask_l2": float(mask_l2(t(mask), t(gt_mask)))}  # fmt: skip
+    if not region.any():
+        return {"full": full, "nb_crop": None}
+    box = _crop_box(region)
+    pred_crop, gt_crop = rgb.copy(), gt_rgb.copy()
+    pred_crop[~region], gt_crop[~region] = bg, bg
+    crop = {"psnr": float(psnr_of(t(rgb), t(gt_rgb), t(region))), "ssim": ssim(pred_crop[box], gt_crop[box]),
+            "mask_l2": float(mask_l2(t(mask), t(gt_mask), t(region)))}  # fmt: skip
+    return {"full": full, "nb_crop": crop}
+
+
+def _crop_box(region: np.ndarray, min_size: int = 11) -> tuple[slice, slice]:
+    """Bounding rectangle of ``region``, grown to at least the SSIM window (11 px for sigma 1.5) where the image
+    allows; the added pixels lie outside R and are background in both images."""
+    ys, xs = np.nonzero(region)
+    bounds = []
+    for low, high, size in ((ys.min(), ys.max() + 1, region.shape[0]), (xs.min(), xs.max() + 1, region.shape[1])):
+        grow = max(0, min_size - (high - low))
+        low = max(0, low - grow // 2)
+        high = min(size, max(high, low + min_size))
+        bounds.append(slice(max(0, min(low, high - min_size)), high))
+    return bounds[0], bounds[1]
+
+
+def _average(records: list[dict], protocol: str) -> dict:
+    values = [r[protocol] for r in records if r[protocol] is not None]
+    return {k: float(np.mean([v[k] for v in values])) for k in ("mask_l2", "psnr", "ssim")} if values else {}
+
+
+def library_versions() -> dict:
+    return {"scikit-image": skimage.__version__, "opencv": cv2.__version__, "torch": torch.__version__,
+            "numpy": np.__version__, "python": platform.python_version()}  # fmt: skip
+
+
+def _spread(items: list, limit: int | None) -> list:
+    if not limit or len(items) <= limit:
+        return items
+    return [items[i] for i in np.linspace(0, len(items) - 1, limit).round().astype(int)]
+
+
+def evaluate_run(run_dir: Path, splits: list[str], limit: int | None = None, device: str = "cpu",
+                 progress: bool = True, grids: int = 4) -> dict:  # fmt: skip
+    """Evaluate ``splits`` of the run's protocol; update ``run_dir/eval/metrics.json`` and ``metrics.md``."""
+    run_dir = Path(run_dir)
+    state = load_checkpoint(run_dir, map_location=device)
+    config = load_config(base=state["config"])
+    field = make_field(config).to(device)
+    field.load_state_dict(state["model"])
+    field.eval()
+    capture = open_capture(config, quiet=True)
+    protocol = capture.protocol(config.data.protocol)
+    body_model = BodyModel()
+    out_dir = run_dir / "eval"
+    metrics_path = out_dir / "metrics.json"
+    report = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {"splits": {}}
+    bg = 1.0 if config.data.white_background else 0.0
+    for split in splits:
+        items = _spread(protocol.split(split), limit)
+        if not items:
+            raise ValueError(f"split '{split}' is empty for {capture.root} under the {protocol.name} protocol")
+        frames = sorted({f for f, _ in items})
+        poses, _, _ = poses_for_frames(capture, body_model, frames)
+        poses = poses.to(device)
+        records = []
+        for index, (frame, cam) in enumerate(tqdm(items, desc=f"eval {split}", unit="view", disable=not progress)):
+            item = capture.load_frame(frame, cam)
+            render = to_numpy(render_view(field, item.camera, poses.select(torch.tensor([frames.index(frame)],
+                                                                                        device=device)), config))
+            region = nb_crop_region(item.camera, capture.vertices(frame))
+            records.append({"frame": frame, "camera": cam, **frame_metrics(render, item.image, item.mask, region, bg)})
+            if index < grids:
+                save_png(out_dir / "grids" / split / f"frame{frame:05d}_cam{cam:02d}.png", grid(item.image, render))
+        report["splits"][split] = {"n_views": len(records), "limit": limit, "full": _average(records, "full"),
+                                   "nb_crop": _average(records, "nb_crop"), "per_view": records}  # fmt: skip
+    report.update({"run": str(run_dir), "step": state["step"], "model": config.model.name, "width": config.model.width,
+                   "subject": str(capture.root), "protocol": protocol.name, "versions": library_versions()})
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = metrics_path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(report, indent=1))
+    tmp.replace(metrics_path)
+    (out_dir / "metrics.md").write_text(markdown_table(report))
+    return report
+
+
+def markdown_table(report: dict) -> str:
+    """Supplement layout: one row per protocol, cells Mask L2 (x10^4) / PSNR / SSIM per split."""
+    splits = [s for s in (*EVAL_SPLITS, "novel_pose", "novel_view") if s in report["splits"]]
+    lines = [f"# {report['model']} (width {report['width']}), step {report['step']}: {report['subject']}", "",
+             "Cells: Mask L2 (x10^4) / PSNR (dB) / SSIM. SS/NS/SN/NN = same or novel pose x same or novel view.", "",
+             "| protocol | " + " | ".join(_SHORT[s] for s in splits) + " |", "|---|" + "---|" * len(splits)]  # fmt: skip
+    for protocol in ("full", "nb_crop"):
+        cells = []
+        for split in splits:
+            m = report["splits"][split][protocol]
+            cells.append(f"{m['mask_l2']:.1f}/{m['psnr']:.2f}/{m['ssim']:.4f}" if m else "-")
+        lines.append(f"| {'full image' if protocol == 'full' else 'NB crop'} | " + " | ".join(cells) + " |")
+    versions = ", ".join(f"{k} {v}" for k, v in report["versions"].items())
+    lines += ["", f"Views per split: " + ", ".join(f"{_SHORT[s]} {report['splits'][s]['n_views']}" for s in splits),
+              f"Versions: {versions}", ""]  # fmt: skip
+    return "\n".join(lines)

@@ -1,0 +1,193 @@
+"""The fit loop: mask-guided ray batches, colour + mask loss, Adam with per-step decay, resumable checkpoints."""
+
+from __future__ import annotations
+
+import json
+import math
+import random
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import yaml
+from tqdm import tqdm
+
+from fitting.checkpoint import load_checkpoint, save_checkpoint
+from fitting.config import FitConfig, load_config
+from fitting.data import TrainingSet, fit_boxes, poses_for_frames
+from fitting.plots import write_curve, write_validation
+from narf.fields import build_field
+from narf.metrics import psnr
+from narf.rays import ray_box_intersect
+from narf.renderer import bind_field, render_rays
+from pipelines.body_model import BodyModel
+from pipelines.capture import ZjuCapture
+from pipelines.subjects import resolve_subject
+
+
+def auto_device(name: str = "auto") -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise ValueError(f"device '{name}' requested but CUDA is not available")
+    return torch.device(name)
+
+
+def make_field(config: FitConfig):
+    """The model of a config (only the options its constructor takes)."""
+    m = config.model
+    kwargs = {"width": m.width, "density_act": m.density_act}
+    if m.name == "narf_p":
+        kwargs["temperature"] = m.temperature
+    if m.name == "p_nerf":
+        kwargs["pose_in_color"] = m.pose_in_color
+    return build_field(m.name, **kwargs)
+
+
+def open_capture(config: FitConfig, quiet: bool = False) -> ZjuCapture:
+    root = resolve_subject(config.data.subject, config.data.data_root, quiet=quiet)
+    return ZjuCapture(root, ratio=config.data.ratio, mask_source=config.data.mask_source,
+                      new_params=config.data.new_params, white_background=config.data.white_background)  # fmt: skip
+
+
+def ray_loss(config: FitConfig, field, batch, poses, generator, n_coarse: int, n_fine: int):
+    """L = mean 1/3 |C - C_gt|^2 + lambda_mask mean (M - M_gt)^2 (band skipped). Returns loss, colour MSE."""
+    per_ray = poses.select(batch.frames)
+    near, far, hit = ray_box_intersect(batch.origins, batch.dirs, per_ray.world_from_part, per_ray.reach,
+                                       field.box_centres, field.box_half_extents)  # fmt: skip
+    background = 1.0 if config.data.white_background else 0.0
+    out = render_rays(bind_field(field, batch.dirs, poses, batch.frames), batch.origins, batch.dirs, near, far, hit,
+                      n_coarse, n_fine, background=background, generator=generator)  # fmt: skip
+    colour = (out.rgb - batch.rgb).pow(2).mean()
+    mask_term = (batch.mask_weight * (out.mask - batch.mask).pow(2)).sum() / batch.mask_weight.sum().clamp_min(1)
+    return colour + config.train.mask_weight * mask_term, colour
+
+
+@dataclass
+class FitResult:
+    run_dir: Path
+    step: int
+    loss: float
+    psnr: float
+    finished: bool
+
+
+class Trainer:
+    """Builds data, model and optimiser for ``config`` in ``run_dir``; ``resume`` continues its checkpoint."""
+
+    def __init__(self, config: FitConfig, run_dir: Path, device: torch.device, resume: bool = False,
+                 progress: bool = True):  # fmt: skip
+        self.config, self.run_dir, self.device, self.progress = config, Path(run_dir), device, progress
+        state = load_checkpoint(self.run_dir, map_location=device) if resume else None
+        if state is not None:
+            self.config = config = load_config(base=state["config"])
+        torch.manual_seed(config.train.seed)
+        np.random.seed(config.train.seed)
+        random.seed(config.train.seed)
+        self.capture = open_capture(config)
+        protocol = self.capture.protocol(config.data.protocol)
+        self.frames = list(protocol.train_frames[:: config.data.frame_stride])
+        self.body_model = BodyModel()
+        poses, bodies, shapes = poses_for_frames(self.capture, self.body_model, self.frames)
+        self.field = make_field(config).to(device)
+        if state is None:
+            centres, half = fit_boxes(self.body_model, bodies, shapes, config.data.box_frames,
+                                      config.model.box_scale_pad, config.model.box_abs_pad)  # fmt: skip
+            self.field.set_boxes(centres.to(device), half.to(device))
+        self.data = TrainingSet(self.capture, self.frames, list(protocol.train_views), poses, device, progress)
+        self.validation = (self.frames[len(self.frames) // 2], protocol.test_views[0] if protocol.test_views else 0)
+        self.optimiser = torch.optim.Adam(self.field.parameters(), lr=config.train.lr, betas=(0.9, 0.999),
+                                          eps=config.train.adam_eps)  # fmt: skip
+        self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimiser, gamma=config.train.lr_decay)
+        self.generator = torch.Generator(device="cpu").manual_seed(config.train.seed + 1)
+        self.step, self.elapsed = 0, 0.0
+        if state is not None:
+            self._restore(state)
+
+    def _restore(self, state: dict) -> None:
+        self.field.load_state_dict(state["model"])
+        self.optimiser.load_state_dict(state["optimizer"])
+        self.scheduler.load_state_dict(state["scheduler"])
+        self.generator.set_state(state["rng"]["sampler"])
+        torch.set_rng_state(state["rng"]["torch"])
+        self.step, self.elapsed = state["step"], state.get("elapsed", 0.0)
+
+    def checkpoint(self) -> None:
+        save_checkpoint(self.run_dir, {
+            "config": self.config.to_dict(), "step": self.step, "elapsed": self.elapsed,
+            "model": self.field.state_dict(), "optimizer": self.optimiser.state_dict(),
+            "scheduler": self.scheduler.state_dict(), "frames": self.frames,
+            "rng": {"sampler": self.generator.get_state(), "torch": torch.get_rng_state()},
+        })  # fmt: skip
+
+    def train_step(self) -> tuple[float, float]:
+        t = self.config.train
+        batch = self.data.sample(t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction,
+                                 self.generator)  # fmt: skip
+        loss, colour = ray_loss(self.config, self.field, batch, self.data.poses, self.generator,
+                                self.config.render.train_coarse, self.config.render.train_fine)  # fmt: skip
+        self.optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimiser.step()
+        self.scheduler.step()
+        self.step += 1
+        return float(loss.detach()), float(psnr(colour.detach()))
+
+    def fit(self, max_minutes: float | None = None) -> FitResult:
+        """Train until ``train.steps`` or the time budget; checkpoints periodically and at the end."""
+        t = self.config.train
+        log_path = self.run_dir / "log.jsonl"
+        start, last_save = time.perf_counter(), time.perf_counter()
+        elapsed0, loss, score = self.elapsed, math.nan, math.nan
+        bar = tqdm(total=t.steps, initial=self.step, desc="fit", unit="step", disable=not self.progress)
+        window_start, window_rays = time.perf_counter(), 0
+        rays_per_step = t.images_per_step * t.rays_per_image
+        finished = self.step >= t.steps
+        try:
+            while self.step < t.steps:
+                if max_minutes is not None and (time.perf_counter() - start) / 60 >= max_minutes:
+                    break
+                loss, score = self.train_step()
+                window_rays += rays_per_step
+                self.elapsed = elapsed0 + time.perf_counter() - start
+                bar.update()
+                if self.step % t.log_every == 0 or self.step == t.steps:
+                    rate = window_rays / max(time.perf_counter() - window_start, 1e-9)
+                    window_start, window_rays = time.perf_counter(), 0
+                    bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{score:.2f}", rays_s=f"{rate:,.0f}")
+                    with open(log_path, "a") as handle:
+                        handle.write(json.dumps({"step": self.step, "loss": loss, "psnr": score, "rays_per_s": rate,
+                                                 "lr": self.scheduler.get_last_lr()[0],
+                                                 "elapsed_s": self.elapsed}) + "\n")  # fmt: skip
+                if t.validate_every and self.step % t.validate_every == 0:
+                    self.validate()
+                if (time.perf_counter() - last_save) / 60 >= t.checkpoint_minutes:
+                    self.checkpoint()
+                    last_save = time.perf_counter()
+            finished = self.step >= t.steps
+        finally:
+            bar.close()
+            self.checkpoint()
+            write_curve(log_path, self.run_dir / "curve.png")
+        return FitResult(self.run_dir, self.step, loss, score, finished)
+
+    def validate(self) -> Path:
+        """Render one held-out view (a training pose from a test camera) next to its ground truth."""
+        frame, view = self.validation
+        return write_validation(self, frame, view, self.run_dir / "val" / f"step_{self.step:07d}.png")
+
+
+def prepare_run_dir(out: Path, config: FitConfig, resume: bool) -> Path:
+    """Create the run folder (refusing a file or a foreign non-empty folder) and write config.yaml."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out}: output path exists and is a file")
+    if not resume and out.is_dir() and (out / "checkpoint.pt").exists():
+        raise FileExistsError(f"{out}: holds a fit already; pass --resume to continue it or choose another --out")
+    out.mkdir(parents=True, exist_ok=True)
+    if not resume:
+        (out / "log.jsonl").unlink(missing_ok=True)
+        (out / "config.yaml").write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))
+    return out

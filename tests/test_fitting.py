@@ -1,0 +1,164 @@
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+import torch
+from skimage.metrics import peak_signal_noise_ratio, structural_similarity
+
+from fitting.checkpoint import CheckpointError, load_checkpoint
+from fitting.config import ConfigError, load_config
+from fitting.evaluate import evaluate_run, frame_metrics
+from fitting.trainer import Trainer, prepare_run_dir
+from pipelines.cli_common import run_cli
+from pipelines import cli_eval, cli_fit
+
+
+def _config(root, *extra):
+    return load_config("tiny", [f"data.data_root={root}", "data.ratio=1.0", *extra])
+
+
+def _fit(root, out, *extra, resume=False):
+    config = _config(root, *extra)
+    run = prepare_run_dir(out, config, resume)
+    trainer = Trainer(config, run, torch.device("cpu"), resume=resume, progress=False)
+    return trainer
+
+
+def test_tiny_fit_loss_falls_and_eval_writes_every_artefact(data_root_64, tmp_path):
+    trainer = _fit(data_root_64, tmp_path / "run", "train.steps=60", "train.validate_every=60")
+    result = trainer.fit()
+    assert result.finished and result.step == 60
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert np.mean([r["loss"] for r in log[-3:]]) < 0.7 * np.mean([r["loss"] for r in log[:2]])
+    for name in ("config.yaml", "checkpoint.pt", "curve.png", "val/step_0000060.png"):
+        assert (tmp_path / "run" / name).is_file(), name
+    report = evaluate_run(tmp_path / "run", ["same_pose_novel_view", "novel_pose_novel_view"], limit=2,
+                          progress=False)  # fmt: skip
+    split = report["splits"]["novel_pose_novel_view"]
+    assert split["n_views"] == 2 and set(split["full"]) == {"mask_l2", "psnr", "ssim"} and split["nb_crop"]
+    assert report["versions"]["scikit-image"]
+    assert (tmp_path / "run" / "eval" / "metrics.md").read_text().count("|") > 10
+    assert len(list((tmp_path / "run" / "eval" / "grids").rglob("*.png"))) == 4
+
+
+def test_resume_equals_uninterrupted(data_root_64, tmp_path):
+    straight = _fit(data_root_64, tmp_path / "a", "train.steps=12")
+    straight.fit()
+    first = _fit(data_root_64, tmp_path / "b", "train.steps=12")
+    for _ in range(5):
+        first.train_step()
+    first.checkpoint()
+    del first  # "killed" right after its checkpoint
+    resumed = _fit(data_root_64, tmp_path / "b", "train.steps=12", resume=True)
+    assert resumed.step == 5
+    resumed.fit()
+    a, b = load_checkpoint(tmp_path / "a"), load_checkpoint(tmp_path / "b")
+    assert b["step"] == a["step"] == 12
+    for key, value in a["model"].items():
+        assert torch.allclose(value, b["model"][key], atol=1e-6), key
+
+
+def test_fit_killed_with_sigkill_resumes_to_the_end(data_root_64, tmp_path):
+    out = tmp_path / "run"
+    command = [sys.executable, "-c", "from pipelines.cli_fit import entrypoint; entrypoint()", "--config", "tiny",
+               "--data-root", str(data_root_64), "--out", str(out), "--quiet", "--set", "data.ratio=1.0",
+               "--set", "train.steps=400", "--set", "train.checkpoint_minutes=0"]  # fmt: skip
+    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    deadline = time.time() + 120
+    while time.time() < deadline and not (out / "checkpoint.pt").exists():
+        time.sleep(0.2)
+    time.sleep(1.0)
+    os.kill(process.pid, signal.SIGKILL)
+    process.wait()
+    killed_at = load_checkpoint(out)["step"]
+    assert 0 < killed_at < 400
+    assert not list(out.glob(".checkpoint.*"))  # no half-written checkpoint left as if complete
+    done = subprocess.run(command[:3] + ["--out", str(out), "--resume", "--quiet"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr
+    assert load_checkpoint(out)["step"] == 400
+
+
+def test_metrics_against_scikit_image():
+    gen = np.random.default_rng(0)
+    gt = gen.random((32, 40, 3))
+    pred = np.clip(gt + gen.normal(0, 0.05, gt.shape), 0, 1)
+    gt_mask = (gen.random((32, 40)) > 0.5).astype(float)
+    mask = np.clip(gt_mask + gen.normal(0, 0.1, gt_mask.shape), 0, 1)
+    region = np.zeros((32, 40), bool)
+    region[5:20, 8:30] = True
+    region[6, 8] = False
+    m = frame_metrics({"rgb": pred, "mask": mask}, gt, gt_mask, region, 0.0)
+    assert m["full"]["psnr"] == pytest.approx(peak_signal_noise_ratio(gt, pred, data_range=1.0), abs=1e-6)
+    assert m["full"]["ssim"] == pytest.approx(structural_similarity(pred, gt, gaussian_weights=True, sigma=1.5,
+                                              use_sample_covariance=False, data_range=1.0, channel_axis=-1))
+    assert m["full"]["mask_l2"] == pytest.approx(1e4 * np.mean((mask - gt_mask) ** 2))
+    mse_region = np.mean((pred[region] - gt[region]) ** 2)
+    assert m["nb_crop"]["psnr"] == pytest.approx(10 * np.log10(1 / mse_region), abs=1e-6)
+    assert m["nb_crop"]["mask_l2"] == pytest.approx(1e4 * np.mean((mask[region] - gt_mask[region]) ** 2))
+    p, g = pred.copy(), gt.copy()
+    p[~region], g[~region] = 0, 0
+    ref = structural_similarity(p[5:20, 8:30], g[5:20, 8:30], gaussian_weights=True, sigma=1.5,
+                                use_sample_covariance=False, data_range=1.0, channel_axis=-1)  # fmt: skip
+    assert m["nb_crop"]["ssim"] == pytest.approx(ref)
+
+
+def test_video_decodes_to_expected_frames(data_root_64, tmp_path):
+    from fitting.video import render_video
+
+    _fit(data_root_64, tmp_path / "run", "train.steps=2").fit()
+    for kind in ("orbit", "poses", "bones"):
+        path = render_video(tmp_path / "run", kind, tmp_path / f"{kind}.mp4", n_frames=5, fps=10, progress=False)
+        reader = imageio.get_reader(path)
+        frames = [f for f in reader]
+        expected = 1 if kind == "poses" else 5  # 10 frames: one held-out pose
+        assert len(frames) == expected and frames[0].shape == (64, 64 * 3, 3), kind
+
+
+def test_config_is_strict():
+    with pytest.raises(ConfigError, match="unknown config key 'train.foo'"):
+        load_config("tiny", ["train.foo=1"])
+    with pytest.raises(ConfigError, match="'train.steps': expected an integer"):
+        load_config("tiny", ["train.steps=1.5"])
+    with pytest.raises(ConfigError, match="unknown preset 'fast'"):
+        load_config("fast")
+    assert load_config("cpu", ["model.width=32"]).model.width == 32
+
+
+class TestBadInput:
+    def test_missing_and_corrupt_checkpoint(self, tmp_path, capsys):
+        (tmp_path / "run").mkdir()
+        assert run_cli("narf-eval", cli_eval.main, ["--run", str(tmp_path / "run")]) == 2
+        assert "no checkpoint" in capsys.readouterr().err
+        (tmp_path / "run" / "checkpoint.pt").write_bytes(b"\x80\x02garbage")
+        with pytest.raises(CheckpointError, match="corrupt or unreadable checkpoint"):
+            load_checkpoint(tmp_path / "run")
+        assert run_cli("narf-eval", cli_eval.main, ["--run", str(tmp_path / "nope")]) == 2
+
+    def test_fit_errors(self, tmp_path, data_root_64, capsys):
+        assert run_cli("narf-fit", cli_fit.main, ["--config", "tiny", "--set", "train.bogus=1",
+                                                  "--out", str(tmp_path / "x")]) == 2  # fmt: skip
+        assert "unknown config key 'train.bogus'" in capsys.readouterr().err
+        assert run_cli("narf-fit", cli_fit.main, ["--config", "tiny", "--subject", "kick", "--data-root",
+                                                  str(tmp_path), "--out", str(tmp_path / "y")]) == 2  # fmt: skip
+        assert "no subject 'kick'" in capsys.readouterr().err
+        (tmp_path / "file").write_text("")
+        assert run_cli("narf-fit", cli_fit.main, ["--config", "tiny", "--data-root", str(data_root_64), "--out",
+                                                  str(tmp_path / "file")]) == 2  # fmt: skip
+        assert "exists and is a file" in capsys.readouterr().err
+        assert not list(tmp_path.glob("x/checkpoint.pt"))
+
+    def test_split_the_capture_lacks(self, tmp_path):
+        from pipelines.synthetic import SynthConfig, generate_capture
+
+        root = tmp_path / "root"
+        generate_capture(root / "synthetic" / "taichi", SynthConfig(resolution=48, frames=1, cameras=2,
+                                                                    calib_shots=0, workers=1), progress=False)
+        _fit(root, tmp_path / "run", "train.steps=1").fit()
+        with pytest.raises(ValueError, match="split 'novel_pose' is empty"):
+            evaluate_run(tmp_path / "run", ["novel_pose"], progress=False)
