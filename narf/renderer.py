@@ -131,6 +131,7 @@ def render_image(field, K: torch.Tensor, cam_from_world: torch.Tensor, height: i
     origins, dirs = rays_from_pixels(K.to(device, dtype), cam_from_world.to(device, dtype), pixels)
     pose = pose.to(device)
     outputs: dict[str, list] = {"rgb": [], "mask": [], "depth": [], "segmentation": []}
+    has_parts = field.n_parts > 1
     for start in range(0, pixels.shape[0], chunk):
         o, d = origins[start : start + chunk], dirs[start : start + chunk]
         frames = torch.zeros(o.shape[0], dtype=torch.long, device=device)
@@ -142,7 +143,9 @@ def render_image(field, K: torch.Tensor, cam_from_world: torch.Tensor, height: i
         outputs["rgb"].append(result.rgb)
         outputs["mask"].append(result.mask)
         outputs["depth"].append(result.depth)
-        if result.part_weights is not None:
-            outputs["segmentation"].append(result.segmentation())
-    image = {k: torch.cat(v).reshape(height, width, *torch.cat(v).shape[1:]) for k, v in outputs.items() if v}
-    return image
+        # a chunk whose rays miss every box has no part weights: its pixels are background (-1)
+        outputs["segmentation"].append(result.segmentation() if result.part_weights is not None
+                                       else torch.full((o.shape[0],), -1, dtype=torch.long, device=device))
+    if not has_parts:
+        del outputs["segmentation"]
+    return {k: torch.cat(v).reshape(height, width, *torch.cat(v).shape[1:]) for k, v in outputs.items()}

@@ -235,3 +235,16 @@ def test_cost_cli_prints_every_model(capsys):
     assert table.count("\n") == 2 + len(paper_presets())
     assert main(["--model", "d_narf"]) == 0
     assert capsys.readouterr().out.count("D-NARF") == 1
+
+
+def test_render_image_with_chunks_that_miss_every_box():
+    field = _field("narf_d", width=8)
+    field.set_boxes(torch.zeros(19, 3), torch.full((19, 3), 0.05))
+    pose = _random_pose()
+    K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]])
+    cam_from_world = se3_exp(torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 4.0]))
+    out = render_image(field, K, cam_from_world, 32, 32, pose, n_coarse=4, n_fine=4, chunk=64)
+    assert out["segmentation"].shape == (32, 32) and (out["segmentation"][:2] == -1).all()
+    assert out["rgb"].shape == (32, 32, 3) and out["mask"][:2].max() == 0
+    rigid = _field("rt_nerf", width=8)
+    assert "segmentation" not in render_image(rigid, K, cam_from_world, 8, 8, _random_pose(n_parts=1), 4, 4)
