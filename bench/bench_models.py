@@ -117,7 +117,8 @@ def _measure(index: int) -> dict:
 def run() -> list[dict]:
     rows = []
     for index in range(len(CONFIGS)):
-        command = [sys.executable, "-c", f"import json, bench.bench_models as b; print(json.dumps(b._measure({index})))"]
+        code = f"import json, bench.bench_models as b; print(json.dumps(b._measure({index})))"
+        command = [sys.executable, "-c", code]
         done = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
         if done.returncode != 0:
             lines = done.stderr.strip().splitlines()

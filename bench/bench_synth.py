@@ -20,7 +20,8 @@ def run(resolution: int = 512) -> list[dict]:
         seconds = time.perf_counter() - start
         size = sum(p.stat().st_size for p in out.rglob("*") if p.is_file()) / 1e6
         shutil.rmtree(out)
-    peak = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+    usage = resource.getrusage
+    peak = max(usage(resource.RUSAGE_SELF).ru_maxrss, usage(resource.RUSAGE_CHILDREN).ru_maxrss)
     return [{"benchmark": "narf-synth taichi", "setting": f"{config.frames} frames x {config.cameras} cams, "
              f"{resolution}^2, {config.calib_shots} calib shots", "value": f"{seconds:.0f} s, {size:.0f} MB",
              "peak RSS": f"{peak / 1024:.0f} MB"}]  # fmt: skip

@@ -165,7 +165,8 @@ def validate_config(config: FitConfig) -> None:
               ("train.steps", config.train.steps >= 0), ("train.images_per_step", config.train.images_per_step >= 1),
               ("train.rays_per_image", config.train.rays_per_image >= 1),
               ("train.body_fraction", 0 <= config.train.body_fraction + config.train.border_fraction <= 1),
-              ("render.train_coarse", config.render.train_coarse >= 2), ("render.eval_coarse", config.render.eval_coarse >= 2),
+              ("render.train_coarse", config.render.train_coarse >= 2),
+              ("render.eval_coarse", config.render.eval_coarse >= 2),
               ("data.protocol", config.data.protocol in ("narf", "neuralbody"))]  # fmt: skip
     for key, ok in checks:
         if not ok:

@@ -1,18 +1,17 @@
-"""Training data: the protocol's training views in memory, per-frame poses, part boxes, mask-guided rays."""
+"""Training data in memory: training views, per-frame poses, part boxes and mask-guided ray batches.
+
+Built by ``pipelines.fit_session`` from a capture; this module reads no files."""
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from narf.fields.common import PoseBatch
-from pipelines.body_model import BodyModel, pose_batch
-from pipelines.capture import ZjuCapture
 
 BORDER_PX = 11  # width of the dilation that defines the border band around the silhouette
 
@@ -30,50 +29,29 @@ class RayBatch:
     mask_weight: torch.Tensor
 
 
-def poses_for_frames(capture: ZjuCapture, body_model: BodyModel, frames: list[int]):
-    """PoseBatch, posed bodies and betas (F, 10) of capture frames, from their SMPL parameters."""
-    params = [capture.params(f) for f in frames]
-    stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
-    with torch.no_grad():
-        bodies = body_model.pose_zju(*stack)
-    return pose_batch(bodies), bodies, stack[3]
-
-
-def fit_boxes(body_model: BodyModel, bodies, shapes: torch.Tensor, n_frames: int, scale_pad: float, abs_pad: float):
-    """Part boxes over the rest pose and up to ``n_frames`` evenly spaced training frames (model.md §1)."""
-    count = bodies.vertices.shape[0]
-    pick = torch.as_tensor(np.unique(np.linspace(0, count - 1, min(n_frames, count)).astype(int)))
-    subset = type(bodies)(*(getattr(bodies, k)[pick] for k in bodies.__dataclass_fields__))
-    with torch.no_grad():
-        rest = body_model.rest_body(shapes[:1])
-        return body_model.part_boxes([rest, subset], scale_pad, abs_pad)
-
-
 class TrainingSet:
-    """All training (frame, view) images of a protocol, kept as uint8 on ``device``.
+    """Training images kept as uint8 on ``device``, with their cameras, poses and sampling pools.
 
     Args:
-        capture: the subject. frames / views: training frames and camera indices. poses: PoseBatch of ``frames``.
+        views: loaded views with ``image`` (H, W, 3) float in [0, 1], ``mask`` (H, W), ``band`` (H, W) bool and
+            ``camera`` (``K``, ``cam_from_world``), e.g. ``pipelines.zju_mocap.Frame``.
+        frame_of_view: index of each view's frame in ``poses``.
+        poses: PoseBatch of the training frames.
         device: where images and rays live.
     """
 
-    def __init__(self, capture: ZjuCapture, frames: list[int], views: list[int], poses: PoseBatch, device,
-                 progress: bool = True):  # fmt: skip
-        items = [(i, f, c) for i, f in enumerate(frames) for c in views]
-        with ThreadPoolExecutor(2) as pool:
-            loaded = list(tqdm(pool.map(lambda item: capture.load_frame(item[1], item[2]), items), total=len(items),
-                               desc="loading training views", unit="image", disable=not progress))  # fmt: skip
+    def __init__(self, views: list, frame_of_view: list[int], poses: PoseBatch, device):
         self.device = device
         self.poses = poses.to(device)
-        self.height, self.width = loaded[0].image.shape[:2]
-        self.images = torch.as_tensor(np.stack([(f.image * 255 + 0.5).astype(np.uint8) for f in loaded])).to(device)
-        self.masks = torch.as_tensor(np.stack([f.mask > 0.5 for f in loaded])).to(device)
-        self.bands = torch.as_tensor(np.stack([f.band for f in loaded])).to(device)
-        self.Ks = torch.as_tensor(np.stack([f.camera.K for f in loaded]), dtype=torch.float32).to(device)
-        self.cam_from_world = torch.as_tensor(np.stack([f.camera.cam_from_world for f in loaded]),
+        self.height, self.width = views[0].image.shape[:2]
+        self.images = torch.as_tensor(np.stack([(v.image * 255 + 0.5).astype(np.uint8) for v in views])).to(device)
+        self.masks = torch.as_tensor(np.stack([v.mask > 0.5 for v in views])).to(device)
+        self.bands = torch.as_tensor(np.stack([v.band for v in views])).to(device)
+        self.Ks = torch.as_tensor(np.stack([v.camera.K for v in views]), dtype=torch.float32).to(device)
+        self.cam_from_world = torch.as_tensor(np.stack([v.camera.cam_from_world for v in views]),
                                               dtype=torch.float32).to(device)  # fmt: skip
-        self.frame_of_image = torch.as_tensor([i for i, _, _ in items], dtype=torch.long, device=device)
-        self.pools = [self._pools(f.mask > 0.5) for f in loaded]
+        self.frame_of_image = torch.as_tensor(frame_of_view, dtype=torch.long, device=device)
+        self.pools = [self._pools(v.mask > 0.5) for v in views]
 
     def __len__(self) -> int:
         return self.images.shape[0]
@@ -83,7 +61,10 @@ class TrainingSet:
         mask_u8 = mask.astype(np.uint8)
         dilated = cv2.dilate(mask_u8, np.ones((BORDER_PX, BORDER_PX), np.uint8)) > 0
         border = dilated & ~mask
-        ys, xs = np.nonzero(dilated) if dilated.any() else (np.array([0, self.height - 1]), np.array([0, self.width - 1]))
+        if dilated.any():
+            ys, xs = np.nonzero(dilated)
+        else:  # an empty mask: the whole image is background
+            ys, xs = np.array([0, self.height - 1]), np.array([0, self.width - 1])
         pad_y, pad_x = int(0.1 * (ys.max() - ys.min() + 1)), int(0.1 * (xs.max() - xs.min() + 1))
         box = np.zeros_like(mask)
         box[max(ys.min() - pad_y, 0) : ys.max() + pad_y + 1, max(xs.min() - pad_x, 0) : xs.max() + pad_x + 1] = True
@@ -125,3 +106,23 @@ class TrainingSet:
         mask = self.masks[images, v, u].float()
         weight = (~self.bands[images, v, u]).float()
         return RayBatch(origins, dirs, self.frame_of_image[images], rgb, mask, weight)
+
+
+@dataclass
+class FitData:
+    """Everything a Trainer needs from a capture.
+
+    Attributes:
+        training: the training views.
+        boxes: part box centres and half-extents (P, 3) each, fitted on the training poses.
+        frames: capture frame index of each training pose.
+        validation: callable returning (ground-truth image, camera, one-frame PoseBatch) of a held-out view,
+            or None.
+        description: one line naming the capture, for logs.
+    """
+
+    training: TrainingSet
+    boxes: tuple[torch.Tensor, torch.Tensor]
+    frames: list[int]
+    validation: Callable | None = None
+    description: str = ""

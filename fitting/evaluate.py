@@ -1,27 +1,20 @@
-"""Evaluation of a fitted run on the protocol splits (model.md §7): full-image and Neural Body crop metrics."""
+"""Evaluation protocols (model.md §7): full-image and Neural Body crop metrics of rendered views, and the
+report table. The loop over a capture's splits is ``pipelines.evaluation.evaluate_run``."""
 
 from __future__ import annotations
 
-import json
 import platform
-from pathlib import Path
 
 import cv2
 import numpy as np
 import skimage
 import torch
 from skimage.metrics import structural_similarity
-from tqdm import tqdm
 
-from fitting.checkpoint import load_checkpoint
-from fitting.config import FitConfig, load_config
-from fitting.data import poses_for_frames
-from fitting.plots import grid, save_png, to_numpy
-from fitting.trainer import make_field, open_capture
+from fitting.config import FitConfig
 from narf.metrics import mask_l2, psnr_of
 from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
 from narf.renderer import render_image
-from pipelines.body_model import BodyModel
 
 EVAL_SPLITS = ("same_pose_same_view", "same_pose_novel_view", "novel_pose_same_view", "novel_pose_novel_view")
 ALL_SPLITS = (*EVAL_SPLITS, "novel_pose", "novel_view", "all")
@@ -91,7 +84,7 @@ def _crop_box(region: np.ndarray, min_size: int = 11) -> tuple[slice, slice]:
     return bounds[0], bounds[1]
 
 
-def _average(records: list[dict], protocol: str) -> dict:
+def average_metrics(records: list[dict], protocol: str) -> dict:
     values = [r[protocol] for r in records if r[protocol] is not None]
     return {k: float(np.mean([v[k] for v in values])) for k in ("mask_l2", "psnr", "ssim")} if values else {}
 
@@ -101,54 +94,10 @@ def library_versions() -> dict:
             "numpy": np.__version__, "python": platform.python_version()}  # fmt: skip
 
 
-def _spread(items: list, limit: int | None) -> list:
+def spread(items: list, limit: int | None) -> list:
     if not limit or len(items) <= limit:
         return items
     return [items[i] for i in np.linspace(0, len(items) - 1, limit).round().astype(int)]
-
-
-def evaluate_run(run_dir: Path, splits: list[str], limit: int | None = None, device: str = "cpu",
-                 progress: bool = True, grids: int = 4) -> dict:  # fmt: skip
-    """Evaluate ``splits`` of the run's protocol; update ``run_dir/eval/metrics.json`` and ``metrics.md``."""
-    run_dir = Path(run_dir)
-    state = load_checkpoint(run_dir, map_location=device)
-    config = load_config(base=state["config"])
-    field = make_field(config).to(device)
-    field.load_state_dict(state["model"])
-    field.eval()
-    capture = open_capture(config, quiet=True)
-    protocol = capture.protocol(config.data.protocol)
-    body_model = BodyModel()
-    out_dir = run_dir / "eval"
-    metrics_path = out_dir / "metrics.json"
-    report = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {"splits": {}}
-    bg = 1.0 if config.data.white_background else 0.0
-    for split in splits:
-        items = _spread(protocol.split(split), limit)
-        if not items:
-            raise ValueError(f"split '{split}' is empty for {capture.root} under the {protocol.name} protocol")
-        frames = sorted({f for f, _ in items})
-        poses, _, _ = poses_for_frames(capture, body_model, frames)
-        poses = poses.to(device)
-        records = []
-        for index, (frame, cam) in enumerate(tqdm(items, desc=f"eval {split}", unit="view", disable=not progress)):
-            item = capture.load_frame(frame, cam)
-            render = to_numpy(render_view(field, item.camera, poses.select(torch.tensor([frames.index(frame)],
-                                                                                        device=device)), config))
-            region = nb_crop_region(item.camera, capture.vertices(frame))
-            records.append({"frame": frame, "camera": cam, **frame_metrics(render, item.image, item.mask, region, bg)})
-            if index < grids:
-                save_png(out_dir / "grids" / split / f"frame{frame:05d}_cam{cam:02d}.png", grid(item.image, render))
-        report["splits"][split] = {"n_views": len(records), "limit": limit, "full": _average(records, "full"),
-                                   "nb_crop": _average(records, "nb_crop"), "per_view": records}  # fmt: skip
-    report.update({"run": str(run_dir), "step": state["step"], "model": config.model.name, "width": config.model.width,
-                   "subject": str(capture.root), "protocol": protocol.name, "versions": library_versions()})
-    out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = metrics_path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(report, indent=1))
-    tmp.replace(metrics_path)
-    (out_dir / "metrics.md").write_text(markdown_table(report))
-    return report
 
 
 def markdown_table(report: dict) -> str:
@@ -156,7 +105,8 @@ def markdown_table(report: dict) -> str:
     splits = [s for s in (*EVAL_SPLITS, "novel_pose", "novel_view") if s in report["splits"]]
     lines = [f"# {report['model']} (width {report['width']}), step {report['step']}: {report['subject']}", "",
              "Cells: Mask L2 (x10^4) / PSNR (dB) / SSIM. SS/NS/SN/NN = same or novel pose x same or novel view.", "",
-             "| protocol | " + " | ".join(_SHORT[s] for s in splits) + " |", "|---|" + "---|" * len(splits)]  # fmt: skip
+             "| protocol | " + " | ".join(_SHORT[s] for s in splits) + " |",
+             "|---|" + "---|" * len(splits)]  # fmt: skip
     for protocol in ("full", "nb_crop"):
         cells = []
         for split in splits:
@@ -164,6 +114,6 @@ def markdown_table(report: dict) -> str:
             cells.append(f"{m['mask_l2']:.1f}/{m['psnr']:.2f}/{m['ssim']:.4f}" if m else "-")
         lines.append(f"| {'full image' if protocol == 'full' else 'NB crop'} | " + " | ".join(cells) + " |")
     versions = ", ".join(f"{k} {v}" for k, v in report["versions"].items())
-    lines += ["", f"Views per split: " + ", ".join(f"{_SHORT[s]} {report['splits'][s]['n_views']}" for s in splits),
+    lines += ["", "Views per split: " + ", ".join(f"{_SHORT[s]} {report['splits'][s]['n_views']}" for s in splits),
               f"Versions: {versions}", ""]  # fmt: skip
     return "\n".join(lines)

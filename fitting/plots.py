@@ -51,19 +51,16 @@ def grid(gt: np.ndarray, render: dict, labels: bool = True) -> np.ndarray:
 
 
 def to_numpy(render: dict) -> dict:
-    return {k: v.detach().float().cpu().numpy() if v.dtype != torch.long else v.cpu().numpy() for k, v in render.items()}
+    """Render tensors to numpy (float32, long labels kept)."""
+    return {k: (v.cpu().numpy() if v.dtype == torch.long else v.detach().float().cpu().numpy())
+            for k, v in render.items()}
 
 
-def write_validation(trainer, frame: int, view: int, path: Path) -> Path:
-    """Render (frame, view) with the trainer's model at evaluation samples and save ground truth | render | ..."""
+def write_validation(field, config, image: np.ndarray, camera, pose, path: Path) -> Path:
+    """Render ``camera`` / ``pose`` at evaluation samples and save ground truth | render | depth | ... ."""
     from fitting.evaluate import render_view
 
-    item = trainer.capture.load_frame(frame, view)
-    poses = trainer.data.poses.select(torch.tensor([trainer.frames.index(frame)], device=trainer.device))
-    trainer.field.eval()
-    render = to_numpy(render_view(trainer.field, item.camera, poses, trainer.config))
-    trainer.field.train()
-    save_png(path, grid(item.image, render))
+    save_png(path, grid(image, to_numpy(render_view(field, camera, pose, config))))
     return path
 
 

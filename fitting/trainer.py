@@ -14,17 +14,14 @@ import torch
 import yaml
 from tqdm import tqdm
 
-from fitting.checkpoint import load_checkpoint, save_checkpoint
-from fitting.config import FitConfig, load_config
-from fitting.data import TrainingSet, fit_boxes, poses_for_frames
+from fitting.checkpoint import save_checkpoint
+from fitting.config import FitConfig
+from fitting.data import FitData
 from fitting.plots import write_curve, write_validation
 from narf.fields import build_field
 from narf.metrics import psnr
 from narf.rays import ray_box_intersect
 from narf.renderer import bind_field, render_rays
-from pipelines.body_model import BodyModel
-from pipelines.capture import ZjuCapture
-from pipelines.subjects import resolve_subject
 
 
 def auto_device(name: str = "auto") -> torch.device:
@@ -44,12 +41,6 @@ def make_field(config: FitConfig):
     if m.name == "p_nerf":
         kwargs["pose_in_color"] = m.pose_in_color
     return build_field(m.name, **kwargs)
-
-
-def open_capture(config: FitConfig, quiet: bool = False) -> ZjuCapture:
-    root = resolve_subject(config.data.subject, config.data.data_root, quiet=quiet)
-    return ZjuCapture(root, ratio=config.data.ratio, mask_source=config.data.mask_source,
-                      new_params=config.data.new_params, white_background=config.data.white_background)  # fmt: skip
 
 
 def ray_loss(config: FitConfig, field, batch, poses, generator, n_coarse: int, n_fine: int):
@@ -75,29 +66,20 @@ class FitResult:
 
 
 class Trainer:
-    """Builds data, model and optimiser for ``config`` in ``run_dir``; ``resume`` continues its checkpoint."""
+    """Model and optimiser for ``config`` in ``run_dir``, trained on ``data``; ``state`` (a loaded checkpoint)
+    resumes where it stopped. Use ``pipelines.fit_session.start_trainer`` to build one from a capture."""
 
-    def __init__(self, config: FitConfig, run_dir: Path, device: torch.device, resume: bool = False,
-                 progress: bool = True):  # fmt: skip
+    def __init__(self, config: FitConfig, run_dir: Path, device: torch.device, data: FitData,
+                 state: dict | None = None, progress: bool = True):  # fmt: skip
         self.config, self.run_dir, self.device, self.progress = config, Path(run_dir), device, progress
-        state = load_checkpoint(self.run_dir, map_location=device) if resume else None
-        if state is not None:
-            self.config = config = load_config(base=state["config"])
         torch.manual_seed(config.train.seed)
         np.random.seed(config.train.seed)
         random.seed(config.train.seed)
-        self.capture = open_capture(config)
-        protocol = self.capture.protocol(config.data.protocol)
-        self.frames = list(protocol.train_frames[:: config.data.frame_stride])
-        self.body_model = BodyModel()
-        poses, bodies, shapes = poses_for_frames(self.capture, self.body_model, self.frames)
+        self.data, self.frames = data.training, data.frames
+        self.fit_data = data
         self.field = make_field(config).to(device)
         if state is None:
-            centres, half = fit_boxes(self.body_model, bodies, shapes, config.data.box_frames,
-                                      config.model.box_scale_pad, config.model.box_abs_pad)  # fmt: skip
-            self.field.set_boxes(centres.to(device), half.to(device))
-        self.data = TrainingSet(self.capture, self.frames, list(protocol.train_views), poses, device, progress)
-        self.validation = (self.frames[len(self.frames) // 2], protocol.test_views[0] if protocol.test_views else 0)
+            self.field.set_boxes(data.boxes[0].to(device), data.boxes[1].to(device))
         self.optimiser = torch.optim.Adam(self.field.parameters(), lr=config.train.lr, betas=(0.9, 0.999),
                                           eps=config.train.adam_eps)  # fmt: skip
         self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimiser, gamma=config.train.lr_decay)
@@ -173,10 +155,16 @@ class Trainer:
             write_curve(log_path, self.run_dir / "curve.png")
         return FitResult(self.run_dir, self.step, loss, score, finished)
 
-    def validate(self) -> Path:
+    def validate(self) -> Path | None:
         """Render one held-out view (a training pose from a test camera) next to its ground truth."""
-        frame, view = self.validation
-        return write_validation(self, frame, view, self.run_dir / "val" / f"step_{self.step:07d}.png")
+        if self.fit_data.validation is None:
+            return None
+        image, camera, pose = self.fit_data.validation()
+        self.field.eval()
+        path = write_validation(self.field, self.config, image, camera, pose.to(self.device),
+                                self.run_dir / "val" / f"step_{self.step:07d}.png")  # fmt: skip
+        self.field.train()
+        return path
 
 
 def prepare_run_dir(out: Path, config: FitConfig, resume: bool) -> Path:

@@ -25,7 +25,8 @@ class GroupedLinear(nn.Module):
     def __init__(self, in_features: int, out_features: int, groups: int = 1, bias: bool = True,
                  paper_skip: bool = False):  # fmt: skip
         super().__init__()
-        self.in_features, self.out_features, self.groups, self.paper_skip = in_features, out_features, groups, paper_skip
+        self.in_features, self.out_features = in_features, out_features
+        self.groups, self.paper_skip = groups, paper_skip
         self.weight = nn.Parameter(torch.randn(groups, out_features, in_features))
         self.bias = nn.Parameter(torch.zeros(groups, 1, out_features)) if bias else None
 

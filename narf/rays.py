@@ -7,7 +7,9 @@ import torch
 from narf.geometry import check_shape
 
 
-def rays_from_pixels(K: torch.Tensor, cam_from_world: torch.Tensor, pixels: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def rays_from_pixels(
+    K: torch.Tensor, cam_from_world: torch.Tensor, pixels: torch.Tensor
+) -> tuple[torch.Tensor, torch.Tensor]:
     """World rays through pixel coordinates of an undistorted pinhole camera (pixel centres at integers).
 
     Args:
@@ -35,8 +37,10 @@ def image_pixels(height: int, width: int, device=None, dtype=torch.float32) -> t
     return torch.stack([u.reshape(-1), v.reshape(-1)], dim=1)
 
 
-def ray_box_intersect(origins: torch.Tensor, dirs: torch.Tensor, world_from_part: torch.Tensor, reach: torch.Tensor,
-                      centres: torch.Tensor, half_extents: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # fmt: skip
+def ray_box_intersect(
+    origins: torch.Tensor, dirs: torch.Tensor, world_from_part: torch.Tensor, reach: torch.Tensor,
+    centres: torch.Tensor, half_extents: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Slab test against every part box (oriented in the world, body units).
 
     In box space o' = (R_i^T (o - t_i)/s - c_i) / h_i, d' = (R_i^T d / s) / h_i; per axis t spans

@@ -113,8 +113,8 @@ def bind_field(field, dirs: torch.Tensor, pose, frame_of_ray: torch.Tensor, late
 
 
 @torch.no_grad()
-def render_image(field, K: torch.Tensor, cam_from_world: torch.Tensor, height: int, width: int, pose, n_coarse: int = 64,
-                 n_fine: int = 128, background: float = 0.0, chunk: int = 4096,
+def render_image(field, K: torch.Tensor, cam_from_world: torch.Tensor, height: int, width: int, pose,
+                 n_coarse: int = 64, n_fine: int = 128, background: float = 0.0, chunk: int = 4096,
                  latent: torch.Tensor | None = None) -> dict[str, torch.Tensor]:  # fmt: skip
     """Render a full image of one frame in chunks of rays (bounded memory), deterministically.
 

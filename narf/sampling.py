@@ -5,7 +5,9 @@ from __future__ import annotations
 import torch
 
 
-def stratified_depths(near: torch.Tensor, far: torch.Tensor, n_samples: int, jitter: torch.Tensor | None = None) -> torch.Tensor:
+def stratified_depths(
+    near: torch.Tensor, far: torch.Tensor, n_samples: int, jitter: torch.Tensor | None = None
+) -> torch.Tensor:
     """t_k = near + (k + U_k)/N (far - near).
 
     Args:

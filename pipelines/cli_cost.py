@@ -11,7 +11,8 @@ from pipelines.cli_common import run_cli
 
 _LABELS = {"p_nerf": "P-NeRF (pose in colour, eq. D)", "p_nerf_table": "P-NeRF (pose_in_color=false, as tables)",
            "narf_p": "NARF_P (256)", "narf_p_32": "NARF_P (32)", "narf_p_64": "NARF_P (64)",
-           "narf_p_128": "NARF_P (128)", "narf_d": "NARF_D", "narf_d_sigmoid": "NARF_D sigmoid", "narf_h": "NARF_H", "d_narf": "D-NARF",
+           "narf_p_128": "NARF_P (128)", "narf_d": "NARF_D", "narf_d_sigmoid": "NARF_D sigmoid", "narf_h": "NARF_H",
+           "d_narf": "D-NARF",
            "rt_nerf": "RT-NeRF", "rt_nerf_no_pose": "RT-NeRF w/o xi", "rp_nerf": "RP-NeRF"}  # fmt: skip
 
 
@@ -38,6 +39,11 @@ def main(argv: list[str] | None = None) -> int:
         print(f"| {_LABELS[name]} | {cost.params / 1e6:.2f}M | "
               f"{cost.flops_per_ray / 1e6:.0f}M | {cost.memory_per_ray / 1e3:.0f}K | {paper} | "
               f"{cost.flops_per_ray_complete / 1e6:.0f}M |")  # fmt: skip
+    if not args.model:
+        from narf.fields.cnn import CnnBaseline
+
+        cnn = sum(p.numel() for p in CnnBaseline().parameters()) / 1e6
+        print(f"| CNN baseline | {cnn:.2f}M | - | - | 15.6M / - / - | - |")
     return 0
 
 

@@ -10,8 +10,9 @@ from pipelines.cli_common import run_cli
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fitting.evaluate import ALL_SPLITS, EVAL_SPLITS, evaluate_run, markdown_table
+    from fitting.evaluate import ALL_SPLITS, EVAL_SPLITS, markdown_table
     from fitting.trainer import auto_device
+    from pipelines.evaluation import evaluate_run
 
     parser = argparse.ArgumentParser(
         prog="narf-eval",

@@ -40,7 +40,8 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from fitting.config import load_config
-    from fitting.trainer import Trainer, auto_device, prepare_run_dir
+    from fitting.trainer import auto_device, prepare_run_dir
+    from pipelines.fit_session import start_trainer
 
     if args.smpl_dir:
         os.environ["NARF_SMPL_DIR"] = args.smpl_dir
@@ -63,10 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.resume and not (Path(out) / "checkpoint.pt").exists():
         raise FileNotFoundError(f"{out}: no checkpoint to resume")
     run_dir = prepare_run_dir(out, config, args.resume)
-    trainer = Trainer(config if config else load_config(), run_dir, device, resume=args.resume,
-                      progress=not args.quiet)  # fmt: skip
-    print(f"narf-fit: {trainer.config.model.name} (width {trainer.config.model.width}) on {trainer.capture.root}, "
-          f"{len(trainer.data)} training images, device {device}, torch {torch.__version__}", file=sys.stderr)  # fmt: skip
+    trainer = start_trainer(config, run_dir, device, resume=args.resume, progress=not args.quiet)
+    print(f"narf-fit: {trainer.config.model.name} (width {trainer.config.model.width}) on "
+          f"{trainer.fit_data.description}, device {device}, torch {torch.__version__}", file=sys.stderr)  # fmt: skip
     result = trainer.fit(args.max_minutes)
     state = "finished" if result.finished else "stopped (resume with --resume)"
     print(f"narf-fit: {state} at step {result.step}, training PSNR {result.psnr:.2f} dB; run folder {run_dir}")

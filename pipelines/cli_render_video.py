@@ -11,7 +11,7 @@ from pipelines.cli_common import run_cli
 
 def main(argv: list[str] | None = None) -> int:
     from fitting.trainer import auto_device
-    from fitting.video import KINDS, render_video
+    from pipelines.video import KINDS, render_video
 
     parser = argparse.ArgumentParser(
         prog="narf-render-video",

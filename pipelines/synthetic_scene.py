@@ -17,8 +17,9 @@ LABEL = {"hair": 2, "upper_clothes": 5, "pants": 9, "torso_skin": 10, "face": 13
          "right_arm": 15, "left_shoe": 18, "right_shoe": 19}  # fmt: skip
 
 
-def look_at(centre: np.ndarray, target: np.ndarray, down: np.ndarray = np.array([0.0, 0.0, 1.0])) -> np.ndarray:
+def look_at(centre: np.ndarray, target: np.ndarray, down: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
     """(4, 4) ``cam_from_world`` of an OpenCV camera at ``centre`` looking at ``target``, image-down ~ ``down``."""
+    down = np.asarray(down, dtype=float)
     forward = target - centre
     forward /= np.linalg.norm(forward)
     y_axis = down - forward * (down @ forward)

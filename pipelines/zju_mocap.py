@@ -47,13 +47,13 @@ class Camera:
         """Camera centre in world coordinates, ``-R^T t``."""
         return -self.cam_from_world[:3, :3].T @ self.cam_from_world[:3, 3]
 
-    def scaled(self, ratio: float) -> "Camera":
+    def scaled(self, ratio: float) -> Camera:
         """The camera after resizing the image by ``ratio`` (first two rows of K scaled)."""
         K = self.K.copy()
         K[:2] *= ratio
         return replace(self, K=K, width=int(round(self.width * ratio)), height=int(round(self.height * ratio)))
 
-    def undistorted(self) -> "Camera":
+    def undistorted(self) -> Camera:
         return replace(self, dist=np.zeros(5))
 
 

@@ -17,8 +17,9 @@ def _random_pose(n_frames=1, n_parts=19, seed=0, dtype=torch.float32):
     gen = torch.Generator().manual_seed(seed)
     xi = torch.randn(n_frames, n_parts, 6, generator=gen) * 0.3
     world_from_part = se3_exp(xi).to(dtype)
-    return PoseBatch(world_from_part, torch.ones(n_frames, dtype=dtype), torch.rand(n_frames, 19, generator=gen).to(dtype),
-                     (xi * 0.5).to(dtype), (torch.randn(n_frames, n_parts, 3, generator=gen) * 0.2).to(dtype))
+    zeta = torch.rand(n_frames, 19, generator=gen).to(dtype)
+    return PoseBatch(world_from_part, torch.ones(n_frames, dtype=dtype), zeta, (xi * 0.5).to(dtype),
+                     (torch.randn(n_frames, n_parts, 3, generator=gen) * 0.2).to(dtype))
 
 
 def _field(name, width=16, n_parts=19, dtype=torch.float32, **kwargs):
@@ -232,7 +233,7 @@ def test_cost_cli_prints_every_model(capsys):
     assert main([]) == 0
     table = capsys.readouterr().out
     assert "| NARF_D | 1.11M | 206M | 383K | 1.10M / 205M / 382K |" in table
-    assert table.count("\n") == 2 + len(paper_presets())
+    assert table.count("\n") == 3 + len(paper_presets())  # header, rule, models, CNN baseline
     assert main(["--model", "d_narf"]) == 0
     assert capsys.readouterr().out.count("D-NARF") == 1
 

@@ -13,10 +13,12 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from fitting.checkpoint import CheckpointError, load_checkpoint
 from fitting.config import ConfigError, load_config
-from fitting.evaluate import evaluate_run, frame_metrics
-from fitting.trainer import Trainer, prepare_run_dir
-from pipelines.cli_common import run_cli
+from fitting.evaluate import frame_metrics
+from fitting.trainer import prepare_run_dir
 from pipelines import cli_eval, cli_fit
+from pipelines.cli_common import run_cli
+from pipelines.evaluation import evaluate_run
+from pipelines.fit_session import start_trainer
 
 
 def _config(root, *extra):
@@ -26,8 +28,7 @@ def _config(root, *extra):
 def _fit(root, out, *extra, resume=False):
     config = _config(root, *extra)
     run = prepare_run_dir(out, config, resume)
-    trainer = Trainer(config, run, torch.device("cpu"), resume=resume, progress=False)
-    return trainer
+    return start_trainer(config, run, torch.device("cpu"), resume=resume, progress=False)
 
 
 def test_tiny_fit_loss_falls_and_eval_writes_every_artefact(data_root_64, tmp_path):
@@ -109,7 +110,7 @@ def test_metrics_against_scikit_image():
 
 
 def test_video_decodes_to_expected_frames(data_root_64, tmp_path):
-    from fitting.video import render_video
+    from pipelines.video import render_video
 
     _fit(data_root_64, tmp_path / "run", "train.steps=2").fit()
     for kind in ("orbit", "poses", "bones"):

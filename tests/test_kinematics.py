@@ -5,8 +5,15 @@ import torch
 
 from narf.geometry import se3_exp
 from narf.kinematics import (
-    BONE_CHILDREN, JOINT_TO_PART, PART_JOINTS, PART_PARENTS, SMPL_PARENTS, bone_lengths, fit_part_boxes,
-    kinematic_reach, part_pose_features,
+    BONE_CHILDREN,
+    JOINT_TO_PART,
+    PART_JOINTS,
+    PART_PARENTS,
+    SMPL_PARENTS,
+    bone_lengths,
+    fit_part_boxes,
+    kinematic_reach,
+    part_pose_features,
 )
 from pipelines.body_model import smplx_params_from_zju
 
@@ -77,7 +84,7 @@ def test_bone_lengths_pose_invariant_and_hand_computed(body_model64):
     positions = torch.zeros(24, 3, dtype=torch.float64)
     for j in range(1, 24):
         positions[j] = positions[SMPL_PARENTS[j]] + torch.tensor([0.0, 0.1, 0.0], dtype=torch.float64)
-    assert math.isclose(kinematic_reach(positions).item(), 0.1 * 8, rel_tol=1e-12)  # pelvis-spine1-2-3-collar-shoulder-elbow-wrist-hand
+    assert math.isclose(kinematic_reach(positions).item(), 0.1 * 8, rel_tol=1e-12)  # pelvis..hand: 8 bones
     assert torch.allclose(bone_lengths(positions), torch.full((19,), 0.1, dtype=torch.float64))
 
 

@@ -88,7 +88,8 @@ def test_render_rays_of_a_constant_field_hand_computed():
 
     def field_fn(points, ray_ids):
         r, s, _ = points.shape
-        return FieldOutput(torch.full((r, s), sigma, dtype=points.dtype), torch.full((r, s, 3), 0.5, dtype=points.dtype))
+        dtype = points.dtype
+        return FieldOutput(torch.full((r, s), sigma, dtype=dtype), torch.full((r, s, 3), 0.5, dtype=dtype))
 
     origins = torch.zeros(3, 3, dtype=torch.float64)
     dirs = torch.tensor([[0, 0, 1.0]] * 3, dtype=torch.float64)
@@ -105,4 +106,5 @@ def test_render_rays_of_a_constant_field_hand_computed():
 
 def test_render_rays_rejects_bad_shapes():
     with pytest.raises(ValueError, match="origins"):
-        render_rays(None, torch.zeros(3), torch.zeros(3), torch.zeros(1), torch.zeros(1), torch.ones(1, dtype=bool), 4, 4)
+        render_rays(None, torch.zeros(3), torch.zeros(3), torch.zeros(1), torch.zeros(1), torch.ones(1, dtype=bool),
+                    4, 4)

@@ -38,11 +38,11 @@ class PoseBatch:
         check_shape("pose_features", self.pose_features, (n_frames, n_parts, 6))
         check_shape("rest_offsets", self.rest_offsets, (n_frames, n_parts, 3))
 
-    def select(self, frames: torch.Tensor) -> "PoseBatch":
+    def select(self, frames: torch.Tensor) -> PoseBatch:
         """Gather per-ray poses: ``frames`` (R,) long -> a PoseBatch of R entries."""
         return PoseBatch(*(getattr(self, k)[frames] for k in self.__dataclass_fields__))
 
-    def to(self, device) -> "PoseBatch":
+    def to(self, device) -> PoseBatch:
         return PoseBatch(*(getattr(self, k).to(device) for k in self.__dataclass_fields__))
 
 

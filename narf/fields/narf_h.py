@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import math
 
-import torch
-
 from narf.encodings import positional_encoding
 from narf.fields.base import Field, FieldOutput
 from narf.fields.common import RadianceHead

@@ -1,0 +1,59 @@
+"""Evaluate a fitted run on its capture's protocol splits (``narf-eval``)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import torch
+from tqdm import tqdm
+
+from fitting.evaluate import (
+    average_metrics,
+    frame_metrics,
+    library_versions,
+    markdown_table,
+    nb_crop_region,
+    render_view,
+    spread,
+)
+from fitting.plots import grid, save_png, to_numpy
+from pipelines.fit_session import load_run, poses_for_frames
+
+
+def evaluate_run(run_dir: Path, splits: list[str], limit: int | None = None, device: str = "cpu",
+                 progress: bool = True, grids: int = 4) -> dict:  # fmt: skip
+    """Evaluate ``splits`` of the run's protocol; update ``run_dir/eval/metrics.json`` and ``metrics.md``."""
+    run_dir = Path(run_dir)
+    run = load_run(run_dir, device)
+    config, field, capture, protocol, body_model = run.config, run.field, run.capture, run.protocol, run.body_model
+    out_dir = run_dir / "eval"
+    metrics_path = out_dir / "metrics.json"
+    report = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {"splits": {}}
+    bg = 1.0 if config.data.white_background else 0.0
+    for split in splits:
+        items = spread(protocol.split(split), limit)
+        if not items:
+            raise ValueError(f"split '{split}' is empty for {capture.root} under the {protocol.name} protocol")
+        frames = sorted({f for f, _ in items})
+        poses, _, _ = poses_for_frames(capture, body_model, frames)
+        poses = poses.to(device)
+        records = []
+        for index, (frame, cam) in enumerate(tqdm(items, desc=f"eval {split}", unit="view", disable=not progress)):
+            item = capture.load_frame(frame, cam)
+            render = to_numpy(render_view(field, item.camera, poses.select(torch.tensor([frames.index(frame)],
+                                                                                        device=device)), config))
+            region = nb_crop_region(item.camera, capture.vertices(frame))
+            records.append({"frame": frame, "camera": cam, **frame_metrics(render, item.image, item.mask, region, bg)})
+            if index < grids:
+                save_png(out_dir / "grids" / split / f"frame{frame:05d}_cam{cam:02d}.png", grid(item.image, render))
+        report["splits"][split] = {"n_views": len(records), "limit": limit, "full": average_metrics(records, "full"),
+                                   "nb_crop": average_metrics(records, "nb_crop"), "per_view": records}  # fmt: skip
+    report.update({"run": str(run_dir), "step": run.step, "model": config.model.name, "width": config.model.width,
+                   "subject": str(capture.root), "protocol": protocol.name, "versions": library_versions()})
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = metrics_path.with_suffix(".json.tmp")
+    tmp.write_text(json.dumps(report, indent=1))
+    tmp.replace(metrics_path)
+    (out_dir / "metrics.md").write_text(markdown_table(report))
+    return report

@@ -1,0 +1,107 @@
+"""Glue between a capture on disk and the fitting package: open the subject, pose its frames, fit the part
+boxes, load the training views, and start (or resume) a Trainer."""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from fitting.checkpoint import load_checkpoint
+from fitting.config import FitConfig, load_config
+from fitting.data import FitData, TrainingSet
+from fitting.trainer import Trainer, make_field
+from pipelines.body_model import BodyModel, pose_batch
+from pipelines.capture import ZjuCapture
+from pipelines.subjects import resolve_subject
+
+
+def open_capture(config: FitConfig, quiet: bool = False) -> ZjuCapture:
+    """The subject of a config, read with the config's loader options."""
+    root = resolve_subject(config.data.subject, config.data.data_root, quiet=quiet)
+    return ZjuCapture(root, ratio=config.data.ratio, mask_source=config.data.mask_source,
+                      new_params=config.data.new_params, white_background=config.data.white_background)  # fmt: skip
+
+
+def poses_for_frames(capture: ZjuCapture, body_model: BodyModel, frames: list[int]):
+    """PoseBatch, posed bodies and betas (F, 10) of capture frames, from their SMPL parameters."""
+    params = [capture.params(f) for f in frames]
+    stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
+    with torch.no_grad():
+        bodies = body_model.pose_zju(*stack)
+    return pose_batch(bodies), bodies, stack[3]
+
+
+def fit_boxes(body_model: BodyModel, bodies, shapes: torch.Tensor, n_frames: int, scale_pad: float, abs_pad: float):
+    """Part boxes over the rest pose and up to ``n_frames`` evenly spaced training frames (model.md §1)."""
+    count = bodies.vertices.shape[0]
+    pick = torch.as_tensor(np.unique(np.linspace(0, count - 1, min(n_frames, count)).astype(int)))
+    subset = type(bodies)(*(getattr(bodies, k)[pick] for k in bodies.__dataclass_fields__))
+    with torch.no_grad():
+        rest = body_model.rest_body(shapes[:1])
+        return body_model.part_boxes([rest, subset], scale_pad, abs_pad)
+
+
+def build_fit_data(config: FitConfig, device, progress: bool = True) -> FitData:
+    """Load the protocol's training views (Neural Body order), their poses and the part boxes."""
+    capture = open_capture(config)
+    protocol = capture.protocol(config.data.protocol)
+    frames = list(protocol.train_frames[:: config.data.frame_stride])
+    body_model = BodyModel()
+    poses, bodies, shapes = poses_for_frames(capture, body_model, frames)
+    boxes = fit_boxes(body_model, bodies, shapes, config.data.box_frames, config.model.box_scale_pad,
+                      config.model.box_abs_pad)  # fmt: skip
+    items = [(i, f, c) for i, f in enumerate(frames) for c in protocol.train_views]
+    with ThreadPoolExecutor(2) as pool:
+        views = list(tqdm(pool.map(lambda item: capture.load_frame(item[1], item[2]), items), total=len(items),
+                          desc="loading training views", unit="image", disable=not progress))  # fmt: skip
+    training = TrainingSet(views, [i for i, _, _ in items], poses, device)
+    held_frame = frames[len(frames) // 2]
+    held_view = protocol.test_views[0] if protocol.test_views else protocol.train_views[0]
+
+    def validation():
+        item = capture.load_frame(held_frame, held_view)
+        return item.image, item.camera, poses.select(torch.tensor([frames.index(held_frame)]))
+
+    return FitData(training, boxes, frames, validation,
+                   f"{capture.root}: {len(training)} training images ({len(frames)} frames x "
+                   f"{len(protocol.train_views)} views)")  # fmt: skip
+
+
+def start_trainer(config: FitConfig | None, run_dir: Path, device, resume: bool = False,
+                  progress: bool = True) -> Trainer:  # fmt: skip
+    """A Trainer on the config's capture; with ``resume`` the config, weights and RNG come from the checkpoint."""
+    state = load_checkpoint(run_dir, map_location=device) if resume else None
+    if state is not None:
+        config = load_config(base=state["config"])
+    if config is None:
+        raise ValueError("start_trainer needs a config unless it resumes a checkpoint")
+    data = build_fit_data(config, device, progress)
+    return Trainer(config, run_dir, device, data, state=state, progress=progress)
+
+
+@dataclass
+class LoadedRun:
+    """A fitted run ready to render: its config, model (eval mode), capture, protocol and body model."""
+
+    config: FitConfig
+    field: torch.nn.Module
+    capture: ZjuCapture
+    protocol: object
+    body_model: BodyModel
+    step: int
+
+
+def load_run(run_dir: Path, device="cpu") -> LoadedRun:
+    """Load a run folder written by ``narf-fit --out`` (checkpoint, config, and the capture it was fitted on)."""
+    state = load_checkpoint(run_dir, map_location=device)
+    config = load_config(base=state["config"])
+    field = make_field(config).to(device)
+    field.load_state_dict(state["model"])
+    field.eval()
+    capture = open_capture(config, quiet=True)
+    return LoadedRun(config, field, capture, capture.protocol(config.data.protocol), BodyModel(), state["step"])
