@@ -24,7 +24,8 @@ def test_bone_maps_hand_computed():
     bone_rows = maps[0, :, 32] > 0
     assert bone_rows.any() and torch.allclose(maps[0, bone_rows, 32], torch.tensor(0.5))
     assert maps[0, :, 40].max() == 0
-    assert torch.allclose(maps[44, 0], torch.linspace(-1, 1, 64)) and torch.allclose(maps[45, :, 0], torch.linspace(-1, 1, 64))
+    ramp = torch.linspace(-1, 1, 64)
+    assert torch.allclose(maps[44, 0], ramp) and torch.allclose(maps[45, :, 0], ramp)
     # part 0 (pelvis) owns the bones pelvis -> hips and spine1
     assert maps[1].sum() > 0 and all(SMPL_PARENTS[c] == 0 for c in (1, 2, 3))
 

@@ -1,6 +1,6 @@
 """The CNN baseline (model.md §4): a U-Net from 46 rasterised bone maps to RGB and mask.
 
-Five residual down blocks (128 -> 4 px, at most 256 channels) and a bottleneck block, then two skip decoders
+Five residual down blocks (128 -> 4 px, at most 256 channels), then two skip decoders
 (RGB, mask). Every normalisation is a conditional batch norm whose scale and shift come from the bones'
 camera-frame poses (19 x 12 values). Mask = sigmoid(logit - 5). No depth, no segmentation.
 """
@@ -74,7 +74,6 @@ class CnnBaseline(nn.Module):
         self.image_size = image_size
         self.stem = nn.Conv2d(N_CHANNELS, _ENCODER[0], 3, padding=1)
         self.down = nn.ModuleList(_ResBlock(a, b, down=True) for a, b in zip(_ENCODER[:-1], _ENCODER[1:]))
-        self.bottleneck = _ResBlock(_ENCODER[-1], _ENCODER[-1], down=False)
         self.rgb_decoder, self.mask_decoder = _Decoder(3), _Decoder(1)
 
     def forward(self, maps: torch.Tensor, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -85,7 +84,6 @@ class CnnBaseline(nn.Module):
         for block in self.down:
             h = block(h, pose)
             skips.append(h)
-        h = self.bottleneck(h, pose)
         rgb = torch.sigmoid(self.rgb_decoder(h, skips, pose))
         mask = torch.sigmoid(self.mask_decoder(h, skips, pose)[:, 0] - 5)
         return rgb, mask
