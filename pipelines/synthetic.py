@@ -43,6 +43,7 @@ class SynthConfig:
         calib_shots: ChArUco board poses under ``calib/`` (0 to skip).
         jpeg_quality: JPEG quality of the images.
         workers: render processes.
+        lbs: also write animatable_nerf's ``lbs/`` folder (per-frame weight grids: several MB a frame).
     """
 
     subject: str = "taichi"
@@ -54,6 +55,7 @@ class SynthConfig:
     calib_shots: int = 30
     jpeg_quality: int = 95
     workers: int = 2
+    lbs: bool = False
 
     def validate(self) -> None:
         if self.resolution < 32 or self.frames < 1 or self.cameras < 1:
@@ -248,6 +250,11 @@ def generate_capture(out: str | Path, config: SynthConfig = SynthConfig(), smpl_
             _render_frame(task)
             bar.update()
     bar.close()
+    if config.lbs:
+        from pipelines.synthetic_lbs import write_lbs
+
+        base = 1 if config.layout == "313" else 0
+        write_lbs(partial, body, params, new, [f + base for f in range(config.frames)])
     if config.calib_shots > 0:
         from pipelines.synthetic_calib import write_calibration_shots
 

@@ -133,3 +133,30 @@ def test_generation_refuses_foreign_folder_and_bad_config(tmp_path):
         generate_capture(tmp_path / "file", SynthConfig(resolution=48, frames=1, cameras=1, calib_shots=0))
     with pytest.raises(ValueError, match="layout"):
         generate_capture(tmp_path / "x", SynthConfig(layout="weird"))
+
+
+def test_animatable_nerf_lbs_folder(tmp_path, body_model):
+    from pipelines.synthetic_lbs import BOX_PADDING, VOXEL
+
+    root = generate_capture(tmp_path / "cap", SynthConfig(resolution=48, frames=2, cameras=2, calib_shots=0,
+                                                          workers=1, lbs=True), progress=False)  # fmt: skip
+    lbs = root / "lbs"
+    assert np.load(lbs / "joints.npy").shape == (24, 3) and np.load(lbs / "parents.npy")[0] == 4294967295
+    assert np.load(lbs / "weights.npy").shape == (6890, 24) and np.load(lbs / "faces.npy").shape == (13776, 3)
+    tpose = np.load(lbs / "tvertices.npy")
+    tbw = np.load(lbs / "tbw.npy")
+    extent = tpose.max(0) - tpose.min(0) + 2 * BOX_PADDING
+    assert tbw.shape[3] == 25 and np.all(np.abs(np.array(tbw.shape[:3]) - (extent / VOXEL + 1)) <= 1)
+    # the voxel nearest to a vertex carries that vertex's weights (when no other vertex is closer)
+    low = tpose.min(0) - BOX_PADDING
+    index = np.round((tpose[0] - low) / VOXEL).astype(int)
+    cell = tbw[tuple(index)]
+    assert cell[24] <= VOXEL * np.sqrt(3) / 2 + 1e-6 and np.isclose(cell[:24].sum(), 1, atol=1e-5)
+    frame = np.load(lbs / "bweights" / "1.npy")
+    assert frame.ndim == 4 and frame.shape[3] == 25
+    params = np.load(lbs / "smpl_params.npy", allow_pickle=True).item()
+    assert params["poses"].shape == (2, 72)
+    # posed grids are in the SMPL frame: R(Rh)^T (v - Th) of new_vertices
+    p = np.load(root / "new_params" / "1.npy", allow_pickle=True).item()
+    smpl_frame = (np.load(root / "new_vertices" / "1.npy") - p["Th"]) @ cv2.Rodrigues(p["Rh"])[0]
+    assert np.all(np.abs(np.array(frame.shape[:3]) - ((smpl_frame.max(0) - smpl_frame.min(0) + 0.1) / VOXEL + 1)) <= 1)
