@@ -57,7 +57,8 @@ class TrainConfig:
     body_fraction: float = 0.7  #: share of rays on body pixels
     border_fraction: float = 0.2  #: share on a band around the silhouette; the rest on background in the box
     lr: float = 0.01  #: Adam learning rate (equalized-lr layers assume 0.01)
-    lr_decay: float = 0.99995  #: multiplicative decay per step
+    lr_decay: float = 0.99995  #: multiplicative decay per step (upstream)
+    lr_min: float = 0.0  #: floor of the decayed learning rate
     adam_eps: float = 1e-12  #: Adam epsilon (upstream)
     mask_weight: float = 1.0  #: lambda_mask (0: ablation)
     checkpoint_minutes: float = 3.0  #: write a checkpoint at least this often
@@ -164,6 +165,7 @@ def validate_config(config: FitConfig) -> None:
     checks = [("data.ratio", 0 < config.data.ratio <= 1), ("model.width", config.model.width >= 4),
               ("train.steps", config.train.steps >= 0), ("train.images_per_step", config.train.images_per_step >= 1),
               ("train.rays_per_image", config.train.rays_per_image >= 1),
+              ("train.lr", config.train.lr > 0), ("train.lr_min", 0 <= config.train.lr_min <= config.train.lr),
               ("train.body_fraction", 0 <= config.train.body_fraction + config.train.border_fraction <= 1),
               ("render.train_coarse", config.render.train_coarse >= 2),
               ("render.eval_coarse", config.render.eval_coarse >= 2),

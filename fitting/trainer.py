@@ -82,7 +82,8 @@ class Trainer:
             self.field.set_boxes(data.boxes[0].to(device), data.boxes[1].to(device))
         self.optimiser = torch.optim.Adam(self.field.parameters(), lr=config.train.lr, betas=(0.9, 0.999),
                                           eps=config.train.adam_eps)  # fmt: skip
-        self.scheduler = torch.optim.lr_scheduler.ExponentialLR(self.optimiser, gamma=config.train.lr_decay)
+        decay, floor = config.train.lr_decay, config.train.lr_min / config.train.lr
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimiser, lambda step: max(decay**step, floor))
         self.generator = torch.Generator(device="cpu").manual_seed(config.train.seed + 1)
         self.step, self.elapsed = 0, 0.0
         if state is not None:

@@ -178,6 +178,23 @@ def pose_sequence(body: BodyModel, motion: dict[str, np.ndarray]) -> tuple[list[
     return params, old, new
 
 
+def _render_frames(state: dict, vertices: np.ndarray, config: SynthConfig, progress: bool) -> None:
+    """Render and write every frame of every camera, in ``config.workers`` forked processes."""
+    tasks = [(f, vertices[f]) for f in range(config.frames)]
+    bar = tqdm(total=config.frames, desc=f"rendering {config.frames} frames x {config.cameras} cameras",
+               unit="frame", disable=not progress)  # fmt: skip
+    _prepare_state(state)
+    if config.workers > 1:
+        with mp.get_context("fork").Pool(config.workers, _init_worker) as pool:
+            for _ in pool.imap_unordered(_render_frame, tasks, chunksize=2):
+                bar.update()
+    else:
+        for task in tasks:
+            _render_frame(task)
+            bar.update()
+    bar.close()
+
+
 def is_complete(out: Path, config: SynthConfig | None = None) -> bool:
     """True when ``out`` holds a finished capture (with the same settings, if ``config`` is given)."""
     marker = Path(out) / MARKER
@@ -237,19 +254,7 @@ def generate_capture(out: str | Path, config: SynthConfig = SynthConfig(), smpl_
     state = {"root": partial, "layout": config.layout, "jpeg_quality": config.jpeg_quality, "cameras": cameras,
              "faces": body.faces, "rest_vertices": rest,
              "labels": vertex_regions(rest, body.skinning_weights.numpy())}  # fmt: skip
-    tasks = [(f, new[f]) for f in range(config.frames)]
-    bar = tqdm(total=config.frames, desc=f"rendering {config.frames} frames x {config.cameras} cameras",
-               unit="frame", disable=not progress)  # fmt: skip
-    _prepare_state(state)
-    if config.workers > 1:
-        with mp.get_context("fork").Pool(config.workers, _init_worker) as pool:
-            for _ in pool.imap_unordered(_render_frame, tasks, chunksize=2):
-                bar.update()
-    else:
-        for task in tasks:
-            _render_frame(task)
-            bar.update()
-    bar.close()
+    _render_frames(state, new, config, progress)
     if config.lbs:
         from pipelines.synthetic_lbs import write_lbs
 

@@ -163,3 +163,13 @@ class TestBadInput:
         _fit(root, tmp_path / "run", "train.steps=1").fit()
         with pytest.raises(ValueError, match="split 'novel_pose' is empty"):
             evaluate_run(tmp_path / "run", ["novel_pose"], progress=False)
+
+
+def test_learning_rate_decays_to_its_floor(data_root_64, tmp_path):
+    trainer = _fit(data_root_64, tmp_path / "run", "train.steps=10", "train.log_every=1", "train.lr_decay=0.5",
+                   "train.lr_min=0.001")  # fmt: skip
+    trainer.fit()
+    rates = [json.loads(line)["lr"] for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert rates[0] == pytest.approx(0.005) and rates[-1] == pytest.approx(0.001) and min(rates) >= 0.001 - 1e-12
+    with pytest.raises(ConfigError, match="train.lr_min"):
+        load_config("tiny", ["train.lr_min=0.5"])
