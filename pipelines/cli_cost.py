@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from narf.fields import PAPER_COSTS, paper_presets
+from narf.fields import PAPER_COSTS, build_model, paper_presets
 from narf.fields.base import SAMPLES_FOR_COST
 from pipelines.cli_common import run_cli
 
@@ -40,9 +40,7 @@ def main(argv: list[str] | None = None) -> int:
               f"{cost.flops_per_ray / 1e6:.0f}M | {cost.memory_per_ray / 1e3:.0f}K | {paper} | "
               f"{cost.flops_per_ray_complete / 1e6:.0f}M |")  # fmt: skip
     if not args.model:
-        from narf.fields.cnn import CnnBaseline
-
-        cnn = sum(p.numel() for p in CnnBaseline().parameters()) / 1e6
+        cnn = sum(p.numel() for p in build_model("cnn").parameters()) / 1e6
         print(f"| CNN baseline | {cnn:.2f}M | - | - | 15.6M / - / - | - |")
     return 0
 

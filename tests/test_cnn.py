@@ -31,7 +31,10 @@ def test_bone_maps_hand_computed():
 
 
 def test_cnn_baseline_size_and_outputs():
-    model = CnnBaseline()
+    from narf.fields import build_model
+
+    model = build_model("cnn")
+    assert isinstance(model, CnnBaseline) and isinstance(build_model("narf_d", width=8), torch.nn.Module)
     params = sum(p.numel() for p in model.parameters())
     assert params == pytest.approx(15.6e6, rel=0.05)
     maps = torch.stack([bone_maps(_skeleton_in_front_of_camera(), torch.tensor([[128.0, 0, 64], [0, 128, 64],

@@ -5,6 +5,7 @@ from __future__ import annotations
 from functools import partial
 
 from narf.fields.base import Cost, Field, FieldOutput
+from narf.fields.cnn import CnnBaseline
 from narf.fields.common import PoseBatch
 from narf.fields.d_narf import DNarf
 from narf.fields.narf_d import NarfD
@@ -43,6 +44,19 @@ def build_field(name: str, **kwargs) -> Field:
     return MODELS[name](**kwargs)
 
 
+#: Image-space models (not NeRF fields): name -> constructor.
+IMAGE_MODELS = {"cnn": CnnBaseline}
+
+
+def build_model(name: str, **kwargs):
+    """Construct any model of the family by name: a NeRF field (``MODELS``) or an image model (``cnn``)."""
+    if name in IMAGE_MODELS:
+        return IMAGE_MODELS[name](**kwargs)
+    if name not in MODELS:
+        raise ValueError(f"unknown model '{name}'; choose from {', '.join([*MODELS, *IMAGE_MODELS])}")
+    return build_field(name, **kwargs)
+
+
 def paper_presets() -> dict[str, Field]:
     """Every paper-size configuration whose cost the supplement tabulates (plus the rigid models)."""
     presets = {name: build_field(name) for name in MODELS}
@@ -52,5 +66,5 @@ def paper_presets() -> dict[str, Field]:
     return presets
 
 
-__all__ = ["MODELS", "ARTICULATED", "RIGID", "PAPER_COSTS", "Cost", "Field", "FieldOutput", "PoseBatch",
-           "build_field", "paper_presets"]  # fmt: skip
+__all__ = ["MODELS", "IMAGE_MODELS", "ARTICULATED", "RIGID", "PAPER_COSTS", "Cost", "Field", "FieldOutput",
+           "PoseBatch", "build_field", "build_model", "paper_presets"]  # fmt: skip
