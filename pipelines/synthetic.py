@@ -25,7 +25,7 @@ from pipelines.body_model import BodyModel
 from pipelines.synthetic_scene import albedo, ring_cameras, shade, studio_background, taichi_motion, vertex_regions
 from pipelines.zju_mocap import Camera, SmplParams, write_annots, write_easymocap_cameras, write_params
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2  # 2: tilted, closer ChArUco board poses
 MARKER = "synthetic.json"
 
 

@@ -50,6 +50,11 @@ _MARGIN = 0.04  # white panel border around the printed board, metres
 _TEXTURE_PPM = 1000  # texture pixels per metre
 
 
+def _axis_rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rotation matrix of ``angle`` about the unit ``axis`` (Rodrigues)."""
+    return cv2.Rodrigues(np.asarray(axis, dtype=np.float64) * angle)[0]
+
+
 def board_poses(spec: BoardSpec, n_shots: int, seed: int) -> np.ndarray:
     """(S, 4, 4) ``world_from_board``: shot 0 on the floor (identity), the rest random and facing outwards."""
     rng = np.random.default_rng(seed + 7)
@@ -57,16 +62,19 @@ def board_poses(spec: BoardSpec, n_shots: int, seed: int) -> np.ndarray:
     poses = [np.eye(4)]
     for _ in range(1, n_shots):
         yaw = rng.uniform(0, 2 * np.pi)
-        elevation = rng.uniform(-0.15, 0.45)  # facing slightly up towards the cameras
+        elevation = rng.uniform(-0.2, 0.5)  # facing slightly up towards the cameras
         facing = np.array([np.sin(yaw) * np.cos(elevation), -np.cos(yaw) * np.cos(elevation), -np.sin(elevation)])
         z_axis = -facing
         y_axis = np.array([0.0, 0.0, 1.0]) - z_axis * z_axis[2]
         y_axis /= np.linalg.norm(y_axis)
         x_axis = np.cross(y_axis, z_axis)
-        roll = rng.uniform(-0.35, 0.35)
+        roll = rng.uniform(-0.5, 0.5)
         x_axis, y_axis = np.cos(roll) * x_axis + np.sin(roll) * y_axis, -np.sin(roll) * x_axis + np.cos(roll) * y_axis
-        rotation = np.stack([x_axis, y_axis, z_axis], axis=1)
-        centre = np.array([rng.uniform(-0.7, 0.7), rng.uniform(-0.7, 0.7), rng.uniform(-1.5, -0.6)])
+        # strong tilts about the board's own axes give the perspective that separates focal length and distance
+        tilt = _axis_rotation(x_axis, rng.uniform(-0.7, 0.7)) @ _axis_rotation(y_axis, rng.uniform(-0.7, 0.7))
+        rotation = tilt @ np.stack([x_axis, y_axis, z_axis], axis=1)
+        radius, angle = rng.uniform(0.0, 1.6), rng.uniform(0, 2 * np.pi)
+        centre = np.array([radius * np.cos(angle), radius * np.sin(angle), rng.uniform(-1.7, -0.4)])
         pose = np.eye(4)
         pose[:3, :3] = rotation
         pose[:3, 3] = centre - rotation @ np.array([width / 2, height / 2, 0.0])
