@@ -6,7 +6,7 @@ import argparse
 import importlib
 import os
 
-BENCHMARKS = {"synth": "bench.bench_synth", "models": "bench.bench_models"}
+BENCHMARKS = {"synth": "bench.bench_synth", "models": "bench.bench_models", "calib": "bench.bench_calib"}
 
 
 def main() -> None:
