@@ -176,12 +176,14 @@ def _orthonormalise(rotation: np.ndarray) -> np.ndarray:
     return fixed
 
 
-def read_annots(path: Path, image_size: tuple[int, int] | None = None) -> tuple[list[Camera], list[list[str]]]:
+def read_annots(path: Path, image_size: tuple[int, int] | None = None,
+                check_folders: bool = True) -> tuple[list[Camera], list[list[str]]]:  # fmt: skip
     """Read ``annots.npy`` into cameras (T converted to metres, R re-orthonormalised) and per-frame image paths.
 
     Args:
         path: the annots file.
         image_size: (width, height) of the images; ``None`` reads the first image of each camera.
+        check_folders: require every camera's image folder (off for calibration, which needs only calib/).
     """
     data = _read_npy_dict(Path(path))
     if "cams" not in data or "ims" not in data:
@@ -202,7 +204,7 @@ def read_annots(path: Path, image_size: tuple[int, int] | None = None) -> tuple[
     cameras = []
     for c in range(n_cams):
         folder = Path(ims[0][c]).parent.as_posix() if ims else f"camera_{c}"
-        if ims and not (root / folder).is_dir():
+        if check_folders and ims and not (root / folder).is_dir():
             raise CaptureError(f"{root / folder}: camera folder listed in {Path(path).name} is missing")
         if image_size is None:
             first = root / ims[0][c]

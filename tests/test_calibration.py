@@ -71,7 +71,8 @@ def test_bad_calibration_input(tmp_path, rig):
 @pytest.fixture(scope="module")
 def full_rig(tmp_path_factory):
     """The default synthetic rig: 21 ring cameras at 512^2, 30 board shots (shot 000 on the floor = world)."""
-    folder = tmp_path_factory.mktemp("rig21")
+    capture = tmp_path_factory.mktemp("rig21")
+    folder = capture / "calib"
     cameras = ring_cameras(21, 512, seed=0)
     write_calibration_shots(folder, cameras, 30, seed=0, progress=False)
     detections, intrinsics = {}, {}
@@ -79,7 +80,7 @@ def full_rig(tmp_path_factory):
         found, size, _ = detect_folder(folder / camera.name, BoardSpec())
         detections[camera.name] = found
         intrinsics[camera.name] = calibrate_intrinsics(camera.name, found, size)
-    return cameras, detections, intrinsics
+    return cameras, detections, intrinsics, capture
 
 
 def test_rig_bundle_adjustment_against_ground_truth(full_rig):
@@ -88,7 +89,7 @@ def test_rig_bundle_adjustment_against_ground_truth(full_rig):
     6-17 usable shots per camera. The looser bounds below guard what is reached today."""
     from pipelines.calibration_rig import bundle_adjust, initial_extrinsics
 
-    cameras, detections, intrinsics = full_rig
+    cameras, detections, intrinsics, _ = full_rig
     cam_from_world, world_from_board = initial_extrinsics(intrinsics, detections, "000")
     solution = bundle_adjust(intrinsics, detections, "000", cam_from_world, world_from_board)
     assert solution.mean_error <= 0.5
@@ -104,7 +105,7 @@ def test_rig_bundle_adjustment_against_ground_truth(full_rig):
 def test_rig_errors_name_the_camera(full_rig):
     from pipelines.calibration_rig import initial_extrinsics
 
-    cameras, detections, intrinsics = full_rig
+    cameras, detections, intrinsics, _ = full_rig
     seer = next(name for name, dets in detections.items() if any(d.shot == "000" for d in dets))
     other = next(name for name, dets in detections.items() if name != seer and any(d.shot != "000" for d in dets))
     island = {seer: [d for d in detections[seer] if d.shot == "000"],
@@ -114,3 +115,45 @@ def test_rig_errors_name_the_camera(full_rig):
     no_reference = {name: [d for d in dets if d.shot != "000"] for name, dets in detections.items()}
     with pytest.raises(CalibrationError, match="no camera sees the board in the reference shot '000'"):
         initial_extrinsics(intrinsics, no_reference, "000")
+
+
+def test_calibrate_cli_writes_annots_and_easymocap(full_rig, tmp_path):
+    from pipelines.cli_calibrate import main
+    from pipelines.zju_mocap import read_annots, read_easymocap_cameras, write_annots
+
+    cameras, _, _, capture = full_rig
+    out = tmp_path / "out"
+    assert main([str(capture), "--out", str(out), "--quiet"]) == 0
+    solved, ims = read_annots(out / "annots.npy", image_size=(512, 512))
+    assert len(solved) == 21 and ims == []  # annots.npy has no camera names; order = the capture's camera order
+    assert np.load(out / "annots.npy", allow_pickle=True).item()["cams"]["T"][0].shape == (3, 1)
+    for truth, estimate in zip(cameras, solved):
+        assert abs(estimate.K[0, 0] / truth.K[0, 0] - 1) <= 0.005
+        assert np.linalg.norm(estimate.centre - truth.centre) <= 0.015  # annots T in mm, read back in metres
+    easy = read_easymocap_cameras(out)
+    assert np.allclose(easy[3].cam_from_world, solved[3].cam_from_world, atol=1e-6)
+    import json
+
+    report = json.loads((out / "report.json").read_text())
+    assert report["mean_reprojection_px"] <= 0.5 and len(report["cameras"]) == 21
+    # --write-annots keeps the capture's ims and backs the old file up
+    write_annots(capture / "annots.npy", cameras, [[f"{c.name}/000000.jpg" for c in cameras]])
+    assert main([str(capture), "--out", str(tmp_path / "out2"), "--write-annots", "--quiet"]) == 0
+    merged, merged_ims = read_annots(capture / "annots.npy", image_size=(512, 512), check_folders=False)
+    assert merged_ims == [[f"{c.name}/000000.jpg" for c in cameras]] and (capture / "annots.npy.bak").is_file()
+    assert np.allclose(merged[5].K, solved[5].K, atol=1e-3)
+    (capture / "annots.npy").unlink()
+    (capture / "annots.npy.bak").unlink()
+
+
+def test_calibrate_cli_errors_write_nothing(full_rig, tmp_path, capsys):
+    from pipelines.cli_calibrate import main
+    from pipelines.cli_common import run_cli
+
+    _, _, _, capture = full_rig
+    out = tmp_path / "never"
+    assert run_cli("narf-calibrate", main, [str(capture), "--out", str(out), "--reference-shot", "999",
+                                            "--quiet"]) == 2  # fmt: skip
+    assert "no camera sees the board in the reference shot '999'" in capsys.readouterr().err and not out.exists()
+    assert run_cli("narf-calibrate", main, [str(tmp_path), "--quiet"]) == 2
+    assert "no calib/ folder" in capsys.readouterr().err

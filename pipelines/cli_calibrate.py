@@ -1,0 +1,142 @@
+"""``narf-calibrate``: calibrate a multi-view rig from the ChArUco shots in ``CAPTURE_DIR/calib/<camera>/``."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import shutil
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+from pipelines.cli_common import run_cli
+from pipelines.synthetic_calib import BoardSpec
+from pipelines.zju_mocap import Camera, CaptureError, read_annots, write_annots, write_easymocap_cameras
+
+
+def _natural(name: str) -> list:
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+def _board(args, calib: Path) -> BoardSpec:
+    values = asdict(BoardSpec())
+    source = args.board_json or (calib / "board.json" if (calib / "board.json").is_file() else None)
+    if source:
+        data = json.loads(Path(source).read_text())
+        values.update({k: data[k] for k in values if k in data})
+    for key in values:
+        if getattr(args, key, None) is not None:
+            values[key] = getattr(args, key)
+    return BoardSpec(**values)
+
+
+def _camera_order(capture: Path, calib: Path) -> tuple[list[str], list[list[str]] | None]:
+    """The capture's camera order (annots.npy) when it has one, else the calib folders in natural order."""
+    annots = capture / "annots.npy"
+    if annots.is_file():
+        cameras, ims = read_annots(annots, image_size=(1, 1), check_folders=False)
+        return [c.name for c in cameras], ims
+    folders = sorted((p.name for p in calib.iterdir() if p.is_dir()), key=_natural)
+    return folders, None
+
+
+def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: bool = True):
+    """Detection, intrinsics, graph initialisation and bundle adjustment of every camera of a capture."""
+    from tqdm import tqdm
+
+    from pipelines.calibration import CalibrationError, calibrate_intrinsics, detect_folder
+    from pipelines.calibration_rig import bundle_adjust, initial_extrinsics
+
+    calib = capture / "calib"
+    if not calib.is_dir():
+        raise CaptureError(f"{calib}: no calib/ folder with ChArUco shots per camera")
+    names, ims = _camera_order(capture, calib)
+    detections, intrinsics, reports, sizes = {}, {}, {}, {}
+    for name in tqdm(names, desc="detecting boards", unit="camera", disable=not progress):
+        if not (calib / name).is_dir():
+            raise CalibrationError(f"{calib / name}: no calibration shots for camera {name}")
+        found, size, report = detect_folder(calib / name, spec)
+        if not found:
+            raise CalibrationError(f"camera {name} never sees the board ({len(report)} shots in {calib / name})")
+        detections[name], reports[name], sizes[name] = found, report, size
+        intrinsics[name] = calibrate_intrinsics(name, found, size)
+    cam_from_world, world_from_board = initial_extrinsics(intrinsics, detections, reference)
+    solution = bundle_adjust(intrinsics, detections, reference, cam_from_world, world_from_board)
+    cameras = [Camera(n, solution.K[n], solution.dist[n], solution.cam_from_world[n], *sizes[n]) for n in names]
+    report = {"board": asdict(spec), "reference_shot": reference, "mean_reprojection_px": solution.mean_error,
+              "rms_px": solution.rms, "cameras": {n: {"rms_px": solution.camera_rms[n], "shots_used":
+              len(detections[n]), "intrinsics_only_rms_px": intrinsics[n].rms, "rejected_views": intrinsics[n].rejected,
+              "detections": reports[n]} for n in names}}  # fmt: skip
+    return cameras, ims, report
+
+
+def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None, report: dict) -> None:
+    """Write into a hidden temporary folder, then move the files into ``out`` (nothing partial on failure)."""
+    staging = out.parent / f".{out.name}.partial"
+    shutil.rmtree(staging, ignore_errors=True)
+    staging.mkdir(parents=True)
+    write_annots(staging / "annots.npy", cameras, ims or [])
+    write_easymocap_cameras(staging, cameras)
+    (staging / "report.json").write_text(json.dumps(report, indent=1))
+    out.mkdir(parents=True, exist_ok=True)
+    for path in staging.iterdir():
+        path.replace(out / path.name)
+    staging.rmdir()
+
+
+def merge_into_capture(capture: Path, cameras: list[Camera]) -> Path:
+    """Replace the cams of ``capture/annots.npy`` (its ims kept), after backing the file up."""
+    annots = capture / "annots.npy"
+    if not annots.is_file():
+        raise CaptureError(f"{annots}: --write-annots needs an existing annots.npy (its ims are kept)")
+    _, ims = read_annots(annots, image_size=(1, 1), check_folders=False)
+    backup = annots.with_name("annots.npy.bak")
+    index = 1
+    while backup.exists():
+        backup, index = annots.with_name(f"annots.npy.bak{index}"), index + 1
+    shutil.copy2(annots, backup)
+    write_annots(annots, cameras, ims)
+    return backup
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(
+        prog="narf-calibrate",
+        description="Calibrate every camera of a rig from ChArUco shots in CAPTURE_DIR/calib/<camera>/: sub-pixel "
+        "detection, per-camera intrinsics (k1, k2, p1, p2; k3 fixed), a graph over shared shots, then one joint "
+        "bundle adjustment of all cameras and board poses. The reference shot's board frame is the world (ZJU "
+        "convention: board on the floor, z down, metres). Writes annots.npy (T in mm), intri.yml/extri.yml and "
+        "report.json to --out; only --write-annots touches the capture's own annots.npy (backed up first).",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)  # fmt: skip
+    parser.add_argument("capture", type=Path, help="capture folder holding calib/<camera>/*.jpg")
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: CAPTURE_DIR/calibration)")
+    parser.add_argument("--board-json", type=Path, default=None, help="board definition (default: calib/board.json)")
+    parser.add_argument("--squares-x", type=int, default=None, help="squares along x (overrides the json)")
+    parser.add_argument("--squares-y", type=int, default=None, help="squares along y")
+    parser.add_argument("--square-length", type=float, default=None, help="square side in metres")
+    parser.add_argument("--marker-length", type=float, default=None, help="marker side in metres")
+    parser.add_argument("--dictionary", default=None, help="ArUco dictionary, e.g. DICT_5X5_100")
+    parser.add_argument("--reference-shot", default="000", help="shot whose board defines the world frame")
+    parser.add_argument("--write-annots", action="store_true", help="also merge the cams into CAPTURE/annots.npy")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    args = parser.parse_args(argv)
+    if not args.capture.is_dir():
+        raise CaptureError(f"{args.capture}: no such capture folder")
+    spec = _board(args, args.capture / "calib")
+    cameras, ims, report = calibrate_capture(args.capture, spec, args.reference_shot, not args.quiet)
+    out = args.out or args.capture / "calibration"
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out}: exists and is not a folder")
+    write_outputs(out, cameras, ims, report)
+    worst = max(report["cameras"].items(), key=lambda kv: kv[1]["rms_px"])
+    print(f"narf-calibrate: {len(cameras)} cameras, mean reprojection {report['mean_reprojection_px']:.2f} px "
+          f"(worst camera {worst[0]}: {worst[1]['rms_px']:.2f} px RMS); wrote {out}")  # fmt: skip
+    if args.write_annots:
+        backup = merge_into_capture(args.capture, cameras)
+        print(f"narf-calibrate: updated {args.capture / 'annots.npy'} (previous file: {backup.name})")
+    return 0
+
+
+def entrypoint() -> None:
+    sys.exit(run_cli("narf-calibrate", main))
