@@ -71,6 +71,27 @@ def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: 
     return cameras, ims, report
 
 
+def write_colmap_text(folder: Path, cameras: list[Camera]) -> None:
+    """COLMAP text model: cameras.txt (OPENCV: fx fy cx cy k1 k2 p1 p2), images.txt (cam_from_world as
+    qw qx qy qz tx ty tz), and an empty points3D.txt."""
+    from scipy.spatial.transform import Rotation
+
+    folder.mkdir(parents=True, exist_ok=True)
+    cam_lines, image_lines = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"], [
+        "# Image list: IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME; then POINTS2D (empty)"]
+    for index, cam in enumerate(cameras, start=1):
+        k, d = cam.K, cam.dist
+        cam_lines.append(f"{index} OPENCV {cam.width} {cam.height} {k[0, 0]:.10g} {k[1, 1]:.10g} {k[0, 2]:.10g} "
+                         f"{k[1, 2]:.10g} {d[0]:.10g} {d[1]:.10g} {d[2]:.10g} {d[3]:.10g}")  # fmt: skip
+        qx, qy, qz, qw = Rotation.from_matrix(cam.cam_from_world[:3, :3]).as_quat()
+        tx, ty, tz = cam.cam_from_world[:3, 3]
+        image_lines += [f"{index} {qw:.12g} {qx:.12g} {qy:.12g} {qz:.12g} {tx:.12g} {ty:.12g} {tz:.12g} {index} "
+                        f"{cam.name.replace(' ', '_')}.jpg", ""]  # fmt: skip
+    (folder / "cameras.txt").write_text("\n".join(cam_lines) + "\n")
+    (folder / "images.txt").write_text("\n".join(image_lines) + "\n")
+    (folder / "points3D.txt").write_text("# 3D point list (empty)\n")
+
+
 def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None, report: dict) -> None:
     """Write into a hidden temporary folder, then move the files into ``out`` (nothing partial on failure)."""
     staging = out.parent / f".{out.name}.partial"
@@ -78,9 +99,12 @@ def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None,
     staging.mkdir(parents=True)
     write_annots(staging / "annots.npy", cameras, ims or [])
     write_easymocap_cameras(staging, cameras)
+    write_colmap_text(staging / "colmap", cameras)
     (staging / "report.json").write_text(json.dumps(report, indent=1))
     out.mkdir(parents=True, exist_ok=True)
     for path in staging.iterdir():
+        if path.is_dir() and (out / path.name).is_dir():
+            shutil.rmtree(out / path.name)
         path.replace(out / path.name)
     staging.rmdir()
 
@@ -106,8 +130,8 @@ def main(argv: list[str] | None = None) -> int:
         description="Calibrate every camera of a rig from ChArUco shots in CAPTURE_DIR/calib/<camera>/: sub-pixel "
         "detection, per-camera intrinsics (k1, k2, p1, p2; k3 fixed), a graph over shared shots, then one joint "
         "bundle adjustment of all cameras and board poses. The reference shot's board frame is the world (ZJU "
-        "convention: board on the floor, z down, metres). Writes annots.npy (T in mm), intri.yml/extri.yml and "
-        "report.json to --out; only --write-annots touches the capture's own annots.npy (backed up first).",
+        "convention: board on the floor, z down, metres). Writes annots.npy (T in mm), intri.yml/extri.yml, a "
+        "COLMAP text model (colmap/) and report.json to --out; only --write-annots touches the capture's own annots.npy (backed up first).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)  # fmt: skip
     parser.add_argument("capture", type=Path, help="capture folder holding calib/<camera>/*.jpg")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: CAPTURE_DIR/calibration)")

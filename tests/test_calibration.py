@@ -130,6 +130,14 @@ def test_calibrate_cli_writes_annots_and_easymocap(full_rig, tmp_path):
     for truth, estimate in zip(cameras, solved):
         assert abs(estimate.K[0, 0] / truth.K[0, 0] - 1) <= 0.005
         assert np.linalg.norm(estimate.centre - truth.centre) <= 0.015  # annots T in mm, read back in metres
+    import pycolmap
+
+    model = pycolmap.Reconstruction()
+    model.read_text(str(out / "colmap"))  # an independent reader of the COLMAP text model
+    assert model.num_cameras() == 21 and model.num_images() == 21
+    pose = model.image(4).cam_from_world().matrix()
+    assert np.allclose(pose, solved[3].cam_from_world[:3], atol=1e-6)
+    assert np.isclose(model.camera(4).params[0], solved[3].K[0, 0])
     easy = read_easymocap_cameras(out)
     assert np.allclose(easy[3].cam_from_world, solved[3].cam_from_world, atol=1e-6)
     import json
