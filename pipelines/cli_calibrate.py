@@ -131,7 +131,8 @@ def main(argv: list[str] | None = None) -> int:
         "detection, per-camera intrinsics (k1, k2, p1, p2; k3 fixed), a graph over shared shots, then one joint "
         "bundle adjustment of all cameras and board poses. The reference shot's board frame is the world (ZJU "
         "convention: board on the floor, z down, metres). Writes annots.npy (T in mm), intri.yml/extri.yml, a "
-        "COLMAP text model (colmap/) and report.json to --out; only --write-annots touches the capture's own annots.npy (backed up first).",
+        "COLMAP text model (colmap/) and report.json to --out; only --write-annots touches the capture's own "
+        "annots.npy (backed up first).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)  # fmt: skip
     parser.add_argument("capture", type=Path, help="capture folder holding calib/<camera>/*.jpg")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: CAPTURE_DIR/calibration)")
