@@ -64,10 +64,12 @@ def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: 
     cam_from_world, world_from_board = initial_extrinsics(intrinsics, detections, reference)
     solution = bundle_adjust(intrinsics, detections, reference, cam_from_world, world_from_board)
     cameras = [Camera(n, solution.K[n], solution.dist[n], solution.cam_from_world[n], *sizes[n]) for n in names]
+    figures = {"world_from_board": solution.world_from_board, "camera_rms": solution.camera_rms}
     report = {"board": asdict(spec), "reference_shot": reference, "mean_reprojection_px": solution.mean_error,
               "rms_px": solution.rms, "cameras": {n: {"rms_px": solution.camera_rms[n], "shots_used":
               len(detections[n]), "intrinsics_only_rms_px": intrinsics[n].rms, "rejected_views": intrinsics[n].rejected,
               "detections": reports[n]} for n in names}}  # fmt: skip
+    report["_figures"] = figures
     return cameras, ims, report
 
 
@@ -100,6 +102,14 @@ def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None,
     write_annots(staging / "annots.npy", cameras, ims or [])
     write_easymocap_cameras(staging, cameras)
     write_colmap_text(staging / "colmap", cameras)
+    from pipelines.calibration_report import draw_residuals, draw_rig
+
+    figures = report.pop("_figures", None)
+    if figures:
+        board = report["board"]
+        size = (board["squares_x"] * board["square_length"], board["squares_y"] * board["square_length"])
+        draw_rig(staging / "rig.png", cameras, figures["world_from_board"], size)
+        draw_residuals(staging / "residuals.png", figures["camera_rms"])
     (staging / "report.json").write_text(json.dumps(report, indent=1))
     out.mkdir(parents=True, exist_ok=True)
     for path in staging.iterdir():
@@ -131,8 +141,8 @@ def main(argv: list[str] | None = None) -> int:
         "detection, per-camera intrinsics (k1, k2, p1, p2; k3 fixed), a graph over shared shots, then one joint "
         "bundle adjustment of all cameras and board poses. The reference shot's board frame is the world (ZJU "
         "convention: board on the floor, z down, metres). Writes annots.npy (T in mm), intri.yml/extri.yml, a "
-        "COLMAP text model (colmap/) and report.json to --out; only --write-annots touches the capture's own "
-        "annots.npy (backed up first).",
+        "COLMAP text model (colmap/), report.json, rig.png and residuals.png to --out; only --write-annots "
+        "touches the capture's own annots.npy (backed up first).",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)  # fmt: skip
     parser.add_argument("capture", type=Path, help="capture folder holding calib/<camera>/*.jpg")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: CAPTURE_DIR/calibration)")

@@ -144,6 +144,9 @@ def test_calibrate_cli_writes_annots_and_easymocap(full_rig, tmp_path):
 
     report = json.loads((out / "report.json").read_text())
     assert report["mean_reprojection_px"] <= 0.5 and len(report["cameras"]) == 21
+    for figure in ("rig.png", "residuals.png"):
+        image = cv2.imread(str(out / figure))
+        assert image is not None and (image < 250).any(), figure  # written and not blank
     # --write-annots keeps the capture's ims and backs the old file up
     write_annots(capture / "annots.npy", cameras, [[f"{c.name}/000000.jpg" for c in cameras]])
     assert main([str(capture), "--out", str(tmp_path / "out2"), "--write-annots", "--quiet"]) == 0
