@@ -18,9 +18,12 @@ class CheckpointError(ValueError):
 
 
 def save_checkpoint(run_dir: Path, state: dict) -> Path:
-    """Write ``run_dir/checkpoint.pt`` atomically (temporary file, fsync, rename)."""
+    """Write ``run_dir/checkpoint.pt`` atomically (temporary file, fsync, rename); a kill mid-write leaves the
+    previous checkpoint intact and a hidden temporary file, removed by the next save."""
     run_dir = Path(run_dir)
     path = run_dir / CHECKPOINT_NAME
+    for stale in run_dir.glob(".checkpoint.*.tmp"):  # left by a writer killed mid-write (one writer per run)
+        stale.unlink(missing_ok=True)
     buffer = io.BytesIO()
     torch.save({"format": FORMAT_VERSION, **state}, buffer)
     fd, tmp = tempfile.mkstemp(dir=run_dir, prefix=".checkpoint.", suffix=".tmp")
