@@ -122,16 +122,7 @@ class BodyModel:
                                self.smpl.J_regressor, self.smpl.parents, self.smpl.lbs_weights)  # fmt: skip
         world_from_smpl = rigid_from_rotvec_translation(rh, th)
         vertices = vertices_smpl @ world_from_smpl[:, :3, :3].transpose(1, 2) + th[:, None]
-        rest = self.rest_joints(shapes)
-        world_from_joint = world_from_joints(poses.reshape(-1, N_JOINTS, 3), rest, world_from_smpl)
-        world_from_part = parts_from_joints(world_from_joint)
-        joints = world_from_joint[..., :3, 3]
-        reach = kinematic_reach(joints)
-        return PosedBody(
-            vertices=vertices, world_from_joint=world_from_joint, world_from_part=world_from_part,
-            rest_joints=rest, bone_lengths=bone_lengths(joints), reach=reach,
-            pose_features=part_pose_features(world_from_part, reach),
-        )  # fmt: skip
+        return posed_from_rest_joints(poses, world_from_smpl, self.rest_joints(shapes), vertices)
 
     def rest_body(self, shapes) -> PosedBody:
         """The rest pose (identity rotations, no global transform) for the given betas."""
@@ -149,6 +140,25 @@ class BodyModel:
         world_from_part = torch.cat([b.world_from_part for b in bodies])
         reach = torch.cat([b.reach for b in bodies])
         return fit_part_boxes(vertices, world_from_part, reach, self.parts_of_vertices, scale_pad, abs_pad)
+
+
+def posed_from_rest_joints(poses: torch.Tensor, world_from_smpl: torch.Tensor, rest_joints: torch.Tensor,
+                           vertices: torch.Tensor | None = None) -> PosedBody:  # fmt: skip
+    """Forward kinematics of a (possibly edited) rest skeleton into a PosedBody.
+
+    Args:
+        poses: (B, 72) axis-angle. world_from_smpl: (B, 4, 4). rest_joints: (B, 24, 3).
+        vertices: (B, V, 3) posed vertices if known (an empty tensor otherwise).
+    """
+    world_from_joint = world_from_joints(poses.reshape(-1, N_JOINTS, 3), rest_joints, world_from_smpl)
+    world_from_part = parts_from_joints(world_from_joint)
+    joints = world_from_joint[..., :3, 3]
+    reach = kinematic_reach(joints)
+    return PosedBody(
+        vertices=torch.empty(0) if vertices is None else vertices, world_from_joint=world_from_joint,
+        world_from_part=world_from_part, rest_joints=rest_joints, bone_lengths=bone_lengths(joints), reach=reach,
+        pose_features=part_pose_features(world_from_part, reach),
+    )  # fmt: skip
 
 
 def smplx_params_from_zju(model: BodyModel, poses, rh, th, shapes) -> dict[str, torch.Tensor]:

@@ -69,8 +69,7 @@ def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: 
               "rms_px": solution.rms, "cameras": {n: {"rms_px": solution.camera_rms[n], "shots_used":
               len(detections[n]), "intrinsics_only_rms_px": intrinsics[n].rms, "rejected_views": intrinsics[n].rejected,
               "detections": reports[n]} for n in names}}  # fmt: skip
-    report["_figures"] = figures
-    return cameras, ims, report
+    return cameras, ims, report, figures
 
 
 def write_colmap_text(folder: Path, cameras: list[Camera]) -> None:
@@ -94,7 +93,8 @@ def write_colmap_text(folder: Path, cameras: list[Camera]) -> None:
     (folder / "points3D.txt").write_text("# 3D point list (empty)\n")
 
 
-def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None, report: dict) -> None:
+def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None, report: dict,
+                  figures: dict) -> None:  # fmt: skip
     """Write into a hidden temporary folder, then move the files into ``out`` (nothing partial on failure)."""
     staging = out.parent / f".{out.name}.partial"
     shutil.rmtree(staging, ignore_errors=True)
@@ -104,12 +104,10 @@ def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None,
     write_colmap_text(staging / "colmap", cameras)
     from pipelines.calibration_report import draw_residuals, draw_rig
 
-    figures = report.pop("_figures", None)
-    if figures:
-        board = report["board"]
-        size = (board["squares_x"] * board["square_length"], board["squares_y"] * board["square_length"])
-        draw_rig(staging / "rig.png", cameras, figures["world_from_board"], size)
-        draw_residuals(staging / "residuals.png", figures["camera_rms"])
+    board = report["board"]
+    size = (board["squares_x"] * board["square_length"], board["squares_y"] * board["square_length"])
+    draw_rig(staging / "rig.png", cameras, figures["world_from_board"], size)
+    draw_residuals(staging / "residuals.png", figures["camera_rms"])
     (staging / "report.json").write_text(json.dumps(report, indent=1))
     out.mkdir(parents=True, exist_ok=True)
     for path in staging.iterdir():
@@ -159,11 +157,11 @@ def main(argv: list[str] | None = None) -> int:
     if not args.capture.is_dir():
         raise CaptureError(f"{args.capture}: no such capture folder")
     spec = _board(args, args.capture / "calib")
-    cameras, ims, report = calibrate_capture(args.capture, spec, args.reference_shot, not args.quiet)
+    cameras, ims, report, figures = calibrate_capture(args.capture, spec, args.reference_shot, not args.quiet)
     out = args.out or args.capture / "calibration"
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out}: exists and is not a folder")
-    write_outputs(out, cameras, ims, report)
+    write_outputs(out, cameras, ims, report, figures)
     worst = max(report["cameras"].items(), key=lambda kv: kv[1]["rms_px"])
     print(f"narf-calibrate: {len(cameras)} cameras, mean reprojection {report['mean_reprojection_px']:.2f} px "
           f"(worst camera {worst[0]}: {worst[1]['rms_px']:.2f} px RMS); wrote {out}")  # fmt: skip

@@ -13,7 +13,7 @@ from fitting.evaluate import render_view
 from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
 from narf.kinematics import SMPL_PARENTS, rigid_from_rotvec_translation
-from pipelines.body_model import BodyModel, PosedBody, pose_batch
+from pipelines.body_model import BodyModel, pose_batch, posed_from_rest_joints
 from pipelines.fit_session import load_run
 from pipelines.synthetic_scene import look_at
 from pipelines.zju_mocap import CaptureError, read_params
@@ -45,19 +45,6 @@ def orbit_cameras(cameras, centre: np.ndarray, n_frames: int) -> list:
         position = centre + radius * (np.cos(angle) * start + np.sin(angle) * side) + height * up
         out.append(replace(cameras[0], cam_from_world=look_at(position, centre, down=-up)))
     return out
-
-
-def posed_with_rest_joints(body_model: BodyModel, poses, rh, th, rest_joints: torch.Tensor) -> PosedBody:
-    """Pose with edited rest joints (bone-length edits): forward kinematics of the edited skeleton."""
-    from narf.kinematics import bone_lengths, kinematic_reach, part_pose_features, parts_from_joints, world_from_joints
-
-    world_from_smpl = rigid_from_rotvec_translation(rh, th)
-    world_from_joint = world_from_joints(poses.reshape(-1, 24, 3), rest_joints, world_from_smpl)
-    parts = parts_from_joints(world_from_joint)
-    joints = world_from_joint[..., :3, 3]
-    reach = kinematic_reach(joints)
-    return PosedBody(torch.empty(0), world_from_joint, parts, rest_joints, bone_lengths(joints), reach,
-                     part_pose_features(parts, reach))  # fmt: skip
 
 
 def scaled_skeleton(rest: torch.Tensor, joints: tuple[int, ...], scale: float) -> torch.Tensor:
@@ -109,7 +96,7 @@ def render_video(run_dir: Path, kind: str, out: Path, n_frames: int = 60, fps: i
             if kind == "bones":
                 factor = 1 + (scale - 1) * 0.5 * (1 - np.cos(2 * np.pi * k / max(len(params) - 1, 1)))
                 rest = scaled_skeleton(body_model.rest_joints(shapes), LEG_JOINTS, float(factor))
-                pose = pose_batch(posed_with_rest_joints(body_model, *args, rest))
+                pose = pose_batch(posed_from_rest_joints(args[0], rigid_from_rotvec_translation(*args[1:]), rest))
             else:
                 pose = pose_batch(body_model.pose_zju(*args, shapes))
         frames_out.append(video_frame(to_numpy(render_view(field, cam, pose.to(device), config))))

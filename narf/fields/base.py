@@ -42,7 +42,6 @@ class Field(nn.Module):
     Subclasses implement ``_forward(points, dirs, pose, local, z)``.
     """
 
-    uses_zeta = True
 
     def __init__(self, n_parts: int, latent_dim: int = 0):
         super().__init__()

@@ -16,7 +16,6 @@ class RtNerf(Field):
         use_pose: False gives "RT-NeRF w/o xi".
     """
 
-    uses_zeta = False
 
     def __init__(self, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward",
                  use_pose: bool = True):  # fmt: skip
@@ -37,7 +36,6 @@ class RpNerf(Field):
     """RP-NeRF: density from the global gamma(x / (1.25 s)) (60) and gamma(xi/pi) (48); colour from gamma(xi/pi),
     gamma(d) (world)."""
 
-    uses_zeta = False
 
     def __init__(self, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward"):
         super().__init__(1, latent_dim)
