@@ -31,7 +31,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--seed", type=int, default=d.seed, help="seed of rig, motion and jitter")
     parser.add_argument("--layout", choices=("standard", "313"), default=d.layout,
                         help="image naming: Camera_B1/000000.jpg, or the CoreView_313/315 style (1-based)")
-    parser.add_argument("--calib-shots", type=int, default=d.calib_shots, help="ChArUco board shots (0: none)")
+    parser.add_argument("--calib-shots", type=int, default=d.calib_shots,
+                        help="ChArUco board shots seen by the whole rig (0: no calib/ folder)")
+    parser.add_argument("--calib-close-ups", type=int, default=d.calib_close_ups,
+                        help="per-camera close-up board shots under calib/<camera>/intrinsics/")
     parser.add_argument("--workers", type=int, default=d.workers, help="render processes")
     parser.add_argument("--lbs", action="store_true", help="also write animatable_nerf's lbs/ folder (blend-weight "
                         "grids per frame: several MB a frame)")  # fmt: skip
@@ -43,8 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     config = SynthConfig(subject=args.subject, resolution=args.resolution, frames=args.frames, cameras=args.cameras,
-                         seed=args.seed, layout=args.layout, calib_shots=args.calib_shots, workers=args.workers,
-                         lbs=args.lbs)
+                         seed=args.seed, layout=args.layout, calib_shots=args.calib_shots,
+                         calib_close_ups=args.calib_close_ups, workers=args.workers, lbs=args.lbs)
     out = args.out or synthetic_path(args.subject, data_root(args.data_root))
     if is_complete(out, config):
         print(f"narf-synth: {out} already holds this capture")

@@ -25,7 +25,7 @@ from pipelines.body_model import BodyModel
 from pipelines.synthetic_scene import albedo, ring_cameras, shade, studio_background, taichi_motion, vertex_regions
 from pipelines.zju_mocap import Camera, SmplParams, write_annots, write_easymocap_cameras, write_params
 
-GENERATOR_VERSION = 2  # 2: tilted, closer ChArUco board poses
+GENERATOR_VERSION = 3  # 2: tilted, closer ChArUco board poses; 3: supersampled shots, per-camera close-ups
 MARKER = "synthetic.json"
 
 
@@ -40,7 +40,8 @@ class SynthConfig:
         cameras: number of ring cameras.
         seed: seed of rig, motion and appearance jitter.
         layout: ``standard`` (``Camera_B1/000000.jpg``) or ``313`` (``Camera (1)/..._0001_<time>.jpg``, 1-based).
-        calib_shots: ChArUco board poses under ``calib/`` (0 to skip).
+        calib_shots: ChArUco board poses under ``calib/`` seen by the whole rig (0 to skip calib/).
+        calib_close_ups: per-camera close-up board shots under ``calib/<camera>/intrinsics/``.
         jpeg_quality: JPEG quality of the images.
         workers: render processes.
         lbs: also write animatable_nerf's ``lbs/`` folder (per-frame weight grids: several MB a frame).
@@ -53,6 +54,7 @@ class SynthConfig:
     seed: int = 0
     layout: str = "standard"
     calib_shots: int = 30
+    calib_close_ups: int = 20
     jpeg_quality: int = 95
     workers: int = 2
     lbs: bool = False
@@ -64,6 +66,8 @@ class SynthConfig:
             raise ValueError(f"layout must be 'standard' or '313', got '{self.layout}'")
         if not 1 <= self.jpeg_quality <= 100:
             raise ValueError(f"jpeg_quality must be in [1, 100], got {self.jpeg_quality}")
+        if self.calib_shots < 0 or self.calib_close_ups < 0:
+            raise ValueError(f"calib_shots and calib_close_ups must be >= 0, got {self}")
 
 
 def image_relpath(layout: str, cam: int, frame: int) -> str:
@@ -263,7 +267,8 @@ def generate_capture(out: str | Path, config: SynthConfig = SynthConfig(), smpl_
     if config.calib_shots > 0:
         from pipelines.synthetic_calib import write_calibration_shots
 
-        write_calibration_shots(partial / "calib", cameras, config.calib_shots, config.seed, progress=progress)
+        write_calibration_shots(partial / "calib", cameras, config.calib_shots, config.seed, progress=progress,
+                                close_ups=config.calib_close_ups)  # fmt: skip
     (partial / MARKER).write_text(json.dumps({"version": GENERATOR_VERSION, "config": asdict(config),
                                               "smpl": str(body.path)}, indent=2))  # fmt: skip
     if out.exists():

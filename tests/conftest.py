@@ -28,11 +28,12 @@ def body_model64():
 
 @pytest.fixture(scope="session")
 def tiny_capture(tmp_path_factory):
-    """A small synthetic capture: 4 frames x 4 cameras at 256^2, 3 calibration shots."""
+    """A small synthetic capture: 4 frames x 4 cameras at 256^2, 3 calibration shots, 2 close-ups per camera."""
     from pipelines.synthetic import SynthConfig, generate_capture
 
     out = tmp_path_factory.mktemp("capture") / "taichi"
-    return generate_capture(out, SynthConfig(resolution=256, frames=4, cameras=4, calib_shots=3, workers=1),
+    return generate_capture(out, SynthConfig(resolution=256, frames=4, cameras=4, calib_shots=3, calib_close_ups=2,
+                                                         workers=1),
                             progress=False)
 
 
