@@ -31,6 +31,16 @@ def _board(args, calib: Path) -> BoardSpec:
     return BoardSpec(**values)
 
 
+def _fixed_groups(text: str) -> frozenset[str]:
+    from pipelines.calibration_rig import FIXABLE
+
+    groups = frozenset(g.strip() for g in text.split(",") if g.strip() and g.strip() != "none")
+    if groups - set(FIXABLE):
+        raise ValueError(f"--fix {text}: unknown group(s) {sorted(groups - set(FIXABLE))}; choose from "
+                         f"{', '.join(sorted(FIXABLE))} or none")  # fmt: skip
+    return groups
+
+
 def _camera_order(capture: Path, calib: Path) -> tuple[list[str], list[list[str]] | None]:
     """The capture's camera order (annots.npy) when it has one, else the calib folders in natural order."""
     annots = capture / "annots.npy"
@@ -41,7 +51,8 @@ def _camera_order(capture: Path, calib: Path) -> tuple[list[str], list[list[str]
     return folders, None
 
 
-def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: bool = True):
+def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: bool = True,
+                      fixed: frozenset[str] = frozenset({"k3"})):  # fmt: skip
     """Detection, intrinsics, graph initialisation and bundle adjustment of every camera of a capture."""
     from tqdm import tqdm
 
@@ -60,13 +71,15 @@ def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: 
         if not found:
             raise CalibrationError(f"camera {name} never sees the board ({len(report)} shots in {calib / name})")
         detections[name], reports[name], sizes[name] = found, report, size
-        intrinsics[name] = calibrate_intrinsics(name, found, size)
+        intrinsics[name] = calibrate_intrinsics(name, found, size, fixed)
     cam_from_world, world_from_board = initial_extrinsics(intrinsics, detections, reference)
-    solution = bundle_adjust(intrinsics, detections, reference, cam_from_world, world_from_board)
+    solution = bundle_adjust(intrinsics, detections, reference, cam_from_world, world_from_board, fixed=fixed)
     cameras = [Camera(n, solution.K[n], solution.dist[n], solution.cam_from_world[n], *sizes[n]) for n in names]
-    figures = {"world_from_board": solution.world_from_board, "camera_rms": solution.camera_rms}
-    report = {"board": asdict(spec), "reference_shot": reference, "mean_reprojection_px": solution.mean_error,
-              "rms_px": solution.rms, "cameras": {n: {"rms_px": solution.camera_rms[n], "shots_used":
+    shared = {shot: pose for shot, pose in solution.world_from_board.items() if "/intrinsics/" not in shot}
+    figures = {"world_from_board": shared, "camera_rms": solution.camera_rms}
+    report = {"board": asdict(spec), "reference_shot": reference, "fixed": sorted(fixed),
+              "mean_reprojection_px": solution.mean_error, "rms_px": solution.rms,
+              "rejected_corners": solution.rejected, "cameras": {n: {"rms_px": solution.camera_rms[n], "shots_used":
               len(detections[n]), "intrinsics_only_rms_px": intrinsics[n].rms, "rejected_views": intrinsics[n].rejected,
               "detections": reports[n]} for n in names}}  # fmt: skip
     return cameras, ims, report, figures
@@ -135,9 +148,11 @@ def merge_into_capture(capture: Path, cameras: list[Camera]) -> Path:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="narf-calibrate",
-        description="Calibrate every camera of a rig from ChArUco shots in CAPTURE_DIR/calib/<camera>/: sub-pixel "
-        "detection, per-camera intrinsics (k1, k2, p1, p2; k3 fixed), a graph over shared shots, then one joint "
-        "bundle adjustment of all cameras and board poses. The reference shot's board frame is the world (ZJU "
+        description="Calibrate every camera of a rig from ChArUco shots in CAPTURE_DIR/calib/<camera>/ (shots with "
+        "the same file name show the same board pose in several cameras; optional close-ups of one camera go in "
+        "calib/<camera>/intrinsics/): sub-pixel detection, per-camera intrinsics (k1, k2, p1, p2, k3; see --fix), "
+        "a graph over shared shots, then one joint bundle adjustment of all cameras and board poses with outlier "
+        "corners rejected. The reference shot's board frame is the world (ZJU "
         "convention: board on the floor, z down, metres). Writes annots.npy (T in mm), intri.yml/extri.yml, a "
         "COLMAP text model (colmap/), report.json, rig.png and residuals.png to --out; only --write-annots "
         "touches the capture's own annots.npy (backed up first).",
@@ -151,13 +166,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--marker-length", type=float, default=None, help="marker side in metres")
     parser.add_argument("--dictionary", default=None, help="ArUco dictionary, e.g. DICT_5X5_100")
     parser.add_argument("--reference-shot", default="000", help="shot whose board defines the world frame")
+    parser.add_argument("--fix", default="k3", help="comma-separated parameter groups held fixed: k3 (= 0), "
+                        "tangential (p1 = p2 = 0), principal_point (image centre); 'none' frees all")  # fmt: skip
     parser.add_argument("--write-annots", action="store_true", help="also merge the cams into CAPTURE/annots.npy")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     if not args.capture.is_dir():
         raise CaptureError(f"{args.capture}: no such capture folder")
     spec = _board(args, args.capture / "calib")
-    cameras, ims, report, figures = calibrate_capture(args.capture, spec, args.reference_shot, not args.quiet)
+    fixed = _fixed_groups(args.fix)
+    cameras, ims, report, figures = calibrate_capture(args.capture, spec, args.reference_shot, not args.quiet, fixed)
     out = args.out or args.capture / "calibration"
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out}: exists and is not a folder")
