@@ -36,14 +36,12 @@ def column_groups(sparsity: scipy.sparse.spmatrix) -> np.ndarray:
     groups = np.empty(pattern.shape[1], dtype=np.int64)
     for col in range(pattern.shape[1]):
         rows = pattern.indices[pattern.indptr[col] : pattern.indptr[col + 1]]
-        for g, used in enumerate(occupied):
-            if not used[rows].any():
-                break
-        else:
-            g = len(occupied)
+        free = [g for g, used in enumerate(occupied) if not used[rows].any()]
+        if not free:
             occupied.append(np.zeros(pattern.shape[0], dtype=bool))
-        occupied[g][rows] = True
-        groups[col] = g
+        group = free[0] if free else len(occupied) - 1
+        occupied[group][rows] = True
+        groups[col] = group
     return groups
 
 
@@ -68,8 +66,10 @@ def _huber(residuals: np.ndarray, point_dim: int, delta: float) -> tuple[float, 
     return float(cost), np.repeat(weights, point_dim)
 
 
-def solve_sparse_lm(fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sparsity: scipy.sparse.spmatrix,
-                    huber: float = 1.0, point_dim: int = 2, max_iter: int = 100, tol: float = 1e-10) -> LmResult:  # fmt: skip
+def solve_sparse_lm(
+    fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sparsity: scipy.sparse.spmatrix, huber: float = 1.0,
+    point_dim: int = 2, max_iter: int = 100, tol: float = 1e-10,
+) -> LmResult:
     """Minimise sum(Huber(|r_i|)) over the ``point_dim``-vectors r_i of ``fun(x)`` from ``x0``.
 
     Levenberg-Marquardt with Marquardt's diagonal scaling on iteratively reweighted normal equations.

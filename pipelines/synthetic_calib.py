@@ -125,8 +125,10 @@ def _board_hits(centre: np.ndarray, dirs: np.ndarray, world_from_board: np.ndarr
     return inside, local, t
 
 
-def _render_board(camera: Camera, dirs: np.ndarray, background: np.ndarray, texture: np.ndarray,
-                  world_from_board: np.ndarray, spec: BoardSpec, supersample: int = _SUPERSAMPLE) -> np.ndarray:  # fmt: skip
+def _render_board(
+    camera: Camera, dirs: np.ndarray, background: np.ndarray, texture: np.ndarray, world_from_board: np.ndarray,
+    spec: BoardSpec, supersample: int = _SUPERSAMPLE,
+) -> np.ndarray:
     """(H, W, 3) shot: the board over ``background``, each pixel the mean of ``supersample``^2 sub-pixel rays
     (a sensor integrates over the pixel area; point-sampled edges would jitter the corners by ~0.1 px)."""
     centre, normal = camera.centre, world_from_board[:3, 2]
@@ -164,8 +166,10 @@ def _render_board(camera: Camera, dirs: np.ndarray, background: np.ndarray, text
     return image
 
 
-def write_calibration_shots(folder: Path, cameras: list[Camera], n_shots: int, seed: int,
-                            spec: BoardSpec = BoardSpec(), progress: bool = True, close_ups: int = 0) -> None:  # fmt: skip
+def write_calibration_shots(
+    folder: Path, cameras: list[Camera], n_shots: int, seed: int, spec: BoardSpec = BoardSpec(),
+    progress: bool = True, close_ups: int = 0,
+) -> None:
     """Render ``n_shots`` board poses into every camera, plus ``close_ups`` per-camera close-up shots under
     ``<camera>/intrinsics/``, and write the ``calib/`` folder (module docstring)."""
     from pipelines.synthetic import pixel_directions

@@ -94,12 +94,11 @@ def test_calibration_shots_detectable(tiny_capture):
     detector = cv2.aruco.CharucoDetector(board)
     cameras, _ = read_annots(tiny_capture / "annots.npy")
     truth = np.load(tiny_capture / "calib" / "ground_truth.npz")
-    shots = [(c, cam, f"{shot:03d}.jpg", pose) for c, cam in enumerate(cameras)
-             for shot, pose in enumerate(truth["world_from_board"])]  # fmt: skip
-    shots += [(c, cam, f"intrinsics/{k:03d}.jpg", pose) for c, cam in enumerate(cameras)
+    shots = [(cam, f"{shot:03d}.jpg", pose) for cam in cameras for shot, pose in enumerate(truth["world_from_board"])]
+    shots += [(cam, f"intrinsics/{k:03d}.jpg", pose) for c, cam in enumerate(cameras)
               for k, pose in enumerate(truth["close_world_from_board"][c])]  # fmt: skip
     found, close_found = 0, 0
-    for c, cam, name, pose in shots:
+    for cam, name, pose in shots:
         image = cv2.imread(str(tiny_capture / "calib" / cam.name / name), cv2.IMREAD_GRAYSCALE)
         corners, ids, _, _ = detector.detectBoard(image)
         if ids is None or len(ids) < 6:
