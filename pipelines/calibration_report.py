@@ -62,3 +62,31 @@ def draw_residuals(path: Path, camera_rms: dict[str, float], width: int = 800, h
         cv2.putText(canvas, name[-3:], (x0, height - 35), _FONT, 0.3, (0, 0, 0), 1, cv2.LINE_AA)
     cv2.putText(canvas, "reprojection RMS per camera (px)", (10, 20), _FONT, 0.5, (0, 0, 0), 1, cv2.LINE_AA)
     _save(path, canvas)
+
+
+def _rotation_deg(rotation: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1, 1))))
+
+
+def compare_cameras(previous: list[Camera], solved: list[Camera]) -> dict:
+    """Per-camera differences between two calibrations of the same rig (same order): camera centre (mm),
+    rotation (deg), focal length (%), as they stand and after the similarity transform that best maps the solved
+    camera centres onto the previous ones (Umeyama; the two may use different world frames)."""
+    old = np.array([c.centre for c in previous])
+    new = np.array([c.centre for c in solved])
+    old_mean, new_mean = old.mean(0), new.mean(0)
+    u, sigma, vt = np.linalg.svd((old - old_mean).T @ (new - new_mean))
+    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    old_from_new = u @ sign @ vt
+    scale = float(np.trace(np.diag(sigma) @ sign) / max(((new - new_mean) ** 2).sum(), 1e-12))
+    aligned = scale * (new - new_mean) @ old_from_new.T + old_mean
+    cameras = {}
+    for k, (a, b) in enumerate(zip(previous, solved)):
+        rot_a, rot_b = a.cam_from_world[:3, :3], b.cam_from_world[:3, :3]
+        cameras[b.name] = {"centre_mm": float(np.linalg.norm(new[k] - old[k]) * 1000),
+                           "rotation_deg": _rotation_deg(rot_b @ rot_a.T),
+                           "focal_pct": float(abs(b.K[0, 0] / a.K[0, 0] - 1) * 100),
+                           "aligned_centre_mm": float(np.linalg.norm(aligned[k] - old[k]) * 1000),
+                           "aligned_rotation_deg": _rotation_deg(rot_b @ old_from_new.T @ rot_a.T)}  # fmt: skip
+    worst = {key: max(v[key] for v in cameras.values()) for key in next(iter(cameras.values()))}
+    return {"max": worst, "alignment_scale": scale, "cameras": cameras}

@@ -41,14 +41,15 @@ def _fixed_groups(text: str) -> frozenset[str]:
     return groups
 
 
-def _camera_order(capture: Path, calib: Path) -> tuple[list[str], list[list[str]] | None]:
-    """The capture's camera order (annots.npy) when it has one, else the calib folders in natural order."""
+def _camera_order(capture: Path, calib: Path) -> tuple[list[str], list[list[str]] | None, list[Camera] | None]:
+    """The capture's camera order (annots.npy) when it has one, else the calib folders in natural order; also
+    the capture's current cameras, when it has them."""
     annots = capture / "annots.npy"
     if annots.is_file():
         cameras, ims = read_annots(annots, image_size=(1, 1), check_folders=False)
-        return [c.name for c in cameras], ims
+        return [c.name for c in cameras], ims, cameras
     folders = sorted((p.name for p in calib.iterdir() if p.is_dir()), key=_natural)
-    return folders, None
+    return folders, None, None
 
 
 def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: bool = True,
@@ -62,7 +63,7 @@ def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: 
     calib = capture / "calib"
     if not calib.is_dir():
         raise CaptureError(f"{calib}: no calib/ folder with ChArUco shots per camera")
-    names, ims = _camera_order(capture, calib)
+    names, ims, previous = _camera_order(capture, calib)
     detections, intrinsics, reports, sizes = {}, {}, {}, {}
     for name in tqdm(names, desc="detecting boards", unit="camera", disable=not progress):
         if not (calib / name).is_dir():
@@ -82,6 +83,10 @@ def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: 
               "rejected_corners": solution.rejected, "cameras": {n: {"rms_px": solution.camera_rms[n], "shots_used":
               len(detections[n]), "intrinsics_only_rms_px": intrinsics[n].rms, "rejected_views": intrinsics[n].rejected,
               "detections": reports[n]} for n in names}}  # fmt: skip
+    if previous is not None:
+        from pipelines.calibration_report import compare_cameras
+
+        report["against_previous_annots"] = compare_cameras(previous, cameras)
     return cameras, ims, report, figures
 
 
@@ -183,6 +188,11 @@ def main(argv: list[str] | None = None) -> int:
     worst = max(report["cameras"].items(), key=lambda kv: kv[1]["rms_px"])
     print(f"narf-calibrate: {len(cameras)} cameras, mean reprojection {report['mean_reprojection_px']:.2f} px "
           f"(worst camera {worst[0]}: {worst[1]['rms_px']:.2f} px RMS); wrote {out}")  # fmt: skip
+    if "against_previous_annots" in report:
+        diff = report["against_previous_annots"]["max"]
+        print(f"narf-calibrate: against the capture's annots.npy: max centre difference {diff['centre_mm']:.1f} mm, "
+              f"rotation {diff['rotation_deg']:.3f} deg, focal {diff['focal_pct']:.3f} % (after a similarity "
+              f"alignment: {diff['aligned_centre_mm']:.1f} mm, {diff['aligned_rotation_deg']:.3f} deg)")  # fmt: skip
     if args.write_annots:
         backup = merge_into_capture(args.capture, cameras)
         print(f"narf-calibrate: updated {args.capture / 'annots.npy'} (previous file: {backup.name})")

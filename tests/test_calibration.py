@@ -171,6 +171,8 @@ def test_calibrate_cli_writes_annots_and_easymocap(small_rig, tmp_path):
     merged, merged_ims = read_annots(capture / "annots.npy", image_size=(384, 384), check_folders=False)
     assert merged_ims == [[f"{c.name}/000000.jpg" for c in cameras]] and (capture / "annots.npy.bak").is_file()
     assert np.allclose(merged[5].K, solved[5].K, atol=1e-3)
+    against = json.loads((tmp_path / "out2" / "report.json").read_text())["against_previous_annots"]
+    assert len(against["cameras"]) == 7 and against["max"]["centre_mm"] <= 15  # the annots held the truth
     (capture / "annots.npy").unlink()
     (capture / "annots.npy.bak").unlink()
 
@@ -200,6 +202,22 @@ def test_calibrate_cli_fixes_parameter_groups(small_rig, tmp_path):
     for camera in read_annots(out / "annots.npy", image_size=(384, 384))[0]:
         assert np.allclose(camera.K[:2, 2], 191.5) and np.allclose(camera.dist[2:], 0.0)
         assert abs(camera.dist[0]) > 1e-4  # k1 is still estimated
+
+
+def test_compare_cameras_undoes_a_change_of_world_frame():
+    from pipelines.calibration_report import compare_cameras
+    from pipelines.zju_mocap import Camera
+
+    cameras = ring_cameras(21, 256, seed=2)[::4]
+    new_from_old = np.eye(4)
+    new_from_old[:3, :3] = cv2.Rodrigues(np.array([0.1, -0.2, 0.3]))[0]
+    new_from_old[:3, 3] = [0.5, -0.1, 0.2]
+    moved = [Camera(c.name, c.K, c.dist, c.cam_from_world @ np.linalg.inv(new_from_old), c.width, c.height)
+             for c in cameras]  # fmt: skip
+    result = compare_cameras(cameras, moved)
+    assert result["max"]["aligned_centre_mm"] < 1e-6 and result["max"]["aligned_rotation_deg"] < 1e-5
+    assert result["max"]["rotation_deg"] > 15 and result["max"]["focal_pct"] == 0
+    assert abs(result["alignment_scale"] - 1) < 1e-9
 
 
 def test_projection_matches_opencv():
