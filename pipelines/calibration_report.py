@@ -40,8 +40,10 @@ def draw_rig(path: Path, cameras: list[Camera], world_from_board: dict[str, np.n
         left, right_pt = (camera.centre + 0.35 * forward + s * 0.15 * right for s in (-1, 1))
         cv2.polylines(canvas, [to_px(np.array([camera.centre, left, right_pt])[:, :2])], True, (200, 90, 20), 2,
                       cv2.LINE_AA)  # fmt: skip
-        cv2.putText(canvas, camera.name, tuple(int(v) for v in to_px(camera.centre[:2] - 0.25 * forward[:2])), _FONT,
-                    0.35, (0, 0, 0), 1, cv2.LINE_AA)  # fmt: skip
+        (text_w, _), _ = cv2.getTextSize(camera.name, _FONT, 0.35, 1)
+        x, y = to_px(camera.centre[:2] - 0.25 * forward[:2])
+        anchor = (int(np.clip(x - text_w // 2, 2, size - text_w - 2)), int(np.clip(y, 12, size - 4)))
+        cv2.putText(canvas, camera.name, anchor, _FONT, 0.35, (0, 0, 0), 1, cv2.LINE_AA)  # label centred, kept inside
     cv2.putText(canvas, "rig from above (world x, y; z vertical); red: reference board", (10, 20), _FONT, 0.5,
                 (0, 0, 0), 1, cv2.LINE_AA)  # fmt: skip
     _save(path, canvas)

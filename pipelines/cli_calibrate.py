@@ -7,6 +7,7 @@ import json
 import re
 import shutil
 import sys
+from collections import Counter
 from dataclasses import asdict
 from pathlib import Path
 
@@ -70,7 +71,11 @@ def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: 
             raise CalibrationError(f"{calib / name}: no calibration shots for camera {name}")
         found, size, report = detect_folder(calib / name, spec)
         if not found:
-            raise CalibrationError(f"camera {name} never sees the board ({len(report)} shots in {calib / name})")
+            reasons = ", ".join(f"{n} {r}" for r, n in Counter(report.values()).items())
+            raise CalibrationError(f"camera {name} never sees the board ({len(report)} shots in {calib / name}: "
+                                   f"{reasons}); check the board definition ({spec.squares_x}x{spec.squares_y} "
+                                   f"squares of {spec.square_length} m, markers {spec.marker_length} m, "
+                                   f"{spec.dictionary}) against the printed board")  # fmt: skip
         detections[name], reports[name], sizes[name] = found, report, size
         intrinsics[name] = calibrate_intrinsics(name, found, size, fixed)
     cam_from_world, world_from_board = initial_extrinsics(intrinsics, detections, reference)

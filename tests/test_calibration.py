@@ -190,6 +190,10 @@ def test_calibrate_cli_errors_write_nothing(small_rig, tmp_path, capsys):
     assert "no calib/ folder" in capsys.readouterr().err
     assert run_cli("narf-calibrate", main, [str(capture), "--out", str(out), "--fix", "k3,focal", "--quiet"]) == 2
     assert "--fix k3,focal: unknown group(s) ['focal']" in capsys.readouterr().err and not out.exists()
+    assert run_cli("narf-calibrate", main, [str(capture), "--out", str(out), "--squares-x", "5", "--quiet"]) == 2
+    error = capsys.readouterr().err
+    assert "camera Camera_B1 never sees the board (36 shots in" in error and "36 board not found" in error
+    assert "check the board definition (5x6 squares of 0.12 m" in error and not out.exists()
 
 
 def test_calibrate_cli_fixes_parameter_groups(small_rig, tmp_path):
