@@ -11,7 +11,7 @@ from collections import Counter
 from dataclasses import asdict
 from pathlib import Path
 
-from pipelines.cli_common import run_cli
+from pipelines.cli_common import HelpFormatter, run_cli
 from pipelines.synthetic_calib import BoardSpec
 from pipelines.zju_mocap import Camera, CaptureError, read_annots, write_annots, write_easymocap_cameras
 
@@ -166,7 +166,7 @@ def main(argv: list[str] | None = None) -> int:
         "convention: board on the floor, z down, metres). Writes annots.npy (T in mm), intri.yml/extri.yml, a "
         "COLMAP text model (colmap/), report.json, rig.png and residuals.png to --out; only --write-annots "
         "touches the capture's own annots.npy (backed up first).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)  # fmt: skip
+        formatter_class=HelpFormatter)  # fmt: skip
     parser.add_argument("capture", type=Path, help="capture folder holding calib/<camera>/*.jpg")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: CAPTURE_DIR/calibration)")
     parser.add_argument("--board-json", type=Path, default=None, help="board definition (default: calib/board.json)")

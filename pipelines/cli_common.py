@@ -3,12 +3,25 @@
 
 from __future__ import annotations
 
+import argparse
 import os
 import sys
 from collections.abc import Callable
 
 from pipelines.smpl_files import SmplFileError
 from pipelines.zju_mocap import CaptureError
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows an option's default unless it is None, False or already named in the help text."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        hidden = action.default is None or action.default is False or action.default == argparse.SUPPRESS
+        if hidden or "default" in text:
+            return text
+        return super()._get_help_string(action)
+
 
 KNOWN_ERRORS = (CaptureError, SmplFileError, ValueError, RuntimeError, IsADirectoryError, FileExistsError,
                 FileNotFoundError, NotADirectoryError, PermissionError, KeyError)  # fmt: skip

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli_common import run_cli
+from pipelines.cli_common import HelpFormatter, run_cli
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -20,7 +20,7 @@ def main(argv: list[str] | None = None) -> int:
         "Mask L2 (x10^4) per view and averaged, under the full-image and the Neural Body bounding-box crop "
         "protocols. Writes RUN/eval/metrics.json, RUN/eval/metrics.md (supplement layout) and image grids "
         "(ground truth | render | depth | part segmentation | error).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)  # fmt: skip
+        formatter_class=HelpFormatter)  # fmt: skip
     parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")
     parser.add_argument("--split", default="novel_pose", choices=ALL_SPLITS,
                         help="novel_pose / novel_view are the Neural Body splits; 'all' = the four pose x view splits")

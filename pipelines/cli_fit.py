@@ -7,7 +7,7 @@ import os
 import sys
 from pathlib import Path
 
-from pipelines.cli_common import run_cli
+from pipelines.cli_common import HelpFormatter, run_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -16,7 +16,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Fit a NARF avatar (default NARF_D) to a multi-view capture in the ZJU-MoCap layout. Writes "
         "config.yaml, checkpoint.pt (atomic, every few minutes and at the end), log.jsonl, curve.png and val/ "
         "renders into --out. A killed fit resumes with --resume and ends where an uninterrupted one would.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)  # fmt: skip
+        formatter_class=HelpFormatter)  # fmt: skip
     parser.add_argument("--subject", default=None, help="subject name or folder (default from the preset: taichi)")
     parser.add_argument("--data-root", default=None, help="data root (default: $NARF_DATA or data/)")
     parser.add_argument("--config", default=None,

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli_common import run_cli
+from pipelines.cli_common import HelpFormatter, run_cli
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -19,7 +19,7 @@ def main(argv: list[str] | None = None) -> int:
         "circles a held pose at the rig's distance and height; 'poses' plays the held-out frames (or another "
         "subject's params folder, retargeted to this subject's shape) from one camera; 'bones' grows and shrinks "
         "the legs (bone-length edit).",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)  # fmt: skip
+        formatter_class=HelpFormatter)  # fmt: skip
     parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")
     parser.add_argument("--kind", choices=KINDS, default="orbit", help="what to render")
     parser.add_argument("--out", type=Path, default=None, help="output .mp4 (default: RUN/videos/<kind>.mp4)")

@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from pipelines.cli_common import run_cli
+from pipelines.cli_common import HelpFormatter, run_cli
 from pipelines.subjects import SYNTHETIC_SUBJECTS, data_root, synthetic_path
 from pipelines.synthetic import SynthConfig, generate_capture, is_complete
 
@@ -19,7 +19,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Render a synthetic multi-view capture (images, CIHP and binary masks, SMPL params and "
         "vertices, annots.npy, EasyMocap cameras, ChArUco calibration shots) that ZJU-MoCap loaders read "
         "unchanged. A finished capture with the same settings is reused.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        formatter_class=HelpFormatter,
     )
     parser.add_argument("--subject", default=d.subject, choices=SYNTHETIC_SUBJECTS, help="motion / subject name")
     parser.add_argument("--out", type=Path, default=None,

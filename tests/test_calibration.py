@@ -19,8 +19,8 @@ def rig(tmp_path_factory):
 
 
 def test_intrinsics_alone_against_ground_truth(rig):
-    """Per-camera intrinsics only: sub-pixel RMS, focal within 3 % (the joint bundle adjustment, not written yet,
-    is what the 0.5 % target of narf-calibrate needs)."""
+    """Per-camera intrinsics only (shared shots, no close-ups): sub-pixel RMS, focal within 3 %; the 0.5 % target
+    of narf-calibrate is the joint bundle adjustment's (test_rig_bundle_adjustment_against_ground_truth)."""
     folder, cameras = rig
     for camera in cameras:
         detections, size, report = detect_folder(folder / camera.name, BoardSpec())
