@@ -31,13 +31,14 @@ class DataConfig:
 
 @dataclass
 class ModelConfig:
-    name: str = "narf_d"  #: narf_d, narf_d_sigmoid, narf_h, narf_p, p_nerf, d_narf
+    name: str = "narf_d"  #: narf_d, narf_d_sigmoid, narf_h, narf_p, p_nerf, d_narf, or cnn (the CNN baseline)
     width: int = 64  #: hidden width H (paper: 256)
     density_act: str = "leaky_backward"  #: leaky_backward (upstream) or softplus
     temperature: float = 10.0  #: NARF_P softmax temperature tau
     pose_in_color: bool = True  #: P-NeRF: pose into the colour branch (eq. D)
     box_scale_pad: float = 1.1  #: part boxes: h <- scale * h + abs
     box_abs_pad: float = 0.03  #: part boxes: additive padding (body units)
+    image_size: int = 128  #: CNN baseline: side of its square bone maps and output images (paper: 128)
 
 
 @dataclass
@@ -158,11 +159,13 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None, b
 
 def validate_config(config: FitConfig) -> None:
     """Value checks with messages naming the key."""
-    from narf.fields import ARTICULATED
+    from narf.fields import ARTICULATED, IMAGE_MODELS
 
-    if config.model.name not in ARTICULATED:
-        raise ConfigError(f"model.name: '{config.model.name}' is not an articulated model ({', '.join(ARTICULATED)})")
+    if config.model.name not in (*ARTICULATED, *IMAGE_MODELS):
+        raise ConfigError(f"model.name: '{config.model.name}' is not a body model "
+                          f"({', '.join([*ARTICULATED, *IMAGE_MODELS])})")  # fmt: skip
     checks = [("data.ratio", 0 < config.data.ratio <= 1), ("model.width", config.model.width >= 4),
+              ("model.image_size", config.model.image_size >= 32 and config.model.image_size % 32 == 0),
               ("train.steps", config.train.steps >= 0), ("train.images_per_step", config.train.images_per_step >= 1),
               ("train.rays_per_image", config.train.rays_per_image >= 1),
               ("train.lr", config.train.lr > 0), ("train.lr_min", 0 <= config.train.lr_min <= config.train.lr),

@@ -12,6 +12,8 @@ import torch
 from skimage.metrics import structural_similarity
 
 from fitting.config import FitConfig
+from narf.cnn_render import render_cnn_image
+from narf.fields import CnnBaseline
 from narf.metrics import mask_l2, psnr_of
 from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
 from narf.renderer import render_image
@@ -23,10 +25,14 @@ _SHORT = {"same_pose_same_view": "SS", "novel_pose_same_view": "NS", "same_pose_
 
 
 def render_view(field, camera, pose, config: FitConfig) -> dict[str, torch.Tensor]:
-    """Full-image render of one (undistorted) camera and one-frame pose at the evaluation sample counts."""
+    """Full-image render of one (undistorted) camera and one-frame pose at the evaluation sample counts (the CNN
+    baseline: its image resampled to the camera's size; no segmentation, zero depth)."""
     device = next(field.parameters()).device
     K = torch.as_tensor(camera.K, dtype=torch.float32, device=device)
     cam_from_world = torch.as_tensor(camera.cam_from_world, dtype=torch.float32, device=device)
+    if isinstance(field, CnnBaseline):
+        with torch.no_grad():
+            return render_cnn_image(field, K, cam_from_world, camera.height, camera.width, pose)
     background = 1.0 if config.data.white_background else 0.0
     return render_image(field, K, cam_from_world, camera.height, camera.width, pose, config.render.eval_coarse,
                         config.render.eval_fine, background, config.render.chunk)  # fmt: skip
@@ -103,7 +109,8 @@ def spread(items: list, limit: int | None) -> list:
 def markdown_table(report: dict) -> str:
     """Supplement layout: one row per protocol, cells Mask L2 (x10^4) / PSNR / SSIM per split."""
     splits = [s for s in (*EVAL_SPLITS, "novel_pose", "novel_view") if s in report["splits"]]
-    lines = [f"# {report['model']} (width {report['width']}), step {report['step']}: {report['subject']}", "",
+    size = f"{report['image_size']}^2 bone maps" if report["model"] == "cnn" else f"width {report['width']}"
+    lines = [f"# {report['model']} ({size}), step {report['step']}: {report['subject']}", "",
              "Cells: Mask L2 (x10^4) / PSNR (dB) / SSIM. SS/NS/SN/NN = same or novel pose x same or novel view.", "",
              "| protocol | " + " | ".join(_SHORT[s] for s in splits) + " |",
              "|---|" + "---|" * len(splits)]  # fmt: skip

@@ -18,7 +18,7 @@ from fitting.checkpoint import save_checkpoint
 from fitting.config import FitConfig
 from fitting.data import FitData
 from fitting.plots import write_curve, write_validation
-from narf.fields import build_field
+from narf.fields import build_field, build_model
 from narf.metrics import psnr
 from narf.rays import ray_box_intersect
 from narf.renderer import bind_field, render_rays
@@ -35,6 +35,8 @@ def auto_device(name: str = "auto") -> torch.device:
 def make_field(config: FitConfig):
     """The model of a config (only the options its constructor takes)."""
     m = config.model
+    if m.name == "cnn":
+        return build_model("cnn", image_size=m.image_size)
     kwargs = {"width": m.width, "density_act": m.density_act}
     if m.name == "narf_p":
         kwargs["temperature"] = m.temperature
@@ -78,8 +80,9 @@ class Trainer:
         self.data, self.frames = data.training, data.frames
         self.fit_data = data
         self.field = make_field(config).to(device)
-        if state is None:
+        if state is None and hasattr(self.field, "set_boxes"):
             self.field.set_boxes(data.boxes[0].to(device), data.boxes[1].to(device))
+        self.rays_per_step = config.train.images_per_step * config.train.rays_per_image
         self.optimiser = torch.optim.Adam(self.field.parameters(), lr=config.train.lr, betas=(0.9, 0.999),
                                           eps=config.train.adam_eps)  # fmt: skip
         decay, floor = config.train.lr_decay, config.train.lr_min / config.train.lr
@@ -126,14 +129,13 @@ class Trainer:
         elapsed0, loss, score = self.elapsed, math.nan, math.nan
         bar = tqdm(total=t.steps, initial=self.step, desc="fit", unit="step", disable=not self.progress)
         window_start, window_rays = time.perf_counter(), 0
-        rays_per_step = t.images_per_step * t.rays_per_image
         finished = self.step >= t.steps
         try:
             while self.step < t.steps:
                 if max_minutes is not None and (time.perf_counter() - start) / 60 >= max_minutes:
                     break
                 loss, score = self.train_step()
-                window_rays += rays_per_step
+                window_rays += self.rays_per_step
                 self.elapsed = elapsed0 + time.perf_counter() - start
                 bar.update()
                 if self.step % t.log_every == 0 or self.step == t.steps:

@@ -185,4 +185,5 @@ def pose_batch(body: PosedBody) -> PoseBatch:
 
     rest = body.rest_joints[:, list(PART_JOINTS)]
     offsets = (rest - body.rest_joints[:, :1]) / body.reach[:, None, None]
-    return PoseBatch(body.world_from_part, body.reach, body.bone_lengths, body.pose_features, offsets)
+    return PoseBatch(body.world_from_part, body.reach, body.bone_lengths, body.pose_features, offsets,
+                     body.world_from_joint)  # fmt: skip

@@ -20,9 +20,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--subject", default=None, help="subject name or folder (default from the preset: taichi)")
     parser.add_argument("--data-root", default=None, help="data root (default: $NARF_DATA or data/)")
     parser.add_argument("--config", default=None,
-                        help="preset name (cpu, paper, tiny) or YAML file; default: paper with CUDA, else cpu")
+                        help="preset name (cpu, paper, tiny, cnn) or YAML file; default: cnn for --model cnn, else "
+                        "paper with CUDA and cpu without")  # fmt: skip
     parser.add_argument("--model", default=None, help="model name (narf_d, narf_d_sigmoid, narf_h, narf_p, p_nerf, "
-                        "d_narf); overrides the preset")  # fmt: skip
+                        "d_narf, or cnn: the CNN baseline, trained in image space); overrides the preset")  # fmt: skip
     parser.add_argument("--out", type=Path, default=None, help="run folder (default: runs/<subject>-<model>)")
     parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config value, e.g. --set train.steps=5000 (repeatable)")
@@ -58,14 +59,16 @@ def main(argv: list[str] | None = None) -> int:
             raise ValueError("--resume needs --out (the run folder to continue)")
         config = None
     else:
-        preset = args.config or ("paper" if device.type == "cuda" else "cpu")
+        preset = args.config or ("cnn" if args.model == "cnn" else "paper" if device.type == "cuda" else "cpu")
         config = load_config(preset, overrides)
     out = args.out or Path("runs") / f"{Path(config.data.subject).name}-{config.model.name}"
     if args.resume and not (Path(out) / "checkpoint.pt").exists():
         raise FileNotFoundError(f"{out}: no checkpoint to resume")
     run_dir = prepare_run_dir(out, config, args.resume)
     trainer = start_trainer(config, run_dir, device, resume=args.resume, progress=not args.quiet)
-    print(f"narf-fit: {trainer.config.model.name} (width {trainer.config.model.width}) on "
+    size = f"{trainer.config.model.image_size}^2" if trainer.config.model.name == "cnn" else \
+        f"width {trainer.config.model.width}"
+    print(f"narf-fit: {trainer.config.model.name} ({size}) on "
           f"{trainer.fit_data.description}, device {device}, torch {torch.__version__}", file=sys.stderr)  # fmt: skip
     result = trainer.fit(args.max_minutes)
     state = "finished" if result.finished else "stopped (resume with --resume)"

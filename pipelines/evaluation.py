@@ -50,6 +50,7 @@ def evaluate_run(run_dir: Path, splits: list[str], limit: int | None = None, dev
         report["splits"][split] = {"n_views": len(records), "limit": limit, "full": average_metrics(records, "full"),
                                    "nb_crop": average_metrics(records, "nb_crop"), "per_view": records}  # fmt: skip
     report.update({"run": str(run_dir), "step": run.step, "model": config.model.name, "width": config.model.width,
+                   "image_size": config.model.image_size,
                    "subject": str(capture.root), "protocol": protocol.name, "versions": library_versions()})
     out_dir.mkdir(parents=True, exist_ok=True)
     tmp = metrics_path.with_suffix(".json.tmp")

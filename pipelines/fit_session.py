@@ -81,6 +81,10 @@ def start_trainer(config: FitConfig | None, run_dir: Path, device, resume: bool 
     if config is None:
         raise ValueError("start_trainer needs a config unless it resumes a checkpoint")
     data = build_fit_data(config, device, progress)
+    if config.model.name == "cnn":
+        from fitting.cnn_trainer import CnnTrainer
+
+        return CnnTrainer(config, run_dir, device, data, state=state, progress=progress)
     return Trainer(config, run_dir, device, data, state=state, progress=progress)
 
 

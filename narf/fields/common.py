@@ -22,6 +22,7 @@ class PoseBatch:
         bone_lengths: (B, P_zeta) zeta (19 for bodies; may be (B, 0) for rigid objects).
         pose_features: (B, P, 6) xi (se(3) log in the body frame).
         rest_offsets: (B, P, 3) rest joints relative to the pelvis, in body units (D-NARF's t_can).
+        world_from_joint: optional (B, 24, 4, 4) all SMPL joints (the CNN baseline's bone maps need the leaves).
     """
 
     world_from_part: torch.Tensor
@@ -29,6 +30,7 @@ class PoseBatch:
     bone_lengths: torch.Tensor
     pose_features: torch.Tensor
     rest_offsets: torch.Tensor
+    world_from_joint: torch.Tensor | None = None
 
     def __post_init__(self):
         check_shape("world_from_part", self.world_from_part, (-1, -1, 4, 4))
@@ -37,13 +39,18 @@ class PoseBatch:
         check_shape("bone_lengths", self.bone_lengths, (n_frames, -1))
         check_shape("pose_features", self.pose_features, (n_frames, n_parts, 6))
         check_shape("rest_offsets", self.rest_offsets, (n_frames, n_parts, 3))
+        if self.world_from_joint is not None:
+            check_shape("world_from_joint", self.world_from_joint, (n_frames, 24, 4, 4))
+
+    def _map(self, fn) -> PoseBatch:
+        return PoseBatch(*(None if (v := getattr(self, k)) is None else fn(v) for k in self.__dataclass_fields__))
 
     def select(self, frames: torch.Tensor) -> PoseBatch:
         """Gather per-ray poses: ``frames`` (R,) long -> a PoseBatch of R entries."""
-        return PoseBatch(*(getattr(self, k)[frames] for k in self.__dataclass_fields__))
+        return self._map(lambda v: v[frames])
 
     def to(self, device) -> PoseBatch:
-        return PoseBatch(*(getattr(self, k).to(device) for k in self.__dataclass_fields__))
+        return self._map(lambda v: v.to(device))
 
 
 def part_local(points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch) -> tuple[torch.Tensor, torch.Tensor]:

@@ -1,0 +1,55 @@
+"""Image-space training of the CNN baseline (model.md §4): whole training views resampled to the network's
+square size, bone maps rasterised per view, colour + mask MSE (the mask loss skips the boundary band).
+
+Shares the loop, checkpoints, log and validation renders of ``fitting.trainer.Trainer``; only the batch and
+the loss differ. "rays/s" in its log counts output pixels."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+
+from fitting.config import FitConfig
+from fitting.data import FitData
+from fitting.trainer import Trainer
+from narf.cnn_render import cnn_inputs
+from narf.metrics import psnr
+
+
+class CnnTrainer(Trainer):
+    """A Trainer for the CNN baseline; ``data.training.poses`` must carry ``world_from_joint``."""
+
+    def __init__(self, config: FitConfig, run_dir: Path, device: torch.device, data: FitData,
+                 state: dict | None = None, progress: bool = True):  # fmt: skip
+        super().__init__(config, run_dir, device, data, state, progress)
+        torch.set_flush_denormal(True)  # on CPU, denormal activations of the sigmoid heads halve the step rate
+        if self.data.poses.world_from_joint is None:
+            raise ValueError("the CNN baseline needs every training pose's world_from_joint")
+        size = config.model.image_size
+        self.rays_per_step = config.train.images_per_step * size * size
+        images = self.data.images.permute(0, 3, 1, 2).float() / 255.0  # (N, 3, H, W)
+        self.rgb = F.interpolate(images, size=(size, size), mode="area").to(torch.float16)
+        masks = self.data.masks[:, None].float()
+        self.mask = F.interpolate(masks, size=(size, size), mode="area")[:, 0].to(torch.float16)
+        bands = self.data.bands[:, None].float()
+        self.mask_weight = (F.interpolate(bands, size=(size, size), mode="area")[:, 0] == 0).to(torch.float16)
+
+    def train_step(self) -> tuple[float, float]:
+        t, data = self.config.train, self.data
+        chosen = torch.randint(0, len(data), (t.images_per_step,), generator=self.generator).to(self.device)
+        joints = data.poses.world_from_joint[data.frame_of_image[chosen]]
+        maps, bones = cnn_inputs(joints, data.cam_from_world[chosen], data.Ks[chosen], data.height, data.width,
+                                 self.config.model.image_size)  # fmt: skip
+        rgb, mask = self.field(maps, bones)
+        colour = (rgb - self.rgb[chosen].float()).pow(2).mean()
+        weight = self.mask_weight[chosen].float()
+        mask_term = (weight * (mask - self.mask[chosen].float()).pow(2)).sum() / weight.sum().clamp_min(1)
+        loss = colour + t.mask_weight * mask_term
+        self.optimiser.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimiser.step()
+        self.scheduler.step()
+        self.step += 1
+        return float(loss.detach()), float(psnr(colour.detach()))
