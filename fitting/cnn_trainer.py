@@ -15,7 +15,6 @@ from fitting.config import FitConfig
 from fitting.data import FitData
 from fitting.trainer import Trainer
 from narf.cnn_render import cnn_inputs
-from narf.metrics import psnr
 
 
 class CnnTrainer(Trainer):
@@ -47,9 +46,4 @@ class CnnTrainer(Trainer):
         weight = self.mask_weight[chosen].float()
         mask_term = (weight * (mask - self.mask[chosen].float()).pow(2)).sum() / weight.sum().clamp_min(1)
         loss = colour + t.mask_weight * mask_term
-        self.optimiser.zero_grad(set_to_none=True)
-        loss.backward()
-        self.optimiser.step()
-        self.scheduler.step()
-        self.step += 1
-        return float(loss.detach()), float(psnr(colour.detach()))
+        return self.optimise(loss, colour)

@@ -114,6 +114,10 @@ class Trainer:
                                  self.generator)  # fmt: skip
         loss, colour = ray_loss(self.config, self.field, batch, self.data.poses, self.generator,
                                 self.config.render.train_coarse, self.config.render.train_fine)  # fmt: skip
+        return self.optimise(loss, colour)
+
+    def optimise(self, loss: torch.Tensor, colour: torch.Tensor) -> tuple[float, float]:
+        """One optimiser and schedule step on ``loss``; returns (loss, PSNR of the colour MSE)."""
         self.optimiser.zero_grad(set_to_none=True)
         loss.backward()
         self.optimiser.step()
