@@ -23,7 +23,6 @@ class CnnTrainer(Trainer):
     def __init__(self, config: FitConfig, run_dir: Path, device: torch.device, data: FitData,
                  state: dict | None = None, progress: bool = True):  # fmt: skip
         super().__init__(config, run_dir, device, data, state, progress)
-        torch.set_flush_denormal(True)  # on CPU, denormal activations of the sigmoid heads halve the step rate
         if self.data.poses.world_from_joint is None:
             raise ValueError("the CNN baseline needs every training pose's world_from_joint")
         size = config.model.image_size
