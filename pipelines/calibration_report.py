@@ -6,6 +6,8 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
+from skimage.transform import SimilarityTransform
 
 from pipelines.zju_mocap import Camera
 
@@ -67,21 +69,22 @@ def draw_residuals(path: Path, camera_rms: dict[str, float], width: int = 800, h
 
 
 def _rotation_deg(rotation: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1, 1))))
+    return float(np.degrees(Rotation.from_matrix(rotation).magnitude()))
 
 
 def compare_cameras(previous: list[Camera], solved: list[Camera]) -> dict:
     """Per-camera differences between two calibrations of the same rig (same order): camera centre (mm),
     rotation (deg), focal length (%), as they stand and after the similarity transform that best maps the solved
-    camera centres onto the previous ones (Umeyama; the two may use different world frames)."""
+    camera centres onto the previous ones (scikit-image's Umeyama estimate; the two may use different world
+    frames)."""
     old = np.array([c.centre for c in previous])
     new = np.array([c.centre for c in solved])
-    old_mean, new_mean = old.mean(0), new.mean(0)
-    u, sigma, vt = np.linalg.svd((old - old_mean).T @ (new - new_mean))
-    sign = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    old_from_new = u @ sign @ vt
-    scale = float(np.trace(np.diag(sigma) @ sign) / max(((new - new_mean) ** 2).sum(), 1e-12))
-    aligned = scale * (new - new_mean) @ old_from_new.T + old_mean
+    similarity = SimilarityTransform.from_estimate(new, old)
+    if not similarity:
+        raise ValueError(f"cannot align the solved cameras with the previous ones: {similarity}")
+    scale = float(np.cbrt(np.linalg.det(similarity.params[:3, :3])))
+    old_from_new = similarity.params[:3, :3] / scale
+    aligned = similarity(new)
     cameras = {}
     for k, (a, b) in enumerate(zip(previous, solved)):
         rot_a, rot_b = a.cam_from_world[:3, :3], b.cam_from_world[:3, :3]

@@ -76,10 +76,10 @@ def solve_sparse_lm(
     """
     groups = column_groups(sparsity)
     x = np.asarray(x0, dtype=np.float64).copy()
-    cost, weights = _huber(fun(x), point_dim, huber)
+    residuals = fun(x)
+    cost, weights = _huber(residuals, point_dim, huber)
     damping, converged, iteration = 1e-3, False, 0
     for iteration in range(1, max_iter + 1):
-        residuals = fun(x)
         jac = sparse_jacobian(fun, x, sparsity, groups)
         weighted = scipy.sparse.diags(weights) @ jac
         normal = (jac.T @ weighted).tocsc()
@@ -88,14 +88,15 @@ def solve_sparse_lm(
         while True:
             system = (normal + scipy.sparse.diags(damping * scale)).tocsc()
             step = scipy.sparse.linalg.spsolve(system, -gradient)
-            new_cost, new_weights = _huber(fun(x + step), point_dim, huber)
+            new_residuals = fun(x + step)
+            new_cost, new_weights = _huber(new_residuals, point_dim, huber)
             if new_cost < cost:
                 break
             damping *= 4.0
             if damping > 1e12:
                 return LmResult(x, cost, iteration, True)  # no descent left: at the minimum to precision
         converged = cost - new_cost <= tol * cost
-        x, cost, weights = x + step, new_cost, new_weights
+        x, residuals, cost, weights = x + step, new_residuals, new_cost, new_weights
         damping = max(damping / 3.0, 1e-12)
         if converged:
             break
