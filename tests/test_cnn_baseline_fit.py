@@ -96,3 +96,17 @@ def test_cnn_video(data_root_64, tmp_path):
     out = render_video(tmp_path / "run", "bones", tmp_path / "bones.mp4", n_frames=4, fps=4, progress=False)
     frames = imageio.mimread(out)
     assert len(frames) == 4 and frames[0].shape[1] == 2 * frames[0].shape[0]  # RGB | depth, no segmentation
+
+
+def test_cnn_bad_input_is_named():
+    import pytest
+
+    from fitting.config import ConfigError
+    from narf.fields.common import PoseBatch
+
+    with pytest.raises(ConfigError, match="model.image_size"):
+        load_config("tiny", ["model.name=cnn", "model.image_size=48"])
+    pose = PoseBatch(torch.eye(4).repeat(1, 19, 1, 1), torch.ones(1), torch.zeros(1, 19), torch.zeros(1, 19, 6),
+                     torch.zeros(1, 19, 3))  # fmt: skip
+    with pytest.raises(ValueError, match="needs the pose's world_from_joint"):
+        render_cnn_image(CnnBaseline(image_size=32), torch.eye(3), torch.eye(4), 32, 32, pose)
