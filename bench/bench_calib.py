@@ -9,10 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.calibration import calibrate_intrinsics, detect_folder
-from pipelines.calibration_rig import bundle_adjust, initial_extrinsics
-from pipelines.synthetic_calib import BoardSpec, write_calibration_shots
-from pipelines.synthetic_scene import ring_cameras
+from pipelines.calibration.board import BoardSpec
+from pipelines.calibration.charuco import calibrate_intrinsics, detect_folder
+from pipelines.calibration.rig import bundle_adjust, initial_extrinsics
+from pipelines.synthetic.charuco_shots import write_calibration_shots
+from pipelines.synthetic.scene import ring_cameras
 
 SETTINGS = ((512, 0), (512, 20), (1024, 0), (1024, 20))  # (resolution, close-ups per camera)
 

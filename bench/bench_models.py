@@ -1,7 +1,7 @@
 """Training and rendering speed of every model at paper size and at the CPU default size.
 
 Each configuration runs in its own process (so peak RSS is per configuration) on real stand-in poses: the
-taichi motion posed through the body model, part boxes fitted as in model.md, rays from a ring camera aimed at
+taichi motion posed through the body model, part boxes fitted as in docs/model.md, rays from a ring camera aimed at
 the body (only rays that hit a box are counted, as in training). A "train step" is the full step: coarse pass,
 importance sampling, final pass with gradient, colour + mask loss, backward and Adam.
 """
@@ -37,8 +37,8 @@ def _scene():
     import torch
 
     from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
-    from pipelines.body_model import BodyModel, pose_batch
-    from pipelines.synthetic_scene import look_at, taichi_motion
+    from pipelines.body.model import BodyModel, pose_batch
+    from pipelines.synthetic.scene import look_at, taichi_motion
 
     body_model = BodyModel()
     motion = taichi_motion(8, seed=0)

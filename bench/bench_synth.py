@@ -1,4 +1,4 @@
-"""Time and size of generating the default synthetic ``taichi`` capture (issue: under 3 minutes at 512^2)."""
+"""Time and size of generating the default synthetic ``taichi`` capture."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from pipelines.synthetic import SynthConfig, generate_capture
+from pipelines.synthetic.capture import SynthConfig, generate_capture
 
 
 def run(resolution: int = 512) -> list[dict]:

@@ -1,4 +1,4 @@
-"""Image-space training of the CNN baseline (model.md §4): whole training views resampled to the network's
+"""Image-space training of the CNN baseline (docs/model.md §4): whole training views resampled to the network's
 square size, bone maps rasterised per view, colour + mask MSE (the mask loss skips the boundary band).
 
 Shares the loop, checkpoints, log and validation renders of ``fitting.trainer.Trainer``; only the batch and

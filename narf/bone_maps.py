@@ -1,4 +1,4 @@
-"""Rasterised bone maps, the input of the CNN baseline (model.md §4): 46 channels per image.
+"""Rasterised bone maps, the input of the CNN baseline (docs/model.md §4): 46 channels per image.
 
 Channel layout: 0 bone disparity (1/z of the nearest bone under the pixel, 0 elsewhere); 1-19 one map per
 part with that part's bones; 20-43 one square per joint; 44-45 pixel coordinates x, y in [-1, 1].

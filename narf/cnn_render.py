@@ -1,4 +1,4 @@
-"""Image-space rendering of the CNN baseline (model.md §4): bone maps of a camera and pose at the network's
+"""Image-space rendering of the CNN baseline (docs/model.md §4): bone maps of a camera and pose at the network's
 square size, then RGB and mask resampled to the camera's image size. It has no depth or segmentation; depth is
 returned as zeros so that grids and videos keep their layout."""
 

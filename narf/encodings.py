@@ -1,4 +1,4 @@
-"""Positional encoding gamma_L (model.md §2)."""
+"""Positional encoding gamma_L (docs/model.md §2)."""
 
 from __future__ import annotations
 

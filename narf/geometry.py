@@ -1,4 +1,4 @@
-"""Rigid transforms and the se(3) logarithm / exponential (textbook forms, model.md §1).
+"""Rigid transforms and the se(3) logarithm / exponential (textbook forms, docs/model.md §1).
 
 Pure torch, batched over leading dimensions. Transforms are 4x4 homogeneous matrices named
 ``<dst>_from_<src>``.

@@ -1,4 +1,4 @@
-"""SMPL-24 kinematic tree, NARF parts, bone lengths and part boxes (model.md §1).
+"""SMPL-24 kinematic tree, NARF parts, bone lengths and part boxes (docs/model.md §1).
 
 Pure torch: no file I/O. The skinning transforms come from ``smplx.lbs`` (the well-kept reference
 implementation); this module turns them into frame-explicit ``world_from_part`` transforms.
@@ -130,7 +130,7 @@ def kinematic_reach(joint_positions: torch.Tensor) -> torch.Tensor:
 
 
 def part_pose_features(world_from_part: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
-    """Per-part pose features xi_i = log([R_i | (t_i - b) / s]) in the body frame (model.md §1, decision d).
+    """Per-part pose features xi_i = log([R_i | (t_i - b) / s]) in the body frame (docs/model.md §1, decision d).
 
     The body frame has its origin at the posed pelvis ``b = t_0`` and world axes; the global translation is
     removed, the global orientation kept.
@@ -172,7 +172,7 @@ def fit_part_boxes(
     scale_pad: float = 1.1,
     abs_pad: float = 0.03,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Fit one box per part, axis-aligned in the part frame, in body units (model.md §1, decision a).
+    """Fit one box per part, axis-aligned in the part frame, in body units (docs/model.md §1, decision a).
 
     Each vertex is mapped into its part's frame, ``x_i = R_i^T (v - t_i) / s``; the box spans the min/max over
     all given frames, then half-extents are padded ``h <- scale_pad * h + abs_pad``.

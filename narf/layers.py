@@ -1,8 +1,8 @@
-"""Layers shared by the NARF fields (model.md §3).
+"""Layers shared by the NARF fields (docs/model.md §3).
 
 Every linear layer is *grouped*: ``groups`` independent layers applied to inputs shaped (G, N, in), so that
 NARF_P's 19 per-part networks and the per-part selector run as one batched matmul. Each layer reports its cost
-under the upstream accounting rules (model.md §8).
+under the upstream accounting rules (docs/model.md §8).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Image metrics (model.md §7): PSNR, Mask L2. SSIM is scikit-image's (fitting.evaluate) to match the
+"""Image metrics (docs/model.md §7): PSNR, Mask L2. SSIM is scikit-image's (fitting.evaluate) to match the
 reference evaluators exactly."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Camera rays and the analytic ray-vs-part-box bounds (model.md §5, Project decision b)."""
+"""Camera rays and the analytic ray-vs-part-box bounds (docs/model.md §5, Project decision b)."""
 
 from __future__ import annotations
 

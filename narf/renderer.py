@@ -1,4 +1,4 @@
-"""Volume rendering shared by every NeRF-type model (model.md §5). The field is passed as a callable.
+"""Volume rendering shared by every NeRF-type model (docs/model.md §5). The field is passed as a callable.
 
 ``field_fn(points (R', S, 3), ray_ids (R',)) -> FieldOutput`` evaluates the samples of the rays ``ray_ids``
 (indices into the ray batch), so the caller binds directions, poses and latents (see :func:`bind_field`).

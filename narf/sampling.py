@@ -1,4 +1,4 @@
-"""Stratified and importance sampling along rays (model.md §5). Pure functions."""
+"""Stratified and importance sampling along rays (docs/model.md §5). Pure functions."""
 
 from __future__ import annotations
 

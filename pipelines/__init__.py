@@ -1,0 +1,13 @@
+"""Everything between files on disk and the model: readers and writers, the body model, calibration, the
+synthetic data, the command-line tools, and the glue that opens a capture for fitting, evaluation and videos.
+
+Sub-packages (imports flow one way, ``datasets`` first; ``tests/test_architecture.py`` keeps it so):
+
+* ``datasets``: readers and writers of real formats (ZJU-MoCap, EasyMocap cameras, SMPL files, subjects);
+* ``body``: the stand-in SMPL body and the SMPL glue that turns parameters into part transforms;
+* ``calibration``: ChArUco detection, intrinsics, rig initialisation, bundle adjustment, reports;
+* ``synthetic``: the synthetic capture in the real layouts (images, masks, SMPL fits, ChArUco shots, ``lbs/``);
+* ``cli``: one module per console script and their shared plumbing.
+
+The top-level modules are the glue: ``fit_session`` (subject -> Trainer), ``evaluation`` and ``video``.
+"""

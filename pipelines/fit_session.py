@@ -1,8 +1,9 @@
-"""Glue between a capture on disk and the fitting package: open the subject, pose its frames, fit the part
-boxes, load the training views, and start (or resume) a Trainer."""
+"""Glue between a capture on disk and the fitting package: find the subject (real data, else the synthetic
+stand-in), pose its frames, fit the part boxes, load the training views, and start (or resume) a Trainer."""
 
 from __future__ import annotations
 
+import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -15,9 +16,39 @@ from fitting.checkpoint import load_checkpoint
 from fitting.config import FitConfig, load_config
 from fitting.data import FitData, TrainingSet
 from fitting.trainer import Trainer, make_field
-from pipelines.body_model import BodyModel, pose_batch
-from pipelines.capture import ZjuCapture
-from pipelines.subjects import resolve_subject
+from pipelines.body.model import BodyModel, pose_batch
+from pipelines.datasets.capture import ZjuCapture
+from pipelines.datasets.subjects import data_root, find_subject, real_candidates, synthetic_path
+from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
+
+
+def resolve_subject(name: str, root: str | Path | None = None, generate: bool = True, quiet: bool = False) -> Path:
+    """Folder of subject ``name``: its real capture (``find_subject``), else the synthetic stand-in under
+    ``<root>/synthetic/<name>``, generated when missing and announced in one line on stderr.
+
+    Raises:
+        CaptureError: no real data and no synthetic stand-in for this name, or (``generate=False``) the stand-in
+            is not generated yet.
+    """
+    real = find_subject(name, root)
+    if real is not None:
+        return real
+    root = data_root(root)
+    key = name.lower()
+    if key not in SYNTHETIC_SUBJECTS:
+        looked = ", ".join(str(p) for p in real_candidates(name, root)[:3])
+        raise CaptureError(f"no subject '{name}' under {root} (looked in {looked}, ...); synthetic stand-ins exist "
+                           f"for: {', '.join(SYNTHETIC_SUBJECTS)}")  # fmt: skip
+    out = synthetic_path(key, root)
+    if not quiet:
+        state = "using" if is_complete(out) else "generating"
+        print(f"narf: no real '{name}' capture under {root}; {state} the synthetic stand-in at {out}", file=sys.stderr)
+    if not is_complete(out):
+        if not generate:
+            raise CaptureError(f"{out}: synthetic capture not generated yet (run narf-synth --subject {key})")
+        generate_capture(out, SynthConfig(subject=key))
+    return out
 
 
 def open_capture(config: FitConfig, quiet: bool = False) -> ZjuCapture:
@@ -37,7 +68,7 @@ def poses_for_frames(capture: ZjuCapture, body_model: BodyModel, frames: list[in
 
 
 def fit_boxes(body_model: BodyModel, bodies, shapes: torch.Tensor, n_frames: int, scale_pad: float, abs_pad: float):
-    """Part boxes over the rest pose and up to ``n_frames`` evenly spaced training frames (model.md §1)."""
+    """Part boxes over the rest pose and up to ``n_frames`` evenly spaced training frames (docs/model.md §1)."""
     count = bodies.vertices.shape[0]
     pick = torch.as_tensor(np.unique(np.linspace(0, count - 1, min(n_frames, count)).astype(int)))
     subset = type(bodies)(*(getattr(bodies, k)[pick] for k in bodies.__dataclass_fields__))

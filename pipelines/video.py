@@ -13,10 +13,10 @@ from fitting.evaluate import render_view
 from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
 from narf.kinematics import SMPL_PARENTS, rigid_from_rotvec_translation
-from pipelines.body_model import BodyModel, pose_batch, posed_from_rest_joints
+from pipelines.body.model import BodyModel, pose_batch, posed_from_rest_joints
+from pipelines.datasets.zju_mocap import CaptureError, read_params
 from pipelines.fit_session import load_run
-from pipelines.synthetic_scene import look_at
-from pipelines.zju_mocap import CaptureError, read_params
+from pipelines.synthetic.scene import look_at
 
 KINDS = ("orbit", "poses", "bones")
 #: Bone-length edit: joints whose offset from their parent is scaled (legs: knees, ankles, feet).

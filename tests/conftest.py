@@ -12,7 +12,7 @@ os.environ.pop("NARF_SMPL_DIR", None)
 
 @pytest.fixture(scope="session")
 def body_model():
-    from pipelines.body_model import BodyModel
+    from pipelines.body.model import BodyModel
 
     return BodyModel()
 
@@ -21,7 +21,7 @@ def body_model():
 def body_model64():
     import torch
 
-    from pipelines.body_model import BodyModel
+    from pipelines.body.model import BodyModel
 
     return BodyModel(dtype=torch.float64)
 
@@ -29,7 +29,7 @@ def body_model64():
 @pytest.fixture(scope="session")
 def tiny_capture(tmp_path_factory):
     """A small synthetic capture: 4 frames x 4 cameras at 256^2, 3 calibration shots, 2 close-ups per camera."""
-    from pipelines.synthetic import SynthConfig, generate_capture
+    from pipelines.synthetic.capture import SynthConfig, generate_capture
 
     out = tmp_path_factory.mktemp("capture") / "taichi"
     return generate_capture(out, SynthConfig(resolution=256, frames=4, cameras=4, calib_shots=3, calib_close_ups=2,
@@ -39,7 +39,7 @@ def tiny_capture(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def tiny_capture_313(tmp_path_factory):
-    from pipelines.synthetic import SynthConfig, generate_capture
+    from pipelines.synthetic.capture import SynthConfig, generate_capture
 
     out = tmp_path_factory.mktemp("capture313") / "CoreView_313"
     return generate_capture(out, SynthConfig(resolution=64, frames=3, cameras=2, calib_shots=0, layout="313",
@@ -49,7 +49,7 @@ def tiny_capture_313(tmp_path_factory):
 @pytest.fixture(scope="session")
 def data_root_64(tmp_path_factory):
     """A data root whose synthetic taichi capture is 10 frames x 4 cameras at 64^2."""
-    from pipelines.synthetic import SynthConfig, generate_capture
+    from pipelines.synthetic.capture import SynthConfig, generate_capture
 
     root = tmp_path_factory.mktemp("data64")
     generate_capture(root / "synthetic" / "taichi", SynthConfig(resolution=64, frames=10, cameras=4, calib_shots=0,

@@ -4,9 +4,10 @@ import cv2
 import numpy as np
 import pytest
 
-from pipelines.calibration import CalibrationError, calibrate_intrinsics, detect_charuco, detect_folder
-from pipelines.synthetic_calib import BoardSpec, write_calibration_shots
-from pipelines.synthetic_scene import ring_cameras
+from pipelines.calibration.board import BoardSpec
+from pipelines.calibration.charuco import CalibrationError, calibrate_intrinsics, detect_charuco, detect_folder
+from pipelines.synthetic.charuco_shots import write_calibration_shots
+from pipelines.synthetic.scene import ring_cameras
 
 
 @pytest.fixture(scope="module")
@@ -108,7 +109,7 @@ def _errors(camera, solution) -> tuple[float, float, float]:
 def test_rig_bundle_adjustment_against_ground_truth(full_rig):
     """The targets of narf-calibrate on the default synthetic rig: mean reprojection <= 0.5 px, focal <= 0.5 %,
     camera centres <= 5 mm and rotations <= 0.1 deg, in the world frame of the reference shot."""
-    from pipelines.calibration_rig import bundle_adjust, initial_extrinsics
+    from pipelines.calibration.rig import bundle_adjust, initial_extrinsics
 
     cameras, detections, intrinsics, _ = full_rig
     cam_from_world, world_from_board = initial_extrinsics(intrinsics, detections, "000")
@@ -121,7 +122,7 @@ def test_rig_bundle_adjustment_against_ground_truth(full_rig):
 
 
 def test_rig_errors_name_the_camera(full_rig):
-    from pipelines.calibration_rig import initial_extrinsics
+    from pipelines.calibration.rig import initial_extrinsics
 
     cameras, detections, intrinsics, _ = full_rig
     seer = next(name for name, dets in detections.items() if any(d.shot == "000" for d in dets))
@@ -136,8 +137,9 @@ def test_rig_errors_name_the_camera(full_rig):
 
 
 def test_calibrate_cli_writes_annots_and_easymocap(small_rig, tmp_path):
-    from pipelines.cli_calibrate import main
-    from pipelines.zju_mocap import read_annots, read_easymocap_cameras, write_annots
+    from pipelines.cli.calibrate import main
+    from pipelines.datasets.easymocap import read_easymocap_cameras
+    from pipelines.datasets.zju_mocap import read_annots, write_annots
 
     cameras, capture = small_rig
     out = tmp_path / "out"
@@ -154,9 +156,13 @@ def test_calibrate_cli_writes_annots_and_easymocap(small_rig, tmp_path):
     model.read_text(str(out / "colmap"))  # an independent reader of the COLMAP text model
     assert model.num_cameras() == 7 and model.num_images() == 7
     pose = model.image(4).cam_from_world().matrix()
+    # the COLMAP text model stores quaternions and translations with 17 significant digits; the round trip through
+    # quaternion <-> matrix costs a few float64 eps, far below 1e-6; focal lengths are copied verbatim
     assert np.allclose(pose, solved[3].cam_from_world[:3], atol=1e-6)
     assert np.isclose(model.camera(4).params[0], solved[3].K[0, 0])
     easy = read_easymocap_cameras(out)
+    # EasyMocap's YAML stores the Rodrigues vector, from which the reader rebuilds R (float64 round trip, ~1e-15) and
+    # OpenCV prints doubles with 16 digits; 1e-6 is the scale of the 6-decimal files EasyMocap itself writes
     assert np.allclose(easy[3].cam_from_world, solved[3].cam_from_world, atol=1e-6)
     import json
 
@@ -170,7 +176,7 @@ def test_calibrate_cli_writes_annots_and_easymocap(small_rig, tmp_path):
     assert main([str(capture), "--out", str(tmp_path / "out2"), "--write-annots", "--quiet"]) == 0
     merged, merged_ims = read_annots(capture / "annots.npy", image_size=(384, 384), check_folders=False)
     assert merged_ims == [[f"{c.name}/000000.jpg" for c in cameras]] and (capture / "annots.npy.bak").is_file()
-    assert np.allclose(merged[5].K, solved[5].K, atol=1e-3)
+    assert np.allclose(merged[5].K, solved[5].K, atol=1e-3)  # K in pixels: 1e-3 px is far below calibration accuracy
     against = json.loads((tmp_path / "out2" / "report.json").read_text())["against_previous_annots"]
     assert len(against["cameras"]) == 7 and against["max"]["centre_mm"] <= 15  # the annots held the truth
     (capture / "annots.npy").unlink()
@@ -178,8 +184,8 @@ def test_calibrate_cli_writes_annots_and_easymocap(small_rig, tmp_path):
 
 
 def test_calibrate_cli_errors_write_nothing(small_rig, tmp_path, capsys):
-    from pipelines.cli_calibrate import main
-    from pipelines.cli_common import run_cli
+    from pipelines.cli.calibrate import main
+    from pipelines.cli.common import run_cli
 
     _, capture = small_rig
     out = tmp_path / "never"
@@ -197,20 +203,21 @@ def test_calibrate_cli_errors_write_nothing(small_rig, tmp_path, capsys):
 
 
 def test_calibrate_cli_fixes_parameter_groups(small_rig, tmp_path):
-    from pipelines.cli_calibrate import main
-    from pipelines.zju_mocap import read_annots
+    from pipelines.cli.calibrate import main
+    from pipelines.datasets.zju_mocap import read_annots
 
     _, capture = small_rig
     out = tmp_path / "fixed"
     assert main([str(capture), "--out", str(out), "--fix", "k3,tangential,principal_point", "--quiet"]) == 0
     for camera in read_annots(out / "annots.npy", image_size=(384, 384))[0]:
+        # fixed groups keep their initial values exactly (191.5 = image centre, 0 distortion): allclose's defaults
         assert np.allclose(camera.K[:2, 2], 191.5) and np.allclose(camera.dist[2:], 0.0)
         assert abs(camera.dist[0]) > 1e-4  # k1 is still estimated
 
 
 def test_compare_cameras_undoes_a_change_of_world_frame():
-    from pipelines.calibration_report import compare_cameras
-    from pipelines.zju_mocap import Camera
+    from pipelines.calibration.report import compare_cameras
+    from pipelines.datasets.zju_mocap import Camera
 
     cameras = ring_cameras(21, 256, seed=2)[::4]
     new_from_old = np.eye(4)
@@ -219,6 +226,8 @@ def test_compare_cameras_undoes_a_change_of_world_frame():
     moved = [Camera(c.name, c.K, c.dist, c.cam_from_world @ np.linalg.inv(new_from_old), c.width, c.height)
              for c in cameras]  # fmt: skip
     result = compare_cameras(cameras, moved)
+    # an exact similarity, estimated in float64 from 6 camera centres ~3 m apart (well conditioned): residuals are
+    # rounding, ~1e-12 m = 1e-9 mm and ~1e-10 deg, so 1e-6 mm / 1e-5 deg / 1e-9 in scale leave wide margins
     assert result["max"]["aligned_centre_mm"] < 1e-6 and result["max"]["aligned_rotation_deg"] < 1e-5
     assert result["max"]["rotation_deg"] > 15 and result["max"]["focal_pct"] == 0
     assert abs(result["alignment_scale"] - 1) < 1e-9
@@ -226,7 +235,7 @@ def test_compare_cameras_undoes_a_change_of_world_frame():
 
 def test_projection_matches_opencv():
     """The bundle adjustment's vectorised projection against cv2.projectPoints (k1, k2, p1, p2, k3)."""
-    from pipelines.calibration_rig import _project
+    from pipelines.calibration.rig import _project
 
     rng = np.random.default_rng(0)
     points = rng.uniform([-1, -1, 2], [1, 1, 4], (50, 3))
@@ -235,4 +244,6 @@ def test_projection_matches_opencv():
     dist = np.array([-0.08, 0.03, 4e-4, -3e-4, 0.01])
     expected = cv2.projectPoints(points, rvec, tvec, K, dist)[0].reshape(-1, 2)
     params = np.tile(np.concatenate([rvec, tvec, [550, 552, 250, 260], dist]), (50, 1))
+    # float64 projection of the same polynomial model as OpenCV's: pixel values ~500, so rounding is ~1e-13 px;
+    # 1e-9 px allows a different evaluation order of the distortion polynomial
     assert np.allclose(_project(points, params), expected, atol=1e-9)

@@ -30,7 +30,9 @@ def test_scaled_intrinsics_keep_pixel_centres():
     small = scaled_intrinsics(K, 48, 64, 32)
     uv_small = (small @ point)[:2] / point[2]
     expected = torch.stack([(uv[0] + 0.5) * 32 / 64 - 0.5, (uv[1] + 0.5) * 32 / 48 - 0.5])
-    assert torch.allclose(uv_small, expected, atol=1e-5)
+    # float32 on pixel values ~30: each of ~6 operations rounds by eps32 * 30 ~ 4e-6; a wrong pixel-centre
+    # convention is off by 0.25 px
+    assert torch.allclose(uv_small, expected, atol=1e-4)
 
 
 def test_joint_squares_sit_where_the_joints_project():

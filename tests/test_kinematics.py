@@ -15,7 +15,7 @@ from narf.kinematics import (
     kinematic_reach,
     part_pose_features,
 )
-from pipelines.body_model import smplx_params_from_zju
+from pipelines.body.model import smplx_params_from_zju
 
 
 def _random_zju(n, seed, dtype=torch.float64):

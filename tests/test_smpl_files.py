@@ -7,8 +7,9 @@ import smplx
 import torch
 import trimesh
 
-from pipelines.smpl_files import SmplFileError, convert_official_pickle, load_smpl_dict, resolve_smpl_file
-from pipelines.standin_body import REST_JOINTS
+from pipelines.body.locate import resolve_smpl_file
+from pipelines.body.standin import REST_JOINTS
+from pipelines.datasets.smpl_files import SmplFileError, convert_official_pickle, load_smpl_dict
 
 
 @pytest.fixture(scope="module")

@@ -4,7 +4,7 @@ import numpy as np
 import scipy.sparse
 from scipy.optimize import least_squares
 
-from pipelines.sparse_lm import column_groups, solve_sparse_lm, sparse_jacobian
+from pipelines.calibration.sparse_lm import column_groups, solve_sparse_lm, sparse_jacobian
 
 N_CURVES, N_SAMPLES = 6, 15
 

@@ -4,10 +4,10 @@ import sys
 
 import pytest
 
-from pipelines import cli_synth
-from pipelines.cli_common import run_cli
-from pipelines.subjects import resolve_subject
-from pipelines.zju_mocap import CaptureError
+from pipelines.cli import synth as cli_synth
+from pipelines.cli.common import run_cli
+from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.fit_session import resolve_subject
 
 
 def test_real_data_wins_over_synthetic(tiny_capture, tmp_path, capsys):
@@ -46,14 +46,14 @@ def test_synth_cli_errors_are_one_line(tmp_path, capsys):
 
 def test_synth_cli_writes_a_capture(tmp_path):
     out = tmp_path / "cap"
-    result = subprocess.run([sys.executable, "-c", "from pipelines.cli_synth import entrypoint; entrypoint()",
+    result = subprocess.run([sys.executable, "-c", "from pipelines.cli.synth import entrypoint; entrypoint()",
                              "--out", str(out), "--resolution", "48", "--frames", "2", "--cameras", "2",
                              "--calib-shots", "1", "--calib-close-ups", "1", "--workers", "1"], capture_output=True,
                             text=True)  # fmt: skip
     assert result.returncode == 0, result.stderr
     assert "wrote" in result.stdout and (out / "annots.npy").is_file() and (out / "calib" / "board.json").is_file()
     assert (out / "calib" / "Camera_B2" / "intrinsics" / "000.jpg").is_file()
-    help_text = subprocess.run([sys.executable, "-c", "from pipelines.cli_synth import entrypoint; entrypoint()",
+    help_text = subprocess.run([sys.executable, "-c", "from pipelines.cli.synth import entrypoint; entrypoint()",
                                 "--help"], capture_output=True, text=True).stdout  # fmt: skip
     for flag in ("--subject", "--out", "--resolution", "--frames", "--cameras", "--seed"):
         assert flag in help_text

@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 import torch
 
-from pipelines.capture import ZjuCapture
-from pipelines.synthetic import SynthConfig, generate_capture, is_complete
-from pipelines.zju_mocap import read_annots, read_easymocap_cameras
+from pipelines.datasets.capture import ZjuCapture
+from pipelines.datasets.easymocap import read_easymocap_cameras
+from pipelines.datasets.zju_mocap import read_annots
+from pipelines.synthetic.capture import SynthConfig, generate_capture, is_complete
 
 
 def _rasterise(vertices, faces, camera_K, dist, rvec, tvec, size):
@@ -86,7 +87,7 @@ def test_easymocap_cameras_match_annots(tiny_capture):
 
 
 def test_calibration_shots_detectable(tiny_capture):
-    from pipelines.synthetic_calib import BoardSpec
+    from pipelines.calibration.board import BoardSpec
 
     spec = json.loads((tiny_capture / "calib" / "board.json").read_text())
     board = BoardSpec(**{k: spec[k] for k in ("squares_x", "squares_y", "square_length", "marker_length",
@@ -140,7 +141,7 @@ def test_generation_refuses_foreign_folder_and_bad_config(tmp_path):
 
 
 def test_animatable_nerf_lbs_folder(tmp_path, body_model):
-    from pipelines.synthetic_lbs import BOX_PADDING, VOXEL
+    from pipelines.synthetic.lbs import BOX_PADDING, VOXEL
 
     root = generate_capture(tmp_path / "cap", SynthConfig(resolution=48, frames=2, cameras=2, calib_shots=0,
                                                           workers=1, lbs=True), progress=False)  # fmt: skip

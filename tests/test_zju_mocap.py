@@ -4,8 +4,8 @@ import cv2
 import numpy as np
 import pytest
 
-from pipelines.capture import ZjuCapture, make_protocol
-from pipelines.zju_mocap import CaptureError, param_index_from_image, read_annots, write_annots
+from pipelines.datasets.capture import ZjuCapture, make_protocol
+from pipelines.datasets.zju_mocap import CaptureError, param_index_from_image, read_annots, write_annots
 
 
 @pytest.fixture

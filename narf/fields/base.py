@@ -25,7 +25,7 @@ class FieldOutput:
 
 @dataclass(frozen=True)
 class Cost:
-    """Costs under the upstream rules (model.md §8): parameters, per-ray FLOPs and activation memory."""
+    """Costs under the upstream rules (docs/model.md §8): parameters, per-ray FLOPs and activation memory."""
 
     params: int
     flops_per_ray: int

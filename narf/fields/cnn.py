@@ -1,4 +1,4 @@
-"""The CNN baseline (model.md §4): a U-Net from 46 rasterised bone maps to RGB and mask.
+"""The CNN baseline (docs/model.md §4): a U-Net from 46 rasterised bone maps to RGB and mask.
 
 Five residual down blocks (128 -> 4 px, at most 256 channels), then two skip decoders
 (RGB, mask). Every normalisation is a conditional batch norm whose scale and shift come from the bones'

@@ -14,7 +14,7 @@ from narf.layers import EqualLinear, Trunk, WNLinear, density_activation
 
 @dataclass
 class PoseBatch:
-    """Per-frame articulation inputs for B frames (model.md §1).
+    """Per-frame articulation inputs for B frames (docs/model.md §1).
 
     Attributes:
         world_from_part: (B, P, 4, 4) part transforms (P = 19 for bodies, 1 for rigid objects).
@@ -73,7 +73,7 @@ def part_local(points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch) -> tup
 
 
 class RadianceHead(nn.Module):
-    """Trunk, density and colour branch (model.md §3), over ``groups`` independent copies.
+    """Trunk, density and colour branch (docs/model.md §3), over ``groups`` independent copies.
 
     Density: e = sum_k W_k X_k (+ W_s z_s) -> trunk -> sigma = act(Lin_{H->1}(h)).
     Colour: h1 = LReLU_0.2(sqrt(H) h/|h| + W_a z_a); h2 = Lin_{H->H/2}(h1);

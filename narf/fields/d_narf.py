@@ -1,4 +1,4 @@
-"""D-NARF: selector-blended canonical coordinates into one NeRF (model.md §4, eqs. E-L)."""
+"""D-NARF: selector-blended canonical coordinates into one NeRF (docs/model.md §4, eqs. E-L)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Image encoder of the autoencoder (model.md §4): 128^2 RGB -> z (512) = [z_s (256), z_a (256)]."""
+"""Image encoder of the autoencoder (docs/model.md §4): 128^2 RGB -> z (512) = [z_s (256), z_a (256)]."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""NARF_D: selector-masked concatenation (model.md §4, Eqs. 21-23), and its sigmoid ablation (eq. A)."""
+"""NARF_D: selector-masked concatenation (docs/model.md §4, Eqs. 21-23), and its sigmoid ablation (eq. A)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""NARF_H: the concatenated per-part inputs masked by the in-box indicator, one shared network (model.md §4)."""
+"""NARF_H: the concatenated per-part inputs masked by the in-box indicator, one shared network (docs/model.md §4)."""
 
 from __future__ import annotations
 

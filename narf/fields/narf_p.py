@@ -1,4 +1,4 @@
-"""NARF_P: one network per part, combined by a softmax over in-box part densities (model.md §4, Eq. 15)."""
+"""NARF_P: one network per part, combined by a softmax over in-box part densities (docs/model.md §4, Eq. 15)."""
 
 from __future__ import annotations
 

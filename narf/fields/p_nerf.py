@@ -1,4 +1,4 @@
-"""P-NeRF: a single NeRF conditioned on all part poses (model.md §4, eqs. B-D)."""
+"""P-NeRF: a single NeRF conditioned on all part poses (docs/model.md §4, eqs. B-D)."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Rigid-object models (model.md §4, Eqs. 9-11): RT-NeRF, RT-NeRF without xi, RP-NeRF. One part: the object."""
+"""Rigid-object models (docs/model.md §4, Eqs. 9-11): RT-NeRF, RT-NeRF without xi, RP-NeRF. One part: the object."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The part selector of NARF_D and D-NARF (model.md §4, Eqs. 21-23)."""
+"""The part selector of NARF_D and D-NARF (docs/model.md §4, Eqs. 21-23)."""
 
 from __future__ import annotations
 

@@ -2,7 +2,7 @@
 
 Model files are read here (pipelines); the kinematics are the pure functions of ``narf.kinematics``. The
 ZJU / EasyMocap convention is ``V_world = R(Rh) X + Th`` with ``X = SMPL(poses, shapes)`` without translation
-(data-formats.md §1.6).
+(docs/formats.md §1.6).
 """
 
 from __future__ import annotations
@@ -32,7 +32,8 @@ from narf.kinematics import (
     vertex_parts,
     world_from_joints,
 )
-from pipelines.smpl_files import load_smpl_dict, resolve_smpl_file
+from pipelines.body.locate import resolve_smpl_file
+from pipelines.datasets.smpl_files import load_smpl_dict
 
 
 @dataclass
@@ -162,7 +163,7 @@ def posed_from_rest_joints(poses: torch.Tensor, world_from_smpl: torch.Tensor, r
 
 
 def smplx_params_from_zju(model: BodyModel, poses, rh, th, shapes) -> dict[str, torch.Tensor]:
-    """Convert ZJU parameters to smplx ``SMPL.forward`` keywords (data-formats.md §1.6).
+    """Convert ZJU parameters to smplx ``SMPL.forward`` keywords (docs/formats.md §1.6).
 
     global_orient = rotvec(R(Rh) R(poses[:3])); body_pose = poses[3:]; betas = shapes;
     transl = Th + R(Rh) J0 - J0 with J0 the shaped rest pelvis.

@@ -1,4 +1,4 @@
-"""Camera calibration from ChArUco shots, part 1: detection and per-camera intrinsics (issue: narf-calibrate).
+"""Camera calibration from ChArUco shots, part 1: detection and per-camera intrinsics.
 
 Detection uses the OpenCV >= 4.7 API (``CharucoDetector.detectBoard``, ``board.matchImagePoints``) with
 sub-pixel corners. Intrinsics: pinhole + (k1, k2, p1, p2, k3; groups fixable) by ``cv2.calibrateCamera`` on
@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipelines.synthetic_calib import BoardSpec
+from pipelines.calibration.board import BoardSpec
 
 MIN_CORNERS = 6
 _FIX_FLAGS = {"k3": cv2.CALIB_FIX_K3, "tangential": cv2.CALIB_ZERO_TANGENT_DIST,

@@ -9,7 +9,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from skimage.transform import SimilarityTransform
 
-from pipelines.zju_mocap import Camera
+from pipelines.datasets.zju_mocap import Camera
 
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 

@@ -24,8 +24,8 @@ import numpy as np
 import scipy.sparse
 from scipy.spatial.transform import Rotation
 
-from pipelines.calibration import CalibrationError, Detection, Intrinsics
-from pipelines.sparse_lm import solve_sparse_lm
+from pipelines.calibration.charuco import CalibrationError, Detection, Intrinsics
+from pipelines.calibration.sparse_lm import solve_sparse_lm
 
 N_CAM_PARAMS, N_BOARD_PARAMS = 15, 6  # camera: rvec, t, fx, fy, cx, cy, k1, k2, p1, p2, k3; board: rvec, t
 FIXABLE = {"k3": [14], "tangential": [12, 13], "principal_point": [8, 9]}  # indices into the camera parameters

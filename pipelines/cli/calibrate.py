@@ -11,9 +11,10 @@ from collections import Counter
 from dataclasses import asdict
 from pathlib import Path
 
-from pipelines.cli_common import HelpFormatter, run_cli
-from pipelines.synthetic_calib import BoardSpec
-from pipelines.zju_mocap import Camera, CaptureError, read_annots, write_annots, write_easymocap_cameras
+from pipelines.calibration.board import BoardSpec
+from pipelines.cli.common import HelpFormatter, run_cli
+from pipelines.datasets.easymocap import write_easymocap_cameras
+from pipelines.datasets.zju_mocap import Camera, CaptureError, read_annots, write_annots
 
 
 def _natural(name: str) -> list:
@@ -33,7 +34,7 @@ def _board(args, calib: Path) -> BoardSpec:
 
 
 def _fixed_groups(text: str) -> frozenset[str]:
-    from pipelines.calibration_rig import FIXABLE
+    from pipelines.calibration.rig import FIXABLE
 
     groups = frozenset(g.strip() for g in text.split(",") if g.strip() and g.strip() != "none")
     if groups - set(FIXABLE):
@@ -58,8 +59,8 @@ def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: 
     """Detection, intrinsics, graph initialisation and bundle adjustment of every camera of a capture."""
     from tqdm import tqdm
 
-    from pipelines.calibration import CalibrationError, calibrate_intrinsics, detect_folder
-    from pipelines.calibration_rig import bundle_adjust, initial_extrinsics
+    from pipelines.calibration.charuco import CalibrationError, calibrate_intrinsics, detect_folder
+    from pipelines.calibration.rig import bundle_adjust, initial_extrinsics
 
     calib = capture / "calib"
     if not calib.is_dir():
@@ -89,7 +90,7 @@ def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: 
               len(detections[n]), "intrinsics_only_rms_px": intrinsics[n].rms, "rejected_views": intrinsics[n].rejected,
               "detections": reports[n]} for n in names}}  # fmt: skip
     if previous is not None:
-        from pipelines.calibration_report import compare_cameras
+        from pipelines.calibration.report import compare_cameras
 
         report["against_previous_annots"] = compare_cameras(previous, cameras)
     return cameras, ims, report, figures
@@ -125,7 +126,7 @@ def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None,
     write_annots(staging / "annots.npy", cameras, ims or [])
     write_easymocap_cameras(staging, cameras)
     write_colmap_text(staging / "colmap", cameras)
-    from pipelines.calibration_report import draw_residuals, draw_rig
+    from pipelines.calibration.report import draw_residuals, draw_rig
 
     board = report["board"]
     size = (board["squares_x"] * board["square_length"], board["squares_y"] * board["square_length"])

@@ -6,8 +6,8 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli_common import run_cli
-from pipelines.smpl_files import convert_official_pickle
+from pipelines.cli.common import run_cli
+from pipelines.datasets.smpl_files import convert_official_pickle
 
 
 def main(argv: list[str] | None = None) -> int:

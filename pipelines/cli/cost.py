@@ -7,7 +7,7 @@ import sys
 
 from narf.fields import PAPER_COSTS, build_model, paper_presets
 from narf.fields.base import SAMPLES_FOR_COST
-from pipelines.cli_common import run_cli
+from pipelines.cli.common import run_cli
 
 _LABELS = {"p_nerf": "P-NeRF (pose in colour, eq. D)", "p_nerf_table": "P-NeRF (pose_in_color=false, as tables)",
            "narf_p": "NARF_P (256)", "narf_p_32": "NARF_P (32)", "narf_p_64": "NARF_P (64)",

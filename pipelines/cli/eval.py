@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli_common import HelpFormatter, run_cli
+from pipelines.cli.common import HelpFormatter, run_cli
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -7,7 +7,7 @@ import os
 import sys
 from pathlib import Path
 
-from pipelines.cli_common import HelpFormatter, run_cli
+from pipelines.cli.common import HelpFormatter, run_cli
 
 
 def build_parser() -> argparse.ArgumentParser:

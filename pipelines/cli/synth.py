@@ -7,9 +7,9 @@ import sys
 import time
 from pathlib import Path
 
-from pipelines.cli_common import HelpFormatter, run_cli
-from pipelines.subjects import SYNTHETIC_SUBJECTS, data_root, synthetic_path
-from pipelines.synthetic import SynthConfig, generate_capture, is_complete
+from pipelines.cli.common import HelpFormatter, run_cli
+from pipelines.datasets.subjects import data_root, synthetic_path
+from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
 
 
 def build_parser() -> argparse.ArgumentParser:

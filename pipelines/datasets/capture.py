@@ -1,7 +1,7 @@
 """A ZJU-MoCap-layout capture on disk: frames, cameras, SMPL fits and evaluation protocols.
 
 ``ZjuCapture(root).load_frame(f, c)`` returns a :class:`pipelines.zju_mocap.Frame` processed in the Neural Body
-order. Protocols (data-formats.md §1.8) list the (frame, camera) pairs of each split.
+order. Protocols (docs/formats.md §1.8) list the (frame, camera) pairs of each split.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipelines.zju_mocap import (
+from pipelines.datasets.zju_mocap import (
     CaptureError,
     Frame,
     SmplParams,

@@ -1,23 +1,21 @@
-"""Subjects by name: real ZJU-MoCap data under the data root, else the synthetic capture (generated on demand).
+"""Subjects by name: where the real ZJU-MoCap capture of a subject lives under the data root.
 
 ``--subject taichi`` looks for ``CoreView_315`` under ``$NARF_DATA`` (default ``data/``), in ``<root>``,
-``<root>/zju_mocap`` and ``<root>/ZJU-MoCap``; without it, it falls back to ``<root>/synthetic/taichi`` and says
-so in one line. A path to a folder holding ``annots.npy`` is used as it is.
+``<root>/zju_mocap`` and ``<root>/ZJU-MoCap``. A path to a folder holding ``annots.npy`` is used as it is.
+The fallback to the synthetic stand-in (``<root>/synthetic/<name>``) is decided by the glue that opens a
+subject for fitting (``pipelines.fit_session.resolve_subject``).
 """
 
 from __future__ import annotations
 
 import os
-import sys
 from pathlib import Path
 
-from pipelines.zju_mocap import CaptureError
+from pipelines.datasets.zju_mocap import CaptureError
 
-#: ZJU-MoCap action names -> subject ids (data-formats.md §1.1).
+#: ZJU-MoCap action names -> subject ids (docs/formats.md, ZJU-MoCap).
 ZJU_SUBJECTS = {"twirl": 313, "taichi": 315, "warmup": 377, "punch1": 386, "punch2": 387, "kick": 390,
                 "swing1": 392, "swing3": 393, "swing2": 394}  # fmt: skip
-#: Subjects the synthetic generator can stand in for.
-SYNTHETIC_SUBJECTS = ("taichi",)
 
 
 def data_root(explicit: str | Path | None = None) -> Path:
@@ -44,11 +42,11 @@ def synthetic_path(name: str, root: Path) -> Path:
     return root / "synthetic" / name
 
 
-def resolve_subject(name: str, root: str | Path | None = None, generate: bool = True, quiet: bool = False) -> Path:
-    """Folder of subject ``name`` (module docstring); generates the synthetic stand-in when needed.
+def find_subject(name: str, root: str | Path | None = None) -> Path | None:
+    """Folder of the real capture of subject ``name`` (module docstring), or None when there is none.
 
     Raises:
-        CaptureError: no real data and no synthetic stand-in for this name.
+        CaptureError: the data root is a file.
     """
     as_path = Path(name)
     if (as_path / "annots.npy").is_file():
@@ -59,19 +57,4 @@ def resolve_subject(name: str, root: str | Path | None = None, generate: bool = 
     for candidate in real_candidates(name, root):
         if (candidate / "annots.npy").is_file():
             return candidate
-    key = name.lower()
-    if key not in SYNTHETIC_SUBJECTS:
-        looked = ", ".join(str(p) for p in real_candidates(name, root)[:3])
-        raise CaptureError(f"no subject '{name}' under {root} (looked in {looked}, ...); synthetic stand-ins exist "
-                           f"for: {', '.join(SYNTHETIC_SUBJECTS)}")  # fmt: skip
-    from pipelines.synthetic import SynthConfig, generate_capture, is_complete
-
-    out = synthetic_path(key, root)
-    if not quiet:
-        state = "using" if is_complete(out) else "generating"
-        print(f"narf: no real '{name}' capture under {root}; {state} the synthetic stand-in at {out}", file=sys.stderr)
-    if not is_complete(out):
-        if not generate:
-            raise CaptureError(f"{out}: synthetic capture not generated yet (run narf-synth --subject {key})")
-        generate_capture(out, SynthConfig(subject=key))
-    return out
+    return None

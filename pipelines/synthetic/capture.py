@@ -1,4 +1,4 @@
-"""Synthetic multi-view capture of the stand-in body in the real ZJU-MoCap layout (data-formats.md §6).
+"""Synthetic multi-view capture of the stand-in body in the real ZJU-MoCap layout (docs/formats.md §4.2).
 
 ``generate_capture(out, SynthConfig(...))`` renders with trimesh + embree (ray casting through the distorted
 pixel grid of every camera), writes images, CIHP and binary masks, ``params`` / ``vertices`` (no pose blend
@@ -21,12 +21,15 @@ import torch
 import trimesh
 from tqdm import tqdm
 
-from pipelines.body_model import BodyModel
-from pipelines.synthetic_scene import albedo, ring_cameras, shade, studio_background, taichi_motion, vertex_regions
-from pipelines.zju_mocap import Camera, SmplParams, write_annots, write_easymocap_cameras, write_params
+from pipelines.body.model import BodyModel
+from pipelines.datasets.easymocap import write_easymocap_cameras
+from pipelines.datasets.zju_mocap import Camera, SmplParams, write_annots, write_params
+from pipelines.synthetic.scene import albedo, ring_cameras, shade, studio_background, taichi_motion, vertex_regions
 
 GENERATOR_VERSION = 3  # 2: tilted, closer ChArUco board poses; 3: supersampled shots, per-camera close-ups
 MARKER = "synthetic.json"
+#: Subjects the synthetic generator can stand in for.
+SYNTHETIC_SUBJECTS = ("taichi",)
 
 
 @dataclass(frozen=True)
@@ -260,12 +263,12 @@ def generate_capture(out: str | Path, config: SynthConfig = SynthConfig(), smpl_
              "labels": vertex_regions(rest, body.skinning_weights.numpy())}  # fmt: skip
     _render_frames(state, new, config, progress)
     if config.lbs:
-        from pipelines.synthetic_lbs import write_lbs
+        from pipelines.synthetic.lbs import write_lbs
 
         base = 1 if config.layout == "313" else 0
         write_lbs(partial, body, params, new, [f + base for f in range(config.frames)])
     if config.calib_shots > 0:
-        from pipelines.synthetic_calib import write_calibration_shots
+        from pipelines.synthetic.charuco_shots import write_calibration_shots
 
         write_calibration_shots(partial / "calib", cameras, config.calib_shots, config.seed, progress=progress,
                                 close_ups=config.calib_close_ups)  # fmt: skip

@@ -17,38 +17,16 @@ Written files:
 from __future__ import annotations
 
 import json
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
 import numpy as np
 from tqdm import tqdm
 
-from pipelines.synthetic_scene import studio_background
-from pipelines.zju_mocap import Camera
-
-
-@dataclass(frozen=True)
-class BoardSpec:
-    """A ChArUco board: squares along x / y, square and marker side (metres), ArUco dictionary name."""
-
-    squares_x: int = 8
-    squares_y: int = 6
-    square_length: float = 0.12
-    marker_length: float = 0.09
-    dictionary: str = "DICT_5X5_100"
-
-    def board(self) -> cv2.aruco.CharucoBoard:
-        if not hasattr(cv2.aruco, self.dictionary):
-            raise ValueError(f"unknown ArUco dictionary '{self.dictionary}'")
-        dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
-        return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_length, self.marker_length,
-                                      dictionary)  # fmt: skip
-
-    @property
-    def size(self) -> tuple[float, float]:
-        return self.squares_x * self.square_length, self.squares_y * self.square_length
-
+from pipelines.calibration.board import BoardSpec
+from pipelines.datasets.zju_mocap import Camera
+from pipelines.synthetic.scene import studio_background
 
 _MARGIN = 0.04  # white panel border around the printed board, metres
 _TEXTURE_PPM = 1000  # texture pixels per metre
@@ -172,7 +150,7 @@ def write_calibration_shots(
 ) -> None:
     """Render ``n_shots`` board poses into every camera, plus ``close_ups`` per-camera close-up shots under
     ``<camera>/intrinsics/``, and write the ``calib/`` folder (module docstring)."""
-    from pipelines.synthetic import pixel_directions
+    from pipelines.synthetic.capture import pixel_directions
 
     folder = Path(folder)
     width, height = spec.size

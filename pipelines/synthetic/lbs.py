@@ -1,4 +1,4 @@
-"""animatable_nerf's ``lbs/`` folder for a capture (data-formats.md §1.9), written with ``narf-synth --lbs``.
+"""animatable_nerf's ``lbs/`` folder for a capture (docs/formats.md §1.9), written with ``narf-synth --lbs``.
 
 Grids span their vertex set's min/max +- 0.05 m with 0.025 m voxels (``indexing='ij'``) and hold 25 channels:
 the 24 blend weights of the nearest vertex and the distance to it (the nearest vertex stands in for the nearest
@@ -15,8 +15,8 @@ from scipy.spatial import cKDTree
 from smplx.lbs import lbs
 
 from narf.kinematics import rigid_from_rotvec_translation
-from pipelines.body_model import BodyModel
-from pipelines.zju_mocap import SmplParams
+from pipelines.body.model import BodyModel
+from pipelines.datasets.zju_mocap import SmplParams
 
 BOX_PADDING = 0.05
 VOXEL = 0.025

@@ -1,6 +1,6 @@
 """Scene of the synthetic capture: camera rig, taichi-like motion, garments and lights.
 
-World frame as ZJU-MoCap (data-formats.md §1.4): z points down, the floor is z = 0, cameras stand on a ring of
+World frame as ZJU-MoCap (docs/formats.md §1.4): z points down, the floor is z = 0, cameras stand on a ring of
 about 3 m at z about -1.9 and aim at (0, 0, -0.9). Everything is deterministic under the seed.
 """
 
@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from pipelines.zju_mocap import Camera
+from pipelines.datasets.zju_mocap import Camera
 
 #: SMPL rest frame (y up, z forward) -> world (z down): x -> x, y -> -z, z -> +y.
 WORLD_FROM_SMPL_BASE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
