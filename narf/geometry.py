@@ -1,7 +1,10 @@
-"""Rigid transforms and the se(3) logarithm / exponential (textbook forms, docs/model.md §1).
+"""The se(3) logarithm of the paper's pose features (textbook form, docs/model.md §1) and shape checks.
 
-Pure torch, batched over leading dimensions. Transforms are 4x4 homogeneous matrices named
-``<dst>_from_<src>``.
+Pure torch, batched over leading dimensions. Transforms are 4x4 homogeneous matrices named ``<dst>_from_<src>``.
+The logarithm stays here because it is the paper's definition (tested against kornia's ``Se3.log``). Everything
+kornia provides with the same semantics is kornia's: exponentials (``axis_angle_to_rotation_matrix``, and
+``Se3.exp`` behind ``se3_exp``, which only reorders the twist), skew matrices (``So3.hat`` / ``So3.vee``), rigid
+inverses (``kornia.geometry.linalg.inverse_transformation``) and point transforms (``transform_points``).
 """
 
 from __future__ import annotations
@@ -9,6 +12,7 @@ from __future__ import annotations
 import math
 
 import torch
+from kornia.geometry.liegroup import Se3, So3
 
 _SMALL_ANGLE = 1e-3  # below: Taylor forms
 _NEAR_PI = math.pi / 2  # above: axis from the symmetric part of R
@@ -33,18 +37,6 @@ def check_shape(name: str, tensor: torch.Tensor, shape: tuple) -> None:
         raise ValueError(f"{name}: expected shape ({pretty}), got {dims}")
 
 
-def hat(omega: torch.Tensor) -> torch.Tensor:
-    """Skew-symmetric matrix [omega]x: (..., 3) -> (..., 3, 3)."""
-    zero = torch.zeros_like(omega[..., 0])
-    x, y, z = omega.unbind(-1)
-    return torch.stack([zero, -z, y, z, zero, -x, -y, x, zero], dim=-1).reshape(*omega.shape[:-1], 3, 3)
-
-
-def vee(matrix: torch.Tensor) -> torch.Tensor:
-    """Inverse of ``hat`` on the antisymmetric part's entries: (..., 3, 3) -> (..., 3)."""
-    return torch.stack([matrix[..., 2, 1], matrix[..., 0, 2], matrix[..., 1, 0]], dim=-1)
-
-
 def so3_log(rotation: torch.Tensor) -> torch.Tensor:
     """Rotation vector of a rotation matrix (the so(3) logarithm).
 
@@ -62,7 +54,7 @@ def so3_log(rotation: torch.Tensor) -> torch.Tensor:
     trace = rotation[..., 0, 0] + rotation[..., 1, 1] + rotation[..., 2, 2]
     cos = ((trace - 1) / 2).clamp(-1.0, 1.0)
     theta = torch.arccos(cos)
-    anti = vee(rotation - rotation.transpose(-1, -2))  # = 2 sin(theta) n
+    anti = So3.vee(rotation - rotation.transpose(-1, -2))  # = 2 sin(theta) n
     sin = torch.sin(theta)
     small = theta < _SMALL_ANGLE
     factor = torch.where(small, 0.5 + theta**2 / 12, theta / (2 * torch.where(small, torch.ones_like(sin), sin)))
@@ -87,34 +79,9 @@ def _v_inverse(omega: torch.Tensor) -> torch.Tensor:
     safe = torch.where(small, torch.ones_like(theta), theta)
     coeff = (1 - safe * torch.sin(safe) / (2 * (1 - torch.cos(safe)))) / safe**2
     coeff = torch.where(small, 1.0 / 12 + theta**2 / 720, coeff)
-    skew = hat(omega)
+    skew = So3.hat(omega)
     eye = torch.eye(3, dtype=omega.dtype, device=omega.device)
     return eye - skew / 2 + coeff[..., None, None] * (skew @ skew)
-
-
-def _v_matrix(omega: torch.Tensor) -> torch.Tensor:
-    """V = I + ((1 - cos)/theta^2) Omega + ((theta - sin)/theta^3) Omega Omega (Taylor near 0)."""
-    theta = omega.norm(dim=-1)
-    small = theta < _SMALL_ANGLE
-    safe = torch.where(small, torch.ones_like(theta), theta)
-    a = torch.where(small, 0.5 - theta**2 / 24, (1 - torch.cos(safe)) / safe**2)
-    b = torch.where(small, 1.0 / 6 - theta**2 / 120, (safe - torch.sin(safe)) / safe**3)
-    skew = hat(omega)
-    eye = torch.eye(3, dtype=omega.dtype, device=omega.device)
-    return eye + a[..., None, None] * skew + b[..., None, None] * (skew @ skew)
-
-
-def so3_exp(omega: torch.Tensor) -> torch.Tensor:
-    """Rodrigues: R = I + (sin/theta) Omega + ((1 - cos)/theta^2) Omega^2. (..., 3) -> (..., 3, 3)."""
-    check_shape("omega", omega, (..., 3))
-    theta = omega.norm(dim=-1)
-    small = theta < _SMALL_ANGLE
-    safe = torch.where(small, torch.ones_like(theta), theta)
-    a = torch.where(small, 1 - theta**2 / 6, torch.sin(safe) / safe)
-    b = torch.where(small, 0.5 - theta**2 / 24, (1 - torch.cos(safe)) / safe**2)
-    skew = hat(omega)
-    eye = torch.eye(3, dtype=omega.dtype, device=omega.device)
-    return eye + a[..., None, None] * skew + b[..., None, None] * (skew @ skew)
 
 
 def se3_log(transform: torch.Tensor) -> torch.Tensor:
@@ -133,29 +100,15 @@ def se3_log(transform: torch.Tensor) -> torch.Tensor:
 
 
 def se3_exp(xi: torch.Tensor) -> torch.Tensor:
-    """se(3) exponential: [omega; u] -> [exp(Omega) | V u]. (..., 6) -> (..., 4, 4)."""
+    """se(3) exponential of twists ordered as ``se3_log`` returns them, [omega; u] -> [exp(Omega) | V u].
+
+    kornia's ``Se3.exp`` orders the twist (translation part, rotation part); this only swaps the halves.
+
+    Args:
+        xi: (..., 6) twists, rotation part first.
+
+    Returns:
+        (..., 4, 4) rigid transforms.
+    """
     check_shape("xi", xi, (..., 6))
-    omega, u = xi[..., :3], xi[..., 3:]
-    out = torch.zeros(*xi.shape[:-1], 4, 4, dtype=xi.dtype, device=xi.device)
-    out[..., :3, :3] = so3_exp(omega)
-    out[..., :3, 3] = (_v_matrix(omega) @ u[..., None])[..., 0]
-    out[..., 3, 3] = 1
-    return out
-
-
-def invert_rigid(transform: torch.Tensor) -> torch.Tensor:
-    """Inverse of rigid transforms: [R | t]^-1 = [R^T | -R^T t]. (..., 4, 4) -> (..., 4, 4)."""
-    check_shape("transform", transform, (..., 4, 4))
-    rot_t = transform[..., :3, :3].transpose(-1, -2)
-    out = torch.zeros_like(transform)
-    out[..., :3, :3] = rot_t
-    out[..., :3, 3] = -(rot_t @ transform[..., :3, 3:4])[..., 0]
-    out[..., 3, 3] = 1
-    return out
-
-
-def transform_points(dst_from_src: torch.Tensor, points_src: torch.Tensor) -> torch.Tensor:
-    """Apply rigid/affine 4x4 transforms to points: (..., 4, 4), (..., N, 3) -> (..., N, 3)."""
-    check_shape("dst_from_src", dst_from_src, (..., 4, 4))
-    check_shape("points_src", points_src, (..., 3))
-    return (dst_from_src[..., None, :3, :3] @ points_src[..., None])[..., 0] + dst_from_src[..., None, :3, 3]
+    return Se3.exp(torch.cat([xi[..., 3:], xi[..., :3]], dim=-1)).matrix()

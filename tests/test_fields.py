@@ -2,11 +2,13 @@ import math
 
 import pytest
 import torch
+from kornia.geometry.linalg import inverse_transformation as invert_rigid
+from kornia.geometry.linalg import transform_points
 
 from narf.fields import ARTICULATED, MODELS, PAPER_COSTS, PoseBatch, build_field, paper_presets
 from narf.fields.base import masked_softmax, rescale_selection
 from narf.fields.common import part_local
-from narf.geometry import invert_rigid, se3_exp, transform_points
+from narf.geometry import se3_exp
 from narf.layers import EqualLinear, WNLinear, leaky_backward_relu
 from narf.renderer import render_image
 

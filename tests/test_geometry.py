@@ -2,9 +2,12 @@ import math
 
 import pytest
 import torch
+from kornia.geometry.conversions import axis_angle_to_rotation_matrix as so3_exp
 from kornia.geometry.liegroup import Se3
+from kornia.geometry.linalg import inverse_transformation as invert_rigid
+from kornia.geometry.linalg import transform_points
 
-from narf.geometry import check_shape, invert_rigid, se3_exp, se3_log, so3_exp, so3_log, transform_points
+from narf.geometry import check_shape, se3_exp, se3_log, so3_log
 
 
 def _random_rotvecs(n, angles, gen):

@@ -2,9 +2,11 @@ import math
 
 import pytest
 import torch
+from kornia.geometry.linalg import inverse_transformation as invert_rigid
+from kornia.geometry.linalg import transform_points
 
 from narf.fields import FieldOutput
-from narf.geometry import invert_rigid, se3_exp, transform_points
+from narf.geometry import se3_exp
 from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
 from narf.renderer import composite, render_rays, weights_from_density
 from narf.sampling import importance_depths, stratified_depths
