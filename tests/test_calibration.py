@@ -147,6 +147,8 @@ def test_calibrate_cli_writes_annots_and_easymocap(small_rig, tmp_path):
     solved, ims = read_annots(out / "annots.npy", image_size=(384, 384))
     assert len(solved) == 7 and ims == []  # annots.npy has no camera names; order = the capture's camera order
     assert np.load(out / "annots.npy", allow_pickle=True).item()["cams"]["T"][0].shape == (3, 1)
+    # estimation accuracy, not rounding: the product's targets (0.5 %, README), with the centre relaxed to 15 mm
+    # for this 7-camera, 384^2 rig (fewer shared views than the 21-camera target rig)
     for truth, estimate in zip(cameras, solved):
         assert abs(estimate.K[0, 0] / truth.K[0, 0] - 1) <= 0.005
         assert np.linalg.norm(estimate.centre - truth.centre) <= 0.015  # annots T in mm, read back in metres

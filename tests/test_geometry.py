@@ -33,7 +33,9 @@ class TestSe3Log:
         xi = torch.cat([omega, u], -1)
         transform = se3_exp(xi)
         back = se3_log(transform)
-        # At exactly pi the axis sign is ambiguous: compare the transforms instead.
+        # At exactly pi the axis sign is ambiguous: compare the transforms instead. float64: near theta = 0 the
+        # Taylor switch at 1e-3 leaves a truncation error ~theta^4/120 ~ 1e-14, and near pi the axis comes from
+        # (R + R^T)/2 whose conditioning is 1/(1 - cos) ~ 1, so errors stay ~1e-12, under 1e-9 / 1e-8
         assert torch.allclose(se3_exp(back), transform, atol=1e-9)
         regular = angles < math.pi - 1e-3
         assert torch.allclose(back[regular], xi[regular], atol=1e-8)
@@ -44,6 +46,8 @@ class TestSe3Log:
                                        torch.randn(200, 3, generator=gen, dtype=torch.float64)], -1))
         ref = Se3.from_matrix(transform).log()  # kornia: (translation part, rotation part)
         ours = se3_log(transform)
+        # kornia goes through quaternions, we through arccos: both float64, angles <= 3 rad (away from pi, where
+        # arccos loses digits as sqrt(eps) ~ 1e-8 only at the very end)
         assert torch.allclose(ours[:, :3], ref[:, 3:], atol=1e-8)
         assert torch.allclose(ours[:, 3:], ref[:, :3], atol=1e-8)
 
@@ -51,6 +55,8 @@ class TestSe3Log:
         from smplx.lbs import batch_rodrigues
 
         omega = _random_rotvecs(50, torch.rand(50, generator=gen, dtype=torch.float64) * 3, gen)
+        # two float64 implementations of Rodrigues' formula (~10 operations on entries <= 1: ~1e-15); the log of
+        # angles up to 3 rad loses up to ~1e-12 in arccos near its end points
         assert torch.allclose(so3_exp(omega), batch_rodrigues(omega), atol=1e-10)
         assert torch.allclose(so3_log(so3_exp(omega)), omega, atol=1e-9)
 
@@ -68,6 +74,7 @@ def test_invert_and_transform_points(gen):
     transform = se3_exp(torch.randn(5, 6, generator=gen, dtype=torch.float64))
     points = torch.randn(5, 7, 3, generator=gen, dtype=torch.float64)
     back = transform_points(invert_rigid(transform), transform_points(transform, points))
+    # float64, two rigid transforms of O(1) points with translations up to ~3: ~10 eps64 * 3 ~ 1e-14
     assert torch.allclose(back, points, atol=1e-12)
     assert torch.allclose(invert_rigid(transform), torch.linalg.inv(transform), atol=1e-12)
 

@@ -39,6 +39,9 @@ def test_transforms_agree_with_smplx_under_rh_th(body_model64):
     poses[:3, :3] = 0.3  # a non-zero root pose too
     body = body_model64.pose_zju(poses, rh, th, shapes)
     ref = body_model64.smpl(**smplx_params_from_zju(body_model64, poses, rh, th, shapes))
+    # float64 on both sides; the smplx path adds transl = Th + R(Rh) J0 - J0 (docs/formats.md §1.6) while ours
+    # rotates about the SMPL origin: equal in exact arithmetic. 1e-5 m (10 um) is the scale of the float32 vertex
+    # files this conversion must reproduce; a convention error (rotation about the pelvis) is ~0.1 m
     assert (ref.vertices - body.vertices).abs().max() < 1e-5
     assert (ref.joints[:, :24] - body.world_from_joint[..., :3, 3]).abs().max() < 1e-5
     # Rotations: a rest-frame vertex offset mapped by world_from_joint equals smplx's skinning of that offset.
@@ -49,6 +52,7 @@ def test_transforms_agree_with_smplx_under_rh_th(body_model64):
     from kornia.geometry.conversions import axis_angle_to_rotation_matrix
 
     rot_rh = axis_angle_to_rotation_matrix(rh)
+    # float64 products of up to 8 chained rotations: ~8 * 3 eps64 per entry ~ 5e-15
     assert torch.allclose(body.world_from_joint[..., :3, :3], rot_rh[:, None] @ skinning[..., :3, :3], atol=1e-10)
 
 
@@ -70,12 +74,14 @@ def test_fk_against_slow_loop(body_model64):
             parent = SMPL_PARENTS[j]
             local[:3, 3] = rest[j] - (rest[parent] if parent >= 0 else 0)
             world[j] = (root if parent < 0 else world[parent]) @ local
+        # float64, the same chain of <= 8 products in the same order: rounding ~1e-15 on values ~1
         assert torch.allclose(torch.stack(world), body.world_from_joint[b], atol=1e-10)
 
 
 def test_bone_lengths_pose_invariant_and_hand_computed(body_model64):
     poses, rh, th, shapes = _random_zju(3, 3)
     body = body_model64.pose_zju(poses, rh, th, shapes[:1].expand(3, 10))
+    # float64 norms of differences of posed joints ~1 m apart: pose changes them only by rounding (~1e-15)
     assert torch.allclose(body.bone_lengths, body.bone_lengths[:1].expand(3, 19), atol=1e-10)
     joints = body.world_from_joint[0, :, :3, 3]
     assert math.isclose(body.bone_lengths[0, 1].item(), (joints[4] - joints[1]).norm().item(), rel_tol=1e-12)
@@ -84,7 +90,8 @@ def test_bone_lengths_pose_invariant_and_hand_computed(body_model64):
     positions = torch.zeros(24, 3, dtype=torch.float64)
     for j in range(1, 24):
         positions[j] = positions[SMPL_PARENTS[j]] + torch.tensor([0.0, 0.1, 0.0], dtype=torch.float64)
-    assert math.isclose(kinematic_reach(positions).item(), 0.1 * 8, rel_tol=1e-12)  # pelvis..hand: 8 bones
+    # pelvis..hand: 8 bones; a float64 sum of 8 values of 0.1 (each inexact in binary): ~8 eps64 relative
+    assert math.isclose(kinematic_reach(positions).item(), 0.1 * 8, rel_tol=1e-12)
     assert torch.allclose(bone_lengths(positions), torch.full((19,), 0.1, dtype=torch.float64))
 
 
@@ -92,10 +99,12 @@ def test_pose_features_are_bounded_and_invariant_to_translation(body_model64):
     poses, rh, th, shapes = _random_zju(4, 4)
     body = body_model64.pose_zju(poses, rh, th, shapes)
     moved = body_model64.pose_zju(poses, rh, th + 5.0, shapes)
+    # float64: moving by 5 m changes t_i - b by rounding of 5 (~1e-15), divided by s ~ 1; the log's conditioning
+    # is ~1 away from theta = pi
     assert torch.allclose(body.pose_features, moved.pose_features, atol=1e-9)
     assert (body.pose_features / math.pi).abs().max() <= 1.0
     recon = se3_exp(body.pose_features)
-    assert torch.allclose(recon[..., :3, :3], body.world_from_part[..., :3, :3], atol=1e-8)
+    assert torch.allclose(recon[..., :3, :3], body.world_from_part[..., :3, :3], atol=1e-8)  # as above, exp(log R)
 
 
 def test_part_boxes_contain_their_vertices(body_model):

@@ -70,10 +70,12 @@ def test_params_reproduce_vertices(tiny_capture, body_model64):
         args = [torch.as_tensor(v, dtype=torch.float64) for v in (p.poses, p.rh, p.th, p.shapes)]
         new = body_model64.pose_zju(*args).vertices[0].numpy()
         old = body_model64.pose_zju(*args, pose_blendshapes=False).vertices[0].numpy()
+        # the vertex files are float32 (half an ulp at 2 m: 1.2e-7) and were posed in float32 (~1e-6 m after a
+        # few dozen operations); 1e-5 m is far below a convention error (~0.1 m)
         assert np.abs(new - np.load(tiny_capture / "new_vertices" / f"{frame}.npy")).max() < 1e-5
         assert np.abs(old - np.load(tiny_capture / "vertices" / f"{frame}.npy")).max() < 1e-5
         assert np.abs(new - old).max() > 1e-3  # pose blend shapes are not trivial
-        assert new[:, 2].max() == pytest.approx(0.0, abs=1e-5)  # feet on the floor, z down
+        assert new[:, 2].max() == pytest.approx(0.0, abs=1e-5)  # feet on the floor, z down (float32 files, as above)
 
 
 def test_easymocap_cameras_match_annots(tiny_capture):
@@ -81,6 +83,8 @@ def test_easymocap_cameras_match_annots(tiny_capture):
     easy = read_easymocap_cameras(tiny_capture)
     assert [c.name for c in easy] == [c.name for c in cameras]
     for a, b in zip(cameras, easy):
+        # both written from the same float64 cameras; OpenCV's YAML keeps 16 significant digits and annots R is
+        # re-orthonormalised (SVD, ~1e-15), the Rodrigues round trip costs ~1e-15
         assert np.allclose(a.K, b.K) and np.allclose(a.dist, b.dist)
         assert np.allclose(a.cam_from_world, b.cam_from_world, atol=1e-9)
         assert (b.width, b.height) == (256, 256)
@@ -156,6 +160,7 @@ def test_animatable_nerf_lbs_folder(tmp_path, body_model):
     low = tpose.min(0) - BOX_PADDING
     index = np.round((tpose[0] - low) / VOXEL).astype(int)
     cell = tbw[tuple(index)]
+    # the grid is float32: distances ~0.02 m to 1e-9, and 24 float32 weights summing to 1 to ~24 eps32 ~ 3e-6
     assert cell[24] <= VOXEL * np.sqrt(3) / 2 + 1e-6 and np.isclose(cell[:24].sum(), 1, atol=1e-5)
     frame = np.load(lbs / "bweights" / "1.npy")
     assert frame.ndim == 4 and frame.shape[3] == 25

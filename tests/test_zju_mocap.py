@@ -24,6 +24,7 @@ def test_load_frame_follows_neuralbody_order(tiny_capture):
     assert np.all(frame.image[outside] == 0.0)  # black background
     assert frame.band.any() and not frame.band[frame.mask.astype(bool) & ~frame.band].any()
     raw_cameras, _ = read_annots(tiny_capture / "annots.npy")
+    # K * 0.5 is exact in binary: allclose's defaults
     assert np.allclose(frame.camera.K[:2], raw_cameras[1].K[:2] * 0.5) and np.all(frame.camera.dist == 0)
     assert 2.5 < np.linalg.norm(frame.camera.centre[:2]) < 3.5  # T converted from millimetres
     white = ZjuCapture(tiny_capture, ratio=0.5, white_background=True).load_frame(2, 1)
@@ -32,6 +33,7 @@ def test_load_frame_follows_neuralbody_order(tiny_capture):
                                 / 255, raw_cameras[1].K, raw_cameras[1].dist)
     expected = cv2.resize(undistorted, (128, 128), interpolation=cv2.INTER_AREA)
     inside = frame.mask.astype(bool)
+    # the same OpenCV float32 operations in the same order: identical up to SIMD lane order (a few eps32 ~ 5e-7)
     assert np.abs(expected[inside] - frame.image[inside]).max() < 1e-6
 
 
@@ -49,6 +51,7 @@ def test_313_layout(tiny_capture_313):
     frame = cap.load_frame(2, 1)
     assert frame.frame_index == 2
     assert (tiny_capture_313 / "params" / "3.npy").is_file() and not (tiny_capture_313 / "params" / "0.npy").exists()
+    # the reader casts float64 params to float32: allclose's rtol 1e-5 covers that rounding (6e-8 relative)
     assert np.allclose(cap.params(2).poses, np.load(tiny_capture_313 / "params" / "3.npy", allow_pickle=True)
                        .item()["poses"][0])
     assert cap.vertices(2).shape == (6890, 3)
