@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONUNBUFFERED := 1
 
-.PHONY: demo test test-fast bench venv clean-venv
+.PHONY: demo test test-fast lint format bench venv clean-venv
 
 venv: $(STAMP)
 
@@ -33,10 +33,19 @@ demo: $(STAMP)
 	@echo
 	@echo "Results: $${NARF_DATA:-data}/synthetic/taichi/calibration/report.json, $(DEMO_RUN)/eval/metrics.md, $(DEMO_RUN)/eval/grids/, $(DEMO_RUN)/videos/orbit.mp4, $(DEMO_RUN)/curve.png"
 
-test: $(STAMP)
+# Lint and formatting are checked first: a tree that ruff would change or flag fails `make test` (and CI).
+lint: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
+
+format: $(STAMP)
+	$(VENV)/bin/ruff format .
+	$(VENV)/bin/ruff check --fix .
+
+test: lint
 	$(PY) -m pytest -q -n 2 tests
 
-test-fast: $(STAMP)
+test-fast: lint
 	$(PY) -m pytest -q -n 2 -m "not slow" tests
 
 bench: $(STAMP)

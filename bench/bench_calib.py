@@ -47,9 +47,13 @@ def run() -> list[dict]:
             solution = bundle_adjust(intrinsics, detections, "000", cam_from_world, world_from_board)
             seconds = time.perf_counter() - start
         focal, centre, rotation = _errors(cameras, solution)
-        rows.append({"benchmark": "calibration (detect + intrinsics + BA)",
-                     "setting": f"21 cams x 30 shots + {close_ups} close-ups, {resolution}^2",
-                     "value": f"{seconds:.0f} s ({detect_seconds:.0f} s detection); mean reproj "
-                     f"{solution.mean_error:.2f} px, max focal err {focal:.3f} %, max centre err {centre:.1f} mm, "
-                     f"max rot err {rotation:.3f} deg"})  # fmt: skip
+        rows.append(
+            {
+                "benchmark": "calibration (detect + intrinsics + BA)",
+                "setting": f"21 cams x 30 shots + {close_ups} close-ups, {resolution}^2",
+                "value": f"{seconds:.0f} s ({detect_seconds:.0f} s detection); mean reproj "
+                f"{solution.mean_error:.2f} px, max focal err {focal:.3f} %, max centre err {centre:.1f} mm, "
+                f"max rot err {rotation:.3f} deg",
+            }
+        )
     return rows

@@ -47,8 +47,9 @@ def _scene():
     with torch.no_grad():
         bodies = body_model.pose_zju(*args)
     centres, half = body_model.part_boxes([body_model.rest_body(args[3][:1]), bodies])
-    cam_from_world = torch.as_tensor(look_at(np.array([0.0, -3.0, -1.9]), np.array([0.0, 0.0, -0.9])),
-                                     dtype=torch.float32)  # fmt: skip
+    cam_from_world = torch.as_tensor(
+        look_at(np.array([0.0, -3.0, -1.9]), np.array([0.0, 0.0, -0.9])), dtype=torch.float32
+    )
     focal = 1100 * RENDER_SIZE / 1024
     K = torch.tensor([[focal, 0, RENDER_SIZE / 2], [0, focal, RENDER_SIZE / 2], [0, 0, 1.0]])
     origins, dirs = rays_from_pixels(K, cam_from_world, image_pixels(RENDER_SIZE, RENDER_SIZE))
@@ -74,8 +75,11 @@ def _measure(index: int) -> dict:
     field.set_boxes(centres, half)
     optimiser = torch.optim.Adam(field.parameters(), lr=1e-3)
     gen = torch.Generator().manual_seed(0)
-    result = {"model": label, "params": f"{sum(p.numel() for p in field.parameters()) / 1e6:.2f}M",
-              "samples/ray train": n_c + n_f}  # fmt: skip
+    result = {
+        "model": label,
+        "params": f"{sum(p.numel() for p in field.parameters()) / 1e6:.2f}M",
+        "samples/ray train": n_c + n_f,
+    }
     for precision in ("fp32", "bf16"):
         times = []
         for step in range(4):
@@ -83,8 +87,17 @@ def _measure(index: int) -> dict:
             frames = torch.randint(0, pose.reach.shape[0], (n_rays,), generator=gen)
             start = time.perf_counter()
             with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
-                out = render_rays(bind_field(field, dirs[pick], pose, frames), origins[pick], dirs[pick], near[pick],
-                                  far[pick], torch.ones(n_rays, dtype=torch.bool), n_c, n_f, generator=gen)
+                out = render_rays(
+                    bind_field(field, dirs[pick], pose, frames),
+                    origins[pick],
+                    dirs[pick],
+                    near[pick],
+                    far[pick],
+                    torch.ones(n_rays, dtype=torch.bool),
+                    n_c,
+                    n_f,
+                    generator=gen,
+                )
                 loss = (out.rgb.float() - 0.5).pow(2).mean() + (out.mask.float() - 1).pow(2).mean()
             optimiser.zero_grad()
             loss.backward()
@@ -99,14 +112,32 @@ def _measure(index: int) -> dict:
     budget = min(RENDER_RAY_BUDGET if heavy <= 64 * 64 else 4 * chunk_rays, n_hit)
     frames = torch.zeros(budget, dtype=torch.long)
     with torch.no_grad():  # warm-up call (first no-grad shapes)
-        render_rays(bind_field(field, dirs[:64], pose, frames[:64]), origins[:64], dirs[:64], near[:64], far[:64],
-                    torch.ones(64, dtype=torch.bool), r_c, r_f, randomized=False)  # fmt: skip
+        render_rays(
+            bind_field(field, dirs[:64], pose, frames[:64]),
+            origins[:64],
+            dirs[:64],
+            near[:64],
+            far[:64],
+            torch.ones(64, dtype=torch.bool),
+            r_c,
+            r_f,
+            randomized=False,
+        )
     start = time.perf_counter()
     with torch.no_grad():
         for chunk in range(0, budget, chunk_rays):
             sl = slice(chunk, min(chunk + chunk_rays, budget))
-            render_rays(bind_field(field, dirs[sl], pose, frames[sl]), origins[sl], dirs[sl], near[sl], far[sl],
-                        torch.ones(sl.stop - sl.start, dtype=torch.bool), r_c, r_f, randomized=False)  # fmt: skip
+            render_rays(
+                bind_field(field, dirs[sl], pose, frames[sl]),
+                origins[sl],
+                dirs[sl],
+                near[sl],
+                far[sl],
+                torch.ones(sl.stop - sl.start, dtype=torch.bool),
+                r_c,
+                r_f,
+                randomized=False,
+            )
     seconds = (time.perf_counter() - start) * n_hit / budget
     estimate = "" if budget == n_hit else " (est.)"
     result["render samples"] = f"{r_c}+{r_f}"

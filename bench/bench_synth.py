@@ -22,7 +22,15 @@ def run(resolution: int = 512) -> list[dict]:
         shutil.rmtree(out)
     usage = resource.getrusage
     peak = max(usage(resource.RUSAGE_SELF).ru_maxrss, usage(resource.RUSAGE_CHILDREN).ru_maxrss)
-    setting = (f"{config.frames} frames x {config.cameras} cams, {resolution}^2, {config.calib_shots} calib shots + "
-               f"{config.calib_close_ups} close-ups per camera")  # fmt: skip
-    return [{"benchmark": "narf-synth taichi", "setting": setting, "value": f"{seconds:.0f} s, {size:.0f} MB",
-             "peak RSS": f"{peak / 1024:.0f} MB"}]  # fmt: skip
+    setting = (
+        f"{config.frames} frames x {config.cameras} cams, {resolution}^2, {config.calib_shots} calib shots + "
+        f"{config.calib_close_ups} close-ups per camera"
+    )
+    return [
+        {
+            "benchmark": "narf-synth taichi",
+            "setting": setting,
+            "value": f"{seconds:.0f} s, {size:.0f} MB",
+            "peak RSS": f"{peak / 1024:.0f} MB",
+        }
+    ]

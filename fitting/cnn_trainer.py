@@ -20,8 +20,15 @@ from narf.cnn_render import cnn_inputs
 class CnnTrainer(Trainer):
     """A Trainer for the CNN baseline; ``data.training.poses`` must carry ``world_from_joint``."""
 
-    def __init__(self, config: FitConfig, run_dir: Path, device: torch.device, data: FitData,
-                 state: dict | None = None, progress: bool = True):  # fmt: skip
+    def __init__(
+        self,
+        config: FitConfig,
+        run_dir: Path,
+        device: torch.device,
+        data: FitData,
+        state: dict | None = None,
+        progress: bool = True,
+    ):
         super().__init__(config, run_dir, device, data, state, progress)
         if self.data.poses.world_from_joint is None:
             raise ValueError("the CNN baseline needs every training pose's world_from_joint")
@@ -38,8 +45,9 @@ class CnnTrainer(Trainer):
         t, data = self.config.train, self.data
         chosen = torch.randint(0, len(data), (t.images_per_step,), generator=self.generator).to(self.device)
         joints = data.poses.world_from_joint[data.frame_of_image[chosen]]
-        maps, bones = cnn_inputs(joints, data.cam_from_world[chosen], data.Ks[chosen], data.height, data.width,
-                                 self.config.model.image_size)  # fmt: skip
+        maps, bones = cnn_inputs(
+            joints, data.cam_from_world[chosen], data.Ks[chosen], data.height, data.width, self.config.model.image_size
+        )
         rgb, mask = self.field(maps, bones)
         colour = (rgb - self.rgb[chosen].float()).pow(2).mean()
         weight = self.mask_weight[chosen].float()

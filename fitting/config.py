@@ -162,17 +162,23 @@ def validate_config(config: FitConfig) -> None:
     from narf.fields import ARTICULATED, IMAGE_MODELS
 
     if config.model.name not in (*ARTICULATED, *IMAGE_MODELS):
-        raise ConfigError(f"model.name: '{config.model.name}' is not a body model "
-                          f"({', '.join([*ARTICULATED, *IMAGE_MODELS])})")  # fmt: skip
-    checks = [("data.ratio", 0 < config.data.ratio <= 1), ("model.width", config.model.width >= 4),
-              ("model.image_size", config.model.image_size >= 32 and config.model.image_size % 32 == 0),
-              ("train.steps", config.train.steps >= 0), ("train.images_per_step", config.train.images_per_step >= 1),
-              ("train.rays_per_image", config.train.rays_per_image >= 1),
-              ("train.lr", config.train.lr > 0), ("train.lr_min", 0 <= config.train.lr_min <= config.train.lr),
-              ("train.body_fraction", 0 <= config.train.body_fraction + config.train.border_fraction <= 1),
-              ("render.train_coarse", config.render.train_coarse >= 2),
-              ("render.eval_coarse", config.render.eval_coarse >= 2),
-              ("data.protocol", config.data.protocol in ("narf", "neuralbody"))]  # fmt: skip
+        raise ConfigError(
+            f"model.name: '{config.model.name}' is not a body model ({', '.join([*ARTICULATED, *IMAGE_MODELS])})"
+        )
+    checks = [
+        ("data.ratio", 0 < config.data.ratio <= 1),
+        ("model.width", config.model.width >= 4),
+        ("model.image_size", config.model.image_size >= 32 and config.model.image_size % 32 == 0),
+        ("train.steps", config.train.steps >= 0),
+        ("train.images_per_step", config.train.images_per_step >= 1),
+        ("train.rays_per_image", config.train.rays_per_image >= 1),
+        ("train.lr", config.train.lr > 0),
+        ("train.lr_min", 0 <= config.train.lr_min <= config.train.lr),
+        ("train.body_fraction", 0 <= config.train.body_fraction + config.train.border_fraction <= 1),
+        ("render.train_coarse", config.render.train_coarse >= 2),
+        ("render.eval_coarse", config.render.eval_coarse >= 2),
+        ("data.protocol", config.data.protocol in ("narf", "neuralbody")),
+    ]
     for key, ok in checks:
         if not ok:
             raise ConfigError(f"config key '{key}' has an invalid value")

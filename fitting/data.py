@@ -48,8 +48,9 @@ class TrainingSet:
         self.masks = torch.as_tensor(np.stack([v.mask > 0.5 for v in views])).to(device)
         self.bands = torch.as_tensor(np.stack([v.band for v in views])).to(device)
         self.Ks = torch.as_tensor(np.stack([v.camera.K for v in views]), dtype=torch.float32).to(device)
-        self.cam_from_world = torch.as_tensor(np.stack([v.camera.cam_from_world for v in views]),
-                                              dtype=torch.float32).to(device)  # fmt: skip
+        self.cam_from_world = torch.as_tensor(
+            np.stack([v.camera.cam_from_world for v in views]), dtype=torch.float32
+        ).to(device)
         self.frame_of_image = torch.as_tensor(frame_of_view, dtype=torch.long, device=device)
         self.pools = [self._pools(v.mask > 0.5) for v in views]
 
@@ -73,8 +74,14 @@ class TrainingSet:
         body = as_index(mask)
         return body, as_index(border), as_index(background)
 
-    def sample(self, n_images: int, rays_per_image: int, body_fraction: float, border_fraction: float,
-               generator: torch.Generator) -> RayBatch:  # fmt: skip
+    def sample(
+        self,
+        n_images: int,
+        rays_per_image: int,
+        body_fraction: float,
+        border_fraction: float,
+        generator: torch.Generator,
+    ) -> RayBatch:
         """Draw ``n_images`` images and mask-guided pixels from each (body, border band, background in the box)."""
         chosen = torch.randint(0, len(self), (n_images,), generator=generator).tolist()
         n_body = int(round(rays_per_image * body_fraction))

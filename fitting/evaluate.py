@@ -20,8 +20,14 @@ from narf.renderer import render_image
 
 EVAL_SPLITS = ("same_pose_same_view", "same_pose_novel_view", "novel_pose_same_view", "novel_pose_novel_view")
 ALL_SPLITS = (*EVAL_SPLITS, "novel_pose", "novel_view", "all")
-_SHORT = {"same_pose_same_view": "SS", "novel_pose_same_view": "NS", "same_pose_novel_view": "SN",
-          "novel_pose_novel_view": "NN", "novel_pose": "novel pose (NB)", "novel_view": "novel view (NB)"}  # fmt: skip
+_SHORT = {
+    "same_pose_same_view": "SS",
+    "novel_pose_same_view": "NS",
+    "same_pose_novel_view": "SN",
+    "novel_pose_novel_view": "NN",
+    "novel_pose": "novel pose (NB)",
+    "novel_view": "novel view (NB)",
+}
 
 
 def render_view(field, camera, pose, config: FitConfig) -> dict[str, torch.Tensor]:
@@ -34,8 +40,18 @@ def render_view(field, camera, pose, config: FitConfig) -> dict[str, torch.Tenso
         with torch.no_grad():
             return render_cnn_image(field, K, cam_from_world, camera.height, camera.width, pose)
     background = 1.0 if config.data.white_background else 0.0
-    return render_image(field, K, cam_from_world, camera.height, camera.width, pose, config.render.eval_coarse,
-                        config.render.eval_fine, background, config.render.chunk)  # fmt: skip
+    return render_image(
+        field,
+        K,
+        cam_from_world,
+        camera.height,
+        camera.width,
+        pose,
+        config.render.eval_coarse,
+        config.render.eval_fine,
+        background,
+        config.render.chunk,
+    )
 
 
 def nb_crop_region(camera, vertices: np.ndarray, pad: float = 0.05) -> np.ndarray:
@@ -44,8 +60,9 @@ def nb_crop_region(camera, vertices: np.ndarray, pad: float = 0.05) -> np.ndarra
     low[2] -= pad
     high[2] += pad
     K = torch.as_tensor(camera.K, dtype=torch.float64)
-    origins, dirs = rays_from_pixels(K, torch.as_tensor(camera.cam_from_world), image_pixels(camera.height,
-                                     camera.width, dtype=torch.float64))  # fmt: skip
+    origins, dirs = rays_from_pixels(
+        K, torch.as_tensor(camera.cam_from_world), image_pixels(camera.height, camera.width, dtype=torch.float64)
+    )
     n = origins.shape[0]
     eye = torch.eye(4, dtype=torch.float64).expand(n, 1, 4, 4)
     centre = torch.as_tensor((low + high) / 2)[None]
@@ -56,8 +73,17 @@ def nb_crop_region(camera, vertices: np.ndarray, pad: float = 0.05) -> np.ndarra
 
 def ssim(prediction: np.ndarray, target: np.ndarray) -> float:
     """scikit-image SSIM with the project's settings (Gaussian 1.5, population covariance, data range 1)."""
-    return float(structural_similarity(prediction, target, gaussian_weights=True, sigma=1.5,
-                                       use_sample_covariance=False, data_range=1.0, channel_axis=-1))  # fmt: skip
+    return float(
+        structural_similarity(
+            prediction,
+            target,
+            gaussian_weights=True,
+            sigma=1.5,
+            use_sample_covariance=False,
+            data_range=1.0,
+            channel_axis=-1,
+        )
+    )
 
 
 def frame_metrics(render: dict, gt_rgb: np.ndarray, gt_mask: np.ndarray, region: np.ndarray, bg: float) -> dict:
@@ -65,15 +91,21 @@ def frame_metrics(render: dict, gt_rgb: np.ndarray, gt_mask: np.ndarray, region:
     bounding rectangle with pixels outside R set to the background)."""
     rgb, mask = render["rgb"], render["mask"]
     t = lambda a: torch.as_tensor(a)  # noqa: E731
-    full = {"psnr": float(psnr_of(t(rgb), t(gt_rgb))), "ssim": ssim(rgb, gt_rgb),
-            "mask_l2": float(mask_l2(t(mask), t(gt_mask)))}  # fmt: skip
+    full = {
+        "psnr": float(psnr_of(t(rgb), t(gt_rgb))),
+        "ssim": ssim(rgb, gt_rgb),
+        "mask_l2": float(mask_l2(t(mask), t(gt_mask))),
+    }
     if not region.any():
         return {"full": full, "nb_crop": None}
     box = _crop_box(region)
     pred_crop, gt_crop = rgb.copy(), gt_rgb.copy()
     pred_crop[~region], gt_crop[~region] = bg, bg
-    crop = {"psnr": float(psnr_of(t(rgb), t(gt_rgb), t(region))), "ssim": ssim(pred_crop[box], gt_crop[box]),
-            "mask_l2": float(mask_l2(t(mask), t(gt_mask), t(region)))}  # fmt: skip
+    crop = {
+        "psnr": float(psnr_of(t(rgb), t(gt_rgb), t(region))),
+        "ssim": ssim(pred_crop[box], gt_crop[box]),
+        "mask_l2": float(mask_l2(t(mask), t(gt_mask), t(region))),
+    }
     return {"full": full, "nb_crop": crop}
 
 
@@ -96,8 +128,13 @@ def average_metrics(records: list[dict], protocol: str) -> dict:
 
 
 def library_versions() -> dict:
-    return {"scikit-image": skimage.__version__, "opencv": cv2.__version__, "torch": torch.__version__,
-            "numpy": np.__version__, "python": platform.python_version()}  # fmt: skip
+    return {
+        "scikit-image": skimage.__version__,
+        "opencv": cv2.__version__,
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+    }
 
 
 def spread(items: list, limit: int | None) -> list:
@@ -110,10 +147,14 @@ def markdown_table(report: dict) -> str:
     """Supplement layout: one row per protocol, cells Mask L2 (x10^4) / PSNR / SSIM per split."""
     splits = [s for s in (*EVAL_SPLITS, "novel_pose", "novel_view") if s in report["splits"]]
     size = f"{report['image_size']}^2 bone maps" if report["model"] == "cnn" else f"width {report['width']}"
-    lines = [f"# {report['model']} ({size}), step {report['step']}: {report['subject']}", "",
-             "Cells: Mask L2 (x10^4) / PSNR (dB) / SSIM. SS/NS/SN/NN = same or novel pose x same or novel view.", "",
-             "| protocol | " + " | ".join(_SHORT[s] for s in splits) + " |",
-             "|---|" + "---|" * len(splits)]  # fmt: skip
+    lines = [
+        f"# {report['model']} ({size}), step {report['step']}: {report['subject']}",
+        "",
+        "Cells: Mask L2 (x10^4) / PSNR (dB) / SSIM. SS/NS/SN/NN = same or novel pose x same or novel view.",
+        "",
+        "| protocol | " + " | ".join(_SHORT[s] for s in splits) + " |",
+        "|---|" + "---|" * len(splits),
+    ]
     for protocol in ("full", "nb_crop"):
         cells = []
         for split in splits:
@@ -121,6 +162,10 @@ def markdown_table(report: dict) -> str:
             cells.append(f"{m['mask_l2']:.1f}/{m['psnr']:.2f}/{m['ssim']:.4f}" if m else "-")
         lines.append(f"| {'full image' if protocol == 'full' else 'NB crop'} | " + " | ".join(cells) + " |")
     versions = ", ".join(f"{k} {v}" for k, v in report["versions"].items())
-    lines += ["", "Views per split: " + ", ".join(f"{_SHORT[s]} {report['splits'][s]['n_views']}" for s in splits),
-              f"Versions: {versions}", ""]  # fmt: skip
+    lines += [
+        "",
+        "Views per split: " + ", ".join(f"{_SHORT[s]} {report['splits'][s]['n_views']}" for s in splits),
+        f"Versions: {versions}",
+        "",
+    ]
     return "\n".join(lines)

@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import torch
 
-_PALETTE = (np.array([[(i * 67) % 256, (i * 151 + 80) % 256, (i * 211 + 40) % 256] for i in range(32)]) / 255.0)
+_PALETTE = np.array([[(i * 67) % 256, (i * 151 + 80) % 256, (i * 211 + 40) % 256] for i in range(32)]) / 255.0
 
 
 def colour_depth(depth: np.ndarray, mask: np.ndarray) -> np.ndarray:
@@ -52,8 +52,9 @@ def grid(gt: np.ndarray, render: dict, labels: bool = True) -> np.ndarray:
 
 def to_numpy(render: dict) -> dict:
     """Render tensors to numpy (float32, long labels kept)."""
-    return {k: (v.cpu().numpy() if v.dtype == torch.long else v.detach().float().cpu().numpy())
-            for k, v in render.items()}
+    return {
+        k: (v.cpu().numpy() if v.dtype == torch.long else v.detach().float().cpu().numpy()) for k, v in render.items()
+    }
 
 
 def write_validation(field, config, image: np.ndarray, camera, pose, path: Path) -> Path:

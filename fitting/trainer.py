@@ -48,11 +48,22 @@ def make_field(config: FitConfig):
 def ray_loss(config: FitConfig, field, batch, poses, generator, n_coarse: int, n_fine: int):
     """L = mean 1/3 |C - C_gt|^2 + lambda_mask mean (M - M_gt)^2 (band skipped). Returns loss, colour MSE."""
     per_ray = poses.select(batch.frames)
-    near, far, hit = ray_box_intersect(batch.origins, batch.dirs, per_ray.world_from_part, per_ray.reach,
-                                       field.box_centres, field.box_half_extents)  # fmt: skip
+    near, far, hit = ray_box_intersect(
+        batch.origins, batch.dirs, per_ray.world_from_part, per_ray.reach, field.box_centres, field.box_half_extents
+    )
     background = 1.0 if config.data.white_background else 0.0
-    out = render_rays(bind_field(field, batch.dirs, poses, batch.frames), batch.origins, batch.dirs, near, far, hit,
-                      n_coarse, n_fine, background=background, generator=generator)  # fmt: skip
+    out = render_rays(
+        bind_field(field, batch.dirs, poses, batch.frames),
+        batch.origins,
+        batch.dirs,
+        near,
+        far,
+        hit,
+        n_coarse,
+        n_fine,
+        background=background,
+        generator=generator,
+    )
     colour = (out.rgb - batch.rgb).pow(2).mean()
     mask_term = (batch.mask_weight * (out.mask - batch.mask).pow(2)).sum() / batch.mask_weight.sum().clamp_min(1)
     return colour + config.train.mask_weight * mask_term, colour
@@ -71,8 +82,15 @@ class Trainer:
     """Model and optimiser for ``config`` in ``run_dir``, trained on ``data``; ``state`` (a loaded checkpoint)
     resumes where it stopped. Use ``pipelines.fit_session.start_trainer`` to build one from a capture."""
 
-    def __init__(self, config: FitConfig, run_dir: Path, device: torch.device, data: FitData,
-                 state: dict | None = None, progress: bool = True):  # fmt: skip
+    def __init__(
+        self,
+        config: FitConfig,
+        run_dir: Path,
+        device: torch.device,
+        data: FitData,
+        state: dict | None = None,
+        progress: bool = True,
+    ):
         self.config, self.run_dir, self.device, self.progress = config, Path(run_dir), device, progress
         torch.manual_seed(config.train.seed)
         np.random.seed(config.train.seed)
@@ -83,8 +101,9 @@ class Trainer:
         if state is None and hasattr(self.field, "set_boxes"):
             self.field.set_boxes(data.boxes[0].to(device), data.boxes[1].to(device))
         self.rays_per_step = config.train.images_per_step * config.train.rays_per_image
-        self.optimiser = torch.optim.Adam(self.field.parameters(), lr=config.train.lr, betas=(0.9, 0.999),
-                                          eps=config.train.adam_eps)  # fmt: skip
+        self.optimiser = torch.optim.Adam(
+            self.field.parameters(), lr=config.train.lr, betas=(0.9, 0.999), eps=config.train.adam_eps
+        )
         decay, floor = config.train.lr_decay, config.train.lr_min / config.train.lr
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimiser, lambda step: max(decay**step, floor))
         self.generator = torch.Generator(device="cpu").manual_seed(config.train.seed + 1)
@@ -101,19 +120,34 @@ class Trainer:
         self.step, self.elapsed = state["step"], state.get("elapsed", 0.0)
 
     def checkpoint(self) -> None:
-        save_checkpoint(self.run_dir, {
-            "config": self.config.to_dict(), "step": self.step, "elapsed": self.elapsed,
-            "model": self.field.state_dict(), "optimizer": self.optimiser.state_dict(),
-            "scheduler": self.scheduler.state_dict(), "frames": self.frames,
-            "rng": {"sampler": self.generator.get_state(), "torch": torch.get_rng_state()},
-        })  # fmt: skip
+        save_checkpoint(
+            self.run_dir,
+            {
+                "config": self.config.to_dict(),
+                "step": self.step,
+                "elapsed": self.elapsed,
+                "model": self.field.state_dict(),
+                "optimizer": self.optimiser.state_dict(),
+                "scheduler": self.scheduler.state_dict(),
+                "frames": self.frames,
+                "rng": {"sampler": self.generator.get_state(), "torch": torch.get_rng_state()},
+            },
+        )
 
     def train_step(self) -> tuple[float, float]:
         t = self.config.train
-        batch = self.data.sample(t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction,
-                                 self.generator)  # fmt: skip
-        loss, colour = ray_loss(self.config, self.field, batch, self.data.poses, self.generator,
-                                self.config.render.train_coarse, self.config.render.train_fine)  # fmt: skip
+        batch = self.data.sample(
+            t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction, self.generator
+        )
+        loss, colour = ray_loss(
+            self.config,
+            self.field,
+            batch,
+            self.data.poses,
+            self.generator,
+            self.config.render.train_coarse,
+            self.config.render.train_fine,
+        )
         return self.optimise(loss, colour)
 
     def optimise(self, loss: torch.Tensor, colour: torch.Tensor) -> tuple[float, float]:
@@ -147,9 +181,19 @@ class Trainer:
                     window_start, window_rays = time.perf_counter(), 0
                     bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{score:.2f}", rays_s=f"{rate:,.0f}")
                     with open(log_path, "a") as handle:
-                        handle.write(json.dumps({"step": self.step, "loss": loss, "psnr": score, "rays_per_s": rate,
-                                                 "lr": self.scheduler.get_last_lr()[0],
-                                                 "elapsed_s": self.elapsed}) + "\n")  # fmt: skip
+                        handle.write(
+                            json.dumps(
+                                {
+                                    "step": self.step,
+                                    "loss": loss,
+                                    "psnr": score,
+                                    "rays_per_s": rate,
+                                    "lr": self.scheduler.get_last_lr()[0],
+                                    "elapsed_s": self.elapsed,
+                                }
+                            )
+                            + "\n"
+                        )
                 if t.validate_every and self.step % t.validate_every == 0:
                     self.validate()
                 if (time.perf_counter() - last_save) / 60 >= t.checkpoint_minutes:
@@ -168,8 +212,14 @@ class Trainer:
             return None
         image, camera, pose = self.fit_data.validation()
         self.field.eval()
-        path = write_validation(self.field, self.config, image, camera, pose.to(self.device),
-                                self.run_dir / "val" / f"step_{self.step:07d}.png")  # fmt: skip
+        path = write_validation(
+            self.field,
+            self.config,
+            image,
+            camera,
+            pose.to(self.device),
+            self.run_dir / "val" / f"step_{self.step:07d}.png",
+        )
         self.field.train()
         return path
 

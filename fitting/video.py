@@ -27,8 +27,14 @@ def write_mp4(out: Path, frames: list[np.ndarray], fps: int) -> Path:
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_name(f".{out.stem}.partial.mp4")
     try:
-        with imageio.get_writer(tmp, fps=fps, codec="libx264", quality=8, macro_block_size=1,
-                                pixelformat="yuv420p" if all(s % 2 == 0 for s in frames[0].shape[:2]) else None) as w:
+        with imageio.get_writer(
+            tmp,
+            fps=fps,
+            codec="libx264",
+            quality=8,
+            macro_block_size=1,
+            pixelformat="yuv420p" if all(s % 2 == 0 for s in frames[0].shape[:2]) else None,
+        ) as w:
             for frame in frames:
                 w.append_data(frame)
         os.replace(tmp, out)

@@ -22,8 +22,9 @@ def _segment_distance(pixels: torch.Tensor, a: torch.Tensor, b: torch.Tensor) ->
     return (pixels[:, None] - closest).norm(dim=-1), s
 
 
-def bone_maps(cam_from_joint: torch.Tensor, K: torch.Tensor, size: int, thickness: float = 1.5,
-              square: int = 2) -> torch.Tensor:  # fmt: skip
+def bone_maps(
+    cam_from_joint: torch.Tensor, K: torch.Tensor, size: int, thickness: float = 1.5, square: int = 2
+) -> torch.Tensor:
     """Rasterise the skeleton of one view.
 
     Args:
@@ -42,8 +43,9 @@ def bone_maps(cam_from_joint: torch.Tensor, K: torch.Tensor, size: int, thicknes
     joints = cam_from_joint[:, :3, 3]
     depth = joints[:, 2].clamp_min(1e-6)
     uv = (joints @ K.T)[:, :2] / depth[:, None]
-    ys, xs = torch.meshgrid(torch.arange(size, dtype=dtype, device=device),
-                            torch.arange(size, dtype=dtype, device=device), indexing="ij")  # fmt: skip
+    ys, xs = torch.meshgrid(
+        torch.arange(size, dtype=dtype, device=device), torch.arange(size, dtype=dtype, device=device), indexing="ij"
+    )
     pixels = torch.stack([xs.reshape(-1), ys.reshape(-1)], dim=-1)
     children = [j for j in range(1, 24)]
     parents = [SMPL_PARENTS[j] for j in children]

@@ -24,8 +24,9 @@ def scaled_intrinsics(K: torch.Tensor, height: int, width: int, size: int) -> to
     return out
 
 
-def cnn_inputs(world_from_joint: torch.Tensor, cam_from_world: torch.Tensor, K: torch.Tensor, height: int,
-               width: int, size: int) -> tuple[torch.Tensor, torch.Tensor]:  # fmt: skip
+def cnn_inputs(
+    world_from_joint: torch.Tensor, cam_from_world: torch.Tensor, K: torch.Tensor, height: int, width: int, size: int
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Network inputs of B views: maps (B, 46, size, size) and bone poses (B, 228).
 
     Args:
@@ -39,8 +40,9 @@ def cnn_inputs(world_from_joint: torch.Tensor, cam_from_world: torch.Tensor, K: 
     return maps, bone_pose_vector(cam_from_joint)
 
 
-def render_cnn_image(model, K: torch.Tensor, cam_from_world: torch.Tensor, height: int, width: int,
-                     pose: PoseBatch) -> dict[str, torch.Tensor]:  # fmt: skip
+def render_cnn_image(
+    model, K: torch.Tensor, cam_from_world: torch.Tensor, height: int, width: int, pose: PoseBatch
+) -> dict[str, torch.Tensor]:
     """rgb (H, W, 3), mask (H, W) and depth (H, W, zeros) of one camera and a one-frame pose with joints."""
     if pose.world_from_joint is None:
         raise ValueError("the CNN baseline needs the pose's world_from_joint (all 24 SMPL joints)")

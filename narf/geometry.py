@@ -29,7 +29,7 @@ def check_shape(name: str, tensor: torch.Tensor, shape: tuple) -> None:
     want = tuple(shape)
     if want and want[0] is Ellipsis:
         want = want[1:]
-        ok = len(dims) >= len(want) and all(w == -1 or w == d for w, d in zip(want, dims[len(dims) - len(want):]))
+        ok = len(dims) >= len(want) and all(w == -1 or w == d for w, d in zip(want, dims[len(dims) - len(want) :]))
     else:
         ok = len(dims) == len(want) and all(w == -1 or w == d for w, d in zip(want, dims))
     if not ok:

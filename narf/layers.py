@@ -22,8 +22,9 @@ class GroupedLinear(nn.Module):
         paper_skip: excluded from the paper-comparable FLOP/memory count (upstream skips the colour H->H/2).
     """
 
-    def __init__(self, in_features: int, out_features: int, groups: int = 1, bias: bool = True,
-                 paper_skip: bool = False):  # fmt: skip
+    def __init__(
+        self, in_features: int, out_features: int, groups: int = 1, bias: bool = True, paper_skip: bool = False
+    ):
         super().__init__()
         self.in_features, self.out_features = in_features, out_features
         self.groups, self.paper_skip = groups, paper_skip
@@ -94,8 +95,9 @@ class Trunk(nn.Module):
         super().__init__()
         self.width, self.groups = width, groups
         self.first = WNLinear(width, width, groups)
-        self.blocks = nn.ModuleList(nn.ModuleList([WNLinear(width, width, groups), WNLinear(width, width, groups)])
-                                    for _ in range(3))  # fmt: skip
+        self.blocks = nn.ModuleList(
+            nn.ModuleList([WNLinear(width, width, groups), WNLinear(width, width, groups)]) for _ in range(3)
+        )
         self.last = WNLinear(width, width, groups)
 
     def forward(self, hidden: torch.Tensor) -> torch.Tensor:

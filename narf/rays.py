@@ -32,14 +32,19 @@ def rays_from_pixels(
 
 def image_pixels(height: int, width: int, device=None, dtype=torch.float32) -> torch.Tensor:
     """(H*W, 2) pixel coordinates (u, v) in row-major order."""
-    v, u = torch.meshgrid(torch.arange(height, device=device, dtype=dtype),
-                          torch.arange(width, device=device, dtype=dtype), indexing="ij")  # fmt: skip
+    v, u = torch.meshgrid(
+        torch.arange(height, device=device, dtype=dtype), torch.arange(width, device=device, dtype=dtype), indexing="ij"
+    )
     return torch.stack([u.reshape(-1), v.reshape(-1)], dim=1)
 
 
 def ray_box_intersect(
-    origins: torch.Tensor, dirs: torch.Tensor, world_from_part: torch.Tensor, reach: torch.Tensor,
-    centres: torch.Tensor, half_extents: torch.Tensor,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    world_from_part: torch.Tensor,
+    reach: torch.Tensor,
+    centres: torch.Tensor,
+    half_extents: torch.Tensor,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Slab test against every part box (oriented in the world, body units).
 

@@ -57,9 +57,19 @@ def composite(weights: torch.Tensor, colours: torch.Tensor, depths: torch.Tensor
     return rgb, mask, (weights * depths).sum(dim=-1)
 
 
-def render_rays(field_fn: Callable, origins: torch.Tensor, dirs: torch.Tensor, near: torch.Tensor, far: torch.Tensor,
-                hit: torch.Tensor, n_coarse: int, n_fine: int, background: float = 0.0, randomized: bool = True,
-                generator: torch.Generator | None = None) -> RenderOutput:  # fmt: skip
+def render_rays(
+    field_fn: Callable,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    near: torch.Tensor,
+    far: torch.Tensor,
+    hit: torch.Tensor,
+    n_coarse: int,
+    n_fine: int,
+    background: float = 0.0,
+    randomized: bool = True,
+    generator: torch.Generator | None = None,
+) -> RenderOutput:
     """Coarse pass without gradient, importance samples, then one final pass over all sorted samples with
     gradient through the same network. Rays that miss every box are not evaluated (C = bg, M = 0).
 
@@ -113,9 +123,19 @@ def bind_field(field, dirs: torch.Tensor, pose, frame_of_ray: torch.Tensor, late
 
 
 @torch.no_grad()
-def render_image(field, K: torch.Tensor, cam_from_world: torch.Tensor, height: int, width: int, pose,
-                 n_coarse: int = 64, n_fine: int = 128, background: float = 0.0, chunk: int = 4096,
-                 latent: torch.Tensor | None = None) -> dict[str, torch.Tensor]:  # fmt: skip
+def render_image(
+    field,
+    K: torch.Tensor,
+    cam_from_world: torch.Tensor,
+    height: int,
+    width: int,
+    pose,
+    n_coarse: int = 64,
+    n_fine: int = 128,
+    background: float = 0.0,
+    chunk: int = 4096,
+    latent: torch.Tensor | None = None,
+) -> dict[str, torch.Tensor]:
     """Render a full image of one frame in chunks of rays (bounded memory), deterministically.
 
     Args:
@@ -136,16 +156,30 @@ def render_image(field, K: torch.Tensor, cam_from_world: torch.Tensor, height: i
         o, d = origins[start : start + chunk], dirs[start : start + chunk]
         frames = torch.zeros(o.shape[0], dtype=torch.long, device=device)
         per_ray = pose.select(frames)
-        near, far, hit = ray_box_intersect(o, d, per_ray.world_from_part, per_ray.reach, field.box_centres,
-                                           field.box_half_extents)  # fmt: skip
-        result = render_rays(bind_field(field, d, pose, frames, latent), o, d, near, far, hit, n_coarse, n_fine,
-                             background, randomized=False)  # fmt: skip
+        near, far, hit = ray_box_intersect(
+            o, d, per_ray.world_from_part, per_ray.reach, field.box_centres, field.box_half_extents
+        )
+        result = render_rays(
+            bind_field(field, d, pose, frames, latent),
+            o,
+            d,
+            near,
+            far,
+            hit,
+            n_coarse,
+            n_fine,
+            background,
+            randomized=False,
+        )
         outputs["rgb"].append(result.rgb)
         outputs["mask"].append(result.mask)
         outputs["depth"].append(result.depth)
         # a chunk whose rays miss every box has no part weights: its pixels are background (-1)
-        outputs["segmentation"].append(result.segmentation() if result.part_weights is not None
-                                       else torch.full((o.shape[0],), -1, dtype=torch.long, device=device))
+        outputs["segmentation"].append(
+            result.segmentation()
+            if result.part_weights is not None
+            else torch.full((o.shape[0],), -1, dtype=torch.long, device=device)
+        )
     if not has_parts:
         del outputs["segmentation"]
     return {k: torch.cat(v).reshape(height, width, *torch.cat(v).shape[1:]) for k, v in outputs.items()}

@@ -22,8 +22,9 @@ def stratified_depths(
     return near[:, None] + steps * (far - near)[:, None]
 
 
-def importance_depths(bin_edges: torch.Tensor, weights: torch.Tensor, n_samples: int,
-                      uniform: torch.Tensor | None = None) -> torch.Tensor:  # fmt: skip
+def importance_depths(
+    bin_edges: torch.Tensor, weights: torch.Tensor, n_samples: int, uniform: torch.Tensor | None = None
+) -> torch.Tensor:
     """Inverse-CDF samples from the piecewise-constant pdf proportional to max(w_k, 1e-8) over the bins.
 
     Args:

@@ -21,8 +21,14 @@ from fitting.plots import grid, save_png, to_numpy
 from pipelines.fit_session import load_run, poses_for_frames
 
 
-def evaluate_run(run_dir: Path, splits: list[str], limit: int | None = None, device: str = "cpu",
-                 progress: bool = True, grids: int = 4) -> dict:  # fmt: skip
+def evaluate_run(
+    run_dir: Path,
+    splits: list[str],
+    limit: int | None = None,
+    device: str = "cpu",
+    progress: bool = True,
+    grids: int = 4,
+) -> dict:
     """Evaluate ``splits`` of the run's protocol; update ``run_dir/eval/metrics.json`` and ``metrics.md``."""
     run_dir = Path(run_dir)
     run = load_run(run_dir, device)
@@ -41,17 +47,34 @@ def evaluate_run(run_dir: Path, splits: list[str], limit: int | None = None, dev
         records = []
         for index, (frame, cam) in enumerate(tqdm(items, desc=f"eval {split}", unit="view", disable=not progress)):
             item = capture.load_frame(frame, cam)
-            render = to_numpy(render_view(field, item.camera, poses.select(torch.tensor([frames.index(frame)],
-                                                                                        device=device)), config))
+            render = to_numpy(
+                render_view(
+                    field, item.camera, poses.select(torch.tensor([frames.index(frame)], device=device)), config
+                )
+            )
             region = nb_crop_region(item.camera, capture.vertices(frame))
             records.append({"frame": frame, "camera": cam, **frame_metrics(render, item.image, item.mask, region, bg)})
             if index < grids:
                 save_png(out_dir / "grids" / split / f"frame{frame:05d}_cam{cam:02d}.png", grid(item.image, render))
-        report["splits"][split] = {"n_views": len(records), "limit": limit, "full": average_metrics(records, "full"),
-                                   "nb_crop": average_metrics(records, "nb_crop"), "per_view": records}  # fmt: skip
-    report.update({"run": str(run_dir), "step": run.step, "model": config.model.name, "width": config.model.width,
-                   "image_size": config.model.image_size,
-                   "subject": str(capture.root), "protocol": protocol.name, "versions": library_versions()})
+        report["splits"][split] = {
+            "n_views": len(records),
+            "limit": limit,
+            "full": average_metrics(records, "full"),
+            "nb_crop": average_metrics(records, "nb_crop"),
+            "per_view": records,
+        }
+    report.update(
+        {
+            "run": str(run_dir),
+            "step": run.step,
+            "model": config.model.name,
+            "width": config.model.width,
+            "image_size": config.model.image_size,
+            "subject": str(capture.root),
+            "protocol": protocol.name,
+            "versions": library_versions(),
+        }
+    )
     out_dir.mkdir(parents=True, exist_ok=True)
     tmp = metrics_path.with_suffix(".json.tmp")
     tmp.write_text(json.dumps(report, indent=1))

@@ -38,8 +38,10 @@ def resolve_subject(name: str, root: str | Path | None = None, generate: bool = 
     key = name.lower()
     if key not in SYNTHETIC_SUBJECTS:
         looked = ", ".join(str(p) for p in real_candidates(name, root)[:3])
-        raise CaptureError(f"no subject '{name}' under {root} (looked in {looked}, ...); synthetic stand-ins exist "
-                           f"for: {', '.join(SYNTHETIC_SUBJECTS)}")  # fmt: skip
+        raise CaptureError(
+            f"no subject '{name}' under {root} (looked in {looked}, ...); synthetic stand-ins exist "
+            f"for: {', '.join(SYNTHETIC_SUBJECTS)}"
+        )
     out = synthetic_path(key, root)
     if not quiet:
         state = "using" if is_complete(out) else "generating"
@@ -54,8 +56,13 @@ def resolve_subject(name: str, root: str | Path | None = None, generate: bool = 
 def open_capture(config: FitConfig, quiet: bool = False) -> ZjuCapture:
     """The subject of a config, read with the config's loader options."""
     root = resolve_subject(config.data.subject, config.data.data_root, quiet=quiet)
-    return ZjuCapture(root, ratio=config.data.ratio, mask_source=config.data.mask_source,
-                      new_params=config.data.new_params, white_background=config.data.white_background)  # fmt: skip
+    return ZjuCapture(
+        root,
+        ratio=config.data.ratio,
+        mask_source=config.data.mask_source,
+        new_params=config.data.new_params,
+        white_background=config.data.white_background,
+    )
 
 
 def poses_for_frames(capture: ZjuCapture, body_model: BodyModel, frames: list[int]):
@@ -84,12 +91,20 @@ def build_fit_data(config: FitConfig, device, progress: bool = True) -> FitData:
     frames = list(protocol.train_frames[:: config.data.frame_stride])
     body_model = BodyModel()
     poses, bodies, shapes = poses_for_frames(capture, body_model, frames)
-    boxes = fit_boxes(body_model, bodies, shapes, config.data.box_frames, config.model.box_scale_pad,
-                      config.model.box_abs_pad)  # fmt: skip
+    boxes = fit_boxes(
+        body_model, bodies, shapes, config.data.box_frames, config.model.box_scale_pad, config.model.box_abs_pad
+    )
     items = [(i, f, c) for i, f in enumerate(frames) for c in protocol.train_views]
     with ThreadPoolExecutor(2) as pool:
-        views = list(tqdm(pool.map(lambda item: capture.load_frame(item[1], item[2]), items), total=len(items),
-                          desc="loading training views", unit="image", disable=not progress))  # fmt: skip
+        views = list(
+            tqdm(
+                pool.map(lambda item: capture.load_frame(item[1], item[2]), items),
+                total=len(items),
+                desc="loading training views",
+                unit="image",
+                disable=not progress,
+            )
+        )
     training = TrainingSet(views, [i for i, _, _ in items], poses, device)
     held_frame = frames[len(frames) // 2]
     held_view = protocol.test_views[0] if protocol.test_views else protocol.train_views[0]
@@ -98,13 +113,18 @@ def build_fit_data(config: FitConfig, device, progress: bool = True) -> FitData:
         item = capture.load_frame(held_frame, held_view)
         return item.image, item.camera, poses.select(torch.tensor([frames.index(held_frame)]))
 
-    return FitData(training, boxes, frames, validation,
-                   f"{capture.root}: {len(training)} training images ({len(frames)} frames x "
-                   f"{len(protocol.train_views)} views)")  # fmt: skip
+    return FitData(
+        training,
+        boxes,
+        frames,
+        validation,
+        f"{capture.root}: {len(training)} training images ({len(frames)} frames x {len(protocol.train_views)} views)",
+    )
 
 
-def start_trainer(config: FitConfig | None, run_dir: Path, device, resume: bool = False,
-                  progress: bool = True) -> Trainer:  # fmt: skip
+def start_trainer(
+    config: FitConfig | None, run_dir: Path, device, resume: bool = False, progress: bool = True
+) -> Trainer:
     """A Trainer on the config's capture; with ``resume`` the config, weights and RNG come from the checkpoint."""
     state = load_checkpoint(run_dir, map_location=device) if resume else None
     if state is not None:

@@ -66,9 +66,18 @@ def _params_sequence(capture, params_dir: Path | None, frames: list[int]):
     return [read_params(p) for p in files]
 
 
-def render_video(run_dir: Path, kind: str, out: Path, n_frames: int = 60, fps: int = 24, device: str = "cpu",
-                 params_dir: Path | None = None, camera_index: int | None = None, scale: float = 1.3,
-                 progress: bool = True) -> Path:  # fmt: skip
+def render_video(
+    run_dir: Path,
+    kind: str,
+    out: Path,
+    n_frames: int = 60,
+    fps: int = 24,
+    device: str = "cpu",
+    params_dir: Path | None = None,
+    camera_index: int | None = None,
+    scale: float = 1.3,
+    progress: bool = True,
+) -> Path:
     """Render ``kind`` (orbit | poses | bones) of a fitted run to an H.264 mp4 of RGB | depth | segmentation."""
     if kind not in KINDS:
         raise ValueError(f"unknown video kind '{kind}'; choose from {', '.join(KINDS)}")
@@ -87,10 +96,14 @@ def render_video(run_dir: Path, kind: str, out: Path, n_frames: int = 60, fps: i
         params = _params_sequence(capture, params_dir, sequence)[:n_frames]
     else:
         params = [base] * n_frames
-    cameras = orbit_cameras([c.scaled(capture.ratio) for c in capture.cameras], _pelvis(body_model, base), n_frames) \
-        if kind == "orbit" else [camera] * len(params)
-    for k, (p, cam) in enumerate(tqdm(list(zip(params, cameras)), desc=f"video {kind}", unit="frame",
-                                      disable=not progress)):  # fmt: skip
+    cameras = (
+        orbit_cameras([c.scaled(capture.ratio) for c in capture.cameras], _pelvis(body_model, base), n_frames)
+        if kind == "orbit"
+        else [camera] * len(params)
+    )
+    for k, (p, cam) in enumerate(
+        tqdm(list(zip(params, cameras)), desc=f"video {kind}", unit="frame", disable=not progress)
+    ):
         args = [torch.as_tensor(v)[None] for v in (p.poses, p.rh, p.th)]
         with torch.no_grad():
             if kind == "bones":
@@ -105,6 +118,7 @@ def render_video(run_dir: Path, kind: str, out: Path, n_frames: int = 60, fps: i
 
 def _pelvis(body_model: BodyModel, params) -> np.ndarray:
     with torch.no_grad():
-        body = body_model.pose_zju(*(torch.as_tensor(v)[None] for v in (params.poses, params.rh, params.th,
-                                                                          params.shapes)))  # fmt: skip
+        body = body_model.pose_zju(
+            *(torch.as_tensor(v)[None] for v in (params.poses, params.rh, params.th, params.shapes))
+        )
     return body.world_from_joint[0, 0, :3, 3].numpy().astype(np.float64)

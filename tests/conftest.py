@@ -32,9 +32,11 @@ def tiny_capture(tmp_path_factory):
     from pipelines.synthetic.capture import SynthConfig, generate_capture
 
     out = tmp_path_factory.mktemp("capture") / "taichi"
-    return generate_capture(out, SynthConfig(resolution=256, frames=4, cameras=4, calib_shots=3, calib_close_ups=2,
-                                                         workers=1),
-                            progress=False)
+    return generate_capture(
+        out,
+        SynthConfig(resolution=256, frames=4, cameras=4, calib_shots=3, calib_close_ups=2, workers=1),
+        progress=False,
+    )
 
 
 @pytest.fixture(scope="session")
@@ -42,8 +44,9 @@ def tiny_capture_313(tmp_path_factory):
     from pipelines.synthetic.capture import SynthConfig, generate_capture
 
     out = tmp_path_factory.mktemp("capture313") / "CoreView_313"
-    return generate_capture(out, SynthConfig(resolution=64, frames=3, cameras=2, calib_shots=0, layout="313",
-                                             workers=1), progress=False)
+    return generate_capture(
+        out, SynthConfig(resolution=64, frames=3, cameras=2, calib_shots=0, layout="313", workers=1), progress=False
+    )
 
 
 @pytest.fixture(scope="session")
@@ -52,6 +55,9 @@ def data_root_64(tmp_path_factory):
     from pipelines.synthetic.capture import SynthConfig, generate_capture
 
     root = tmp_path_factory.mktemp("data64")
-    generate_capture(root / "synthetic" / "taichi", SynthConfig(resolution=64, frames=10, cameras=4, calib_shots=0,
-                                                                workers=1), progress=False)
+    generate_capture(
+        root / "synthetic" / "taichi",
+        SynthConfig(resolution=64, frames=10, cameras=4, calib_shots=0, workers=1),
+        progress=False,
+    )
     return root

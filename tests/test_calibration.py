@@ -127,8 +127,10 @@ def test_rig_errors_name_the_camera(full_rig):
     cameras, detections, intrinsics, _ = full_rig
     seer = next(name for name, dets in detections.items() if any(d.shot == "000" for d in dets))
     other = next(name for name, dets in detections.items() if name != seer and any(d.shot != "000" for d in dets))
-    island = {seer: [d for d in detections[seer] if d.shot == "000"],
-              other: [next(d for d in detections[other] if d.shot != "000")]}  # fmt: skip
+    island = {
+        seer: [d for d in detections[seer] if d.shot == "000"],
+        other: [next(d for d in detections[other] if d.shot != "000")],
+    }
     with pytest.raises(CalibrationError, match=f"camera\\(s\\) {other} share no board shot with the rest"):
         initial_extrinsics(intrinsics, island, "000")
     no_reference = {name: [d for d in dets if d.shot != "000"] for name, dets in detections.items()}
@@ -191,8 +193,7 @@ def test_calibrate_cli_errors_write_nothing(small_rig, tmp_path, capsys):
 
     _, capture = small_rig
     out = tmp_path / "never"
-    assert run_cli("narf-calibrate", main, [str(capture), "--out", str(out), "--reference-shot", "999",
-                                            "--quiet"]) == 2  # fmt: skip
+    assert run_cli("narf-calibrate", main, [str(capture), "--out", str(out), "--reference-shot", "999", "--quiet"]) == 2
     assert "no camera sees the board in the reference shot '999'" in capsys.readouterr().err and not out.exists()
     assert run_cli("narf-calibrate", main, [str(tmp_path), "--quiet"]) == 2
     assert "no calib/ folder" in capsys.readouterr().err
@@ -225,8 +226,9 @@ def test_compare_cameras_undoes_a_change_of_world_frame():
     new_from_old = np.eye(4)
     new_from_old[:3, :3] = cv2.Rodrigues(np.array([0.1, -0.2, 0.3]))[0]
     new_from_old[:3, 3] = [0.5, -0.1, 0.2]
-    moved = [Camera(c.name, c.K, c.dist, c.cam_from_world @ np.linalg.inv(new_from_old), c.width, c.height)
-             for c in cameras]  # fmt: skip
+    moved = [
+        Camera(c.name, c.K, c.dist, c.cam_from_world @ np.linalg.inv(new_from_old), c.width, c.height) for c in cameras
+    ]
     result = compare_cameras(cameras, moved)
     # an exact similarity, estimated in float64 from 6 camera centres ~3 m apart (well conditioned): residuals are
     # rounding, ~1e-12 m = 1e-9 mm and ~1e-10 deg, so 1e-6 mm / 1e-5 deg / 1e-9 in scale leave wide margins

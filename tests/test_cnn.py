@@ -38,8 +38,9 @@ def test_cnn_baseline_size_and_outputs():
     assert isinstance(model, CnnBaseline) and isinstance(build_model("narf_d", width=8), torch.nn.Module)
     params = sum(p.numel() for p in model.parameters())
     assert params == pytest.approx(15.6e6, rel=0.05)  # 15.87M: the supplement gives no layer table, only "15.6M"
-    maps = torch.stack([bone_maps(_skeleton_in_front_of_camera(), torch.tensor([[128.0, 0, 64], [0, 128, 64],
-                                                                               [0, 0, 1]]), 128)] * 2)  # fmt: skip
+    maps = torch.stack(
+        [bone_maps(_skeleton_in_front_of_camera(), torch.tensor([[128.0, 0, 64], [0, 128, 64], [0, 0, 1]]), 128)] * 2
+    )
     pose = bone_pose_vector(_skeleton_in_front_of_camera())[None].expand(2, -1)
     assert pose.shape == (2, POSE_DIM)
     rgb, mask = model(maps, pose)

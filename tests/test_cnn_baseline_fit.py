@@ -37,8 +37,9 @@ def test_scaled_intrinsics_keep_pixel_centres():
 
 def test_joint_squares_sit_where_the_joints_project():
     world_from_joint = torch.eye(4).repeat(1, 24, 1, 1)
-    world_from_joint[0, :, :3, 3] = torch.stack([torch.linspace(-0.3, 0.3, 24), torch.linspace(0.2, -0.2, 24),
-                                                 torch.full((24,), 2.0)], dim=1)  # fmt: skip
+    world_from_joint[0, :, :3, 3] = torch.stack(
+        [torch.linspace(-0.3, 0.3, 24), torch.linspace(0.2, -0.2, 24), torch.full((24,), 2.0)], dim=1
+    )
     K = torch.tensor([[[60.0, 0, 63.5], [0, 60, 63.5], [0, 0, 1]]])
     maps, bones = cnn_inputs(world_from_joint, torch.eye(4)[None], K, 128, 128, 64)
     assert maps.shape == (1, 46, 64, 64) and bones.shape == (1, 19 * 12)
@@ -55,8 +56,9 @@ def test_render_keeps_the_camera_size():
 
     joints = torch.eye(4).repeat(1, 24, 1, 1)
     joints[0, :, 2, 3] = 2.0
-    pose = PoseBatch(joints[:, :19], torch.ones(1), torch.zeros(1, 19), torch.zeros(1, 19, 6),
-                     torch.zeros(1, 19, 3), joints)  # fmt: skip
+    pose = PoseBatch(
+        joints[:, :19], torch.ones(1), torch.zeros(1, 19), torch.zeros(1, 19, 6), torch.zeros(1, 19, 3), joints
+    )
     K = torch.tensor([[40.0, 0, 39.5], [0, 40, 29.5], [0, 0, 1]])
     with torch.no_grad():
         out = render_cnn_image(model, K, torch.eye(4), 60, 80, pose)
@@ -108,7 +110,12 @@ def test_cnn_bad_input_is_named():
 
     with pytest.raises(ConfigError, match="model.image_size"):
         load_config("tiny", ["model.name=cnn", "model.image_size=48"])
-    pose = PoseBatch(torch.eye(4).repeat(1, 19, 1, 1), torch.ones(1), torch.zeros(1, 19), torch.zeros(1, 19, 6),
-                     torch.zeros(1, 19, 3))  # fmt: skip
+    pose = PoseBatch(
+        torch.eye(4).repeat(1, 19, 1, 1),
+        torch.ones(1),
+        torch.zeros(1, 19),
+        torch.zeros(1, 19, 6),
+        torch.zeros(1, 19, 3),
+    )
     with pytest.raises(ValueError, match="needs the pose's world_from_joint"):
         render_cnn_image(CnnBaseline(image_size=32), torch.eye(3), torch.eye(4), 32, 32, pose)

@@ -20,8 +20,13 @@ def _random_pose(n_frames=1, n_parts=19, seed=0, dtype=torch.float32):
     xi = torch.randn(n_frames, n_parts, 6, generator=gen) * 0.3
     world_from_part = se3_exp(xi).to(dtype)
     zeta = torch.rand(n_frames, 19, generator=gen).to(dtype)
-    return PoseBatch(world_from_part, torch.ones(n_frames, dtype=dtype), zeta, (xi * 0.5).to(dtype),
-                     (torch.randn(n_frames, n_parts, 3, generator=gen) * 0.2).to(dtype))
+    return PoseBatch(
+        world_from_part,
+        torch.ones(n_frames, dtype=dtype),
+        zeta,
+        (xi * 0.5).to(dtype),
+        (torch.randn(n_frames, n_parts, 3, generator=gen) * 0.2).to(dtype),
+    )
 
 
 def _field(name, width=16, n_parts=19, dtype=torch.float32, **kwargs):
@@ -48,8 +53,11 @@ def test_every_model_runs_and_masks_outside_boxes(name):
     assert out.sigma.shape == (4, 6) and out.rgb.shape == (4, 6, 3)
     assert (out.sigma >= 0).all() and ((out.rgb >= 0) & (out.rgb <= 1)).all()
     assert out.sigma[0, 0] == 0
-    latent_field = build_field(name, width=16, latent_dim=8) if name not in ("rt_nerf", "rt_nerf_no_pose", "rp_nerf") \
+    latent_field = (
+        build_field(name, width=16, latent_dim=8)
+        if name not in ("rt_nerf", "rt_nerf_no_pose", "rp_nerf")
         else build_field(name, width=16, latent_dim=8)
+    )
     latent_field.set_boxes(torch.zeros(latent_field.n_parts, 3), torch.full((latent_field.n_parts, 3), 0.6))
     z = torch.randn(4, 16)
     # the latent moves colours by O(0.1); allclose's defaults (float32 rounding scale) only guard against no change
@@ -87,8 +95,9 @@ def test_layers():
     # float32 norm of 5 values after a division by that norm: a few eps32, inside allclose's default rtol 1e-5
     assert torch.allclose(layer.effective_weight().norm(dim=2), torch.ones(3, 4))
     x = torch.randn(3, 10, 5)
-    reference = torch.stack([torch.nn.functional.linear(x[g], layer.effective_weight()[g], layer.bias[g, 0])
-                             for g in range(3)])  # fmt: skip
+    reference = torch.stack(
+        [torch.nn.functional.linear(x[g], layer.effective_weight()[g], layer.bias[g, 0]) for g in range(3)]
+    )
     # grouped fast path vs per-group loop: float32 dot products of 5 terms summed in another order, error
     # <= 5 eps32 sum|x_i w_i| (unit-norm rows, |x| ~ 2: about 1.2e-6 at worst)
     assert torch.allclose(layer(x), reference, atol=1e-5)
@@ -108,8 +117,9 @@ def test_part_local_matches_loop():
             part_from_world = invert_rigid(pose.world_from_part[r, p])
             # float32 rigid transform: a 3-term dot product plus a translation on coordinates <= ~3, so a few
             # eps32 * 3 ~ 1.5e-6; directions are unit vectors (3 eps32 ~ 4e-7)
-            assert torch.allclose(x_local[r, :, p], transform_points(part_from_world, points[r]) / pose.reach[r],
-                                  atol=1e-5)  # fmt: skip
+            assert torch.allclose(
+                x_local[r, :, p], transform_points(part_from_world, points[r]) / pose.reach[r], atol=1e-5
+            )
             assert torch.allclose(d_local[r, p], part_from_world[:3, :3] @ dirs[r], atol=1e-6)
 
 
@@ -137,8 +147,9 @@ def test_rigid_motion_of_body_and_camera_leaves_pixels_unchanged(name):
     K = torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]], dtype=dt)
     cam_from_world = se3_exp(torch.tensor([0.0, 0.0, 0.0, 0.0, 0.0, 4.0], dtype=dt))
     motion = se3_exp(torch.tensor([0.4, -0.7, 0.2, 1.0, -2.0, 0.5], dtype=dt))
-    moved = PoseBatch(motion @ pose.world_from_part, pose.reach, pose.bone_lengths, pose.pose_features,
-                      pose.rest_offsets)  # fmt: skip
+    moved = PoseBatch(
+        motion @ pose.world_from_part, pose.reach, pose.bone_lengths, pose.pose_features, pose.rest_offsets
+    )
     a = render_image(field, K, cam_from_world, 32, 32, pose, n_coarse=8, n_fine=8)
     b = render_image(field, K, cam_from_world @ invert_rigid(motion), 32, 32, moved, n_coarse=8, n_fine=8)
     assert a["mask"].max() > 0.01
@@ -159,10 +170,12 @@ def test_rigid_motion_of_body_and_camera_leaves_pixels_unchanged(name):
 
 def _density_change(field, part, points, dirs):
     pose = _random_pose()
-    changed = PoseBatch(pose.world_from_part.clone(), pose.reach, pose.bone_lengths, pose.pose_features,
-                        pose.rest_offsets)  # fmt: skip
+    changed = PoseBatch(
+        pose.world_from_part.clone(), pose.reach, pose.bone_lengths, pose.pose_features, pose.rest_offsets
+    )
     changed.world_from_part[0, part] = changed.world_from_part[0, part] @ se3_exp(
-        torch.tensor([0.0, 0.5, 0.3, 0.1, 0.0, 0.0]))
+        torch.tensor([0.0, 0.5, 0.3, 0.1, 0.0, 0.0])
+    )
     frames = torch.zeros(points.shape[0], dtype=torch.long)
     before, after = pose.select(frames), changed.select(frames)
     with torch.no_grad():
@@ -198,8 +211,9 @@ def test_selector_gates_out_a_part_where_narf_h_cannot():
     points, dirs = _points(64, 16, seed=3)
     delta_d, before, after = _density_change(narf_d, 5, points, dirs)
     delta_h, _, _ = _density_change(narf_h, 5, points, dirs)
-    others = torch.cat([before[..., :5], before[..., 6:]], -1).any(-1) & torch.cat([after[..., :5], after[..., 6:]],
-                                                                                    -1).any(-1)  # fmt: skip
+    others = torch.cat([before[..., :5], before[..., 6:]], -1).any(-1) & torch.cat(
+        [after[..., :5], after[..., 6:]], -1
+    ).any(-1)
     shared = (before[..., 5] | after[..., 5]) & others
     assert shared.sum() > 10
     # NARF_D's weight for part 5 is ~e^-40 there, so only float32 rounding remains (< 1e-6 on sigma ~ 1); the bound

@@ -40,8 +40,7 @@ def test_tiny_fit_loss_falls_and_eval_writes_every_artefact(data_root_64, tmp_pa
     assert np.mean([r["loss"] for r in log[-3:]]) < 0.7 * np.mean([r["loss"] for r in log[:2]])
     for name in ("config.yaml", "checkpoint.pt", "curve.png", "val/step_0000060.png"):
         assert (tmp_path / "run" / name).is_file(), name
-    report = evaluate_run(tmp_path / "run", ["same_pose_novel_view", "novel_pose_novel_view"], limit=2,
-                          progress=False)  # fmt: skip
+    report = evaluate_run(tmp_path / "run", ["same_pose_novel_view", "novel_pose_novel_view"], limit=2, progress=False)
     split = report["splits"]["novel_pose_novel_view"]
     assert split["n_views"] == 2 and set(split["full"]) == {"mask_l2", "psnr", "ssim"} and split["nb_crop"]
     assert report["versions"]["scikit-image"]
@@ -70,9 +69,24 @@ def test_resume_equals_uninterrupted(data_root_64, tmp_path):
 
 def test_fit_killed_with_sigkill_resumes_to_the_end(data_root_64, tmp_path):
     out = tmp_path / "run"
-    command = [sys.executable, "-c", "from pipelines.cli.fit import entrypoint; entrypoint()", "--config", "tiny",
-               "--data-root", str(data_root_64), "--out", str(out), "--quiet", "--set", "data.ratio=1.0",
-               "--set", "train.steps=400", "--set", "train.checkpoint_minutes=0"]  # fmt: skip
+    command = [
+        sys.executable,
+        "-c",
+        "from pipelines.cli.fit import entrypoint; entrypoint()",
+        "--config",
+        "tiny",
+        "--data-root",
+        str(data_root_64),
+        "--out",
+        str(out),
+        "--quiet",
+        "--set",
+        "data.ratio=1.0",
+        "--set",
+        "train.steps=400",
+        "--set",
+        "train.checkpoint_minutes=0",
+    ]
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
     deadline = time.time() + 120
     while time.time() < deadline and not (out / "checkpoint.pt").exists():
@@ -101,16 +115,26 @@ def test_metrics_against_scikit_image():
     # float64 throughout and the same formulas as the references: PSNR to 1e-6 dB (rounding ~1e-13); the rest
     # with pytest.approx's default rtol 1e-6 (different summation order of a few thousand float64 terms: ~1e-13)
     assert m["full"]["psnr"] == pytest.approx(peak_signal_noise_ratio(gt, pred, data_range=1.0), abs=1e-6)
-    assert m["full"]["ssim"] == pytest.approx(structural_similarity(pred, gt, gaussian_weights=True, sigma=1.5,
-                                              use_sample_covariance=False, data_range=1.0, channel_axis=-1))
+    assert m["full"]["ssim"] == pytest.approx(
+        structural_similarity(
+            pred, gt, gaussian_weights=True, sigma=1.5, use_sample_covariance=False, data_range=1.0, channel_axis=-1
+        )
+    )
     assert m["full"]["mask_l2"] == pytest.approx(1e4 * np.mean((mask - gt_mask) ** 2))
     mse_region = np.mean((pred[region] - gt[region]) ** 2)
     assert m["nb_crop"]["psnr"] == pytest.approx(10 * np.log10(1 / mse_region), abs=1e-6)
     assert m["nb_crop"]["mask_l2"] == pytest.approx(1e4 * np.mean((mask[region] - gt_mask[region]) ** 2))
     p, g = pred.copy(), gt.copy()
     p[~region], g[~region] = 0, 0
-    ref = structural_similarity(p[5:20, 8:30], g[5:20, 8:30], gaussian_weights=True, sigma=1.5,
-                                use_sample_covariance=False, data_range=1.0, channel_axis=-1)  # fmt: skip
+    ref = structural_similarity(
+        p[5:20, 8:30],
+        g[5:20, 8:30],
+        gaussian_weights=True,
+        sigma=1.5,
+        use_sample_covariance=False,
+        data_range=1.0,
+        channel_axis=-1,
+    )
     assert m["nb_crop"]["ssim"] == pytest.approx(ref)
 
 
@@ -147,15 +171,31 @@ class TestBadInput:
         assert run_cli("narf-eval", cli_eval.main, ["--run", str(tmp_path / "nope")]) == 2
 
     def test_fit_errors(self, tmp_path, data_root_64, capsys):
-        assert run_cli("narf-fit", cli_fit.main, ["--config", "tiny", "--set", "train.bogus=1",
-                                                  "--out", str(tmp_path / "x")]) == 2  # fmt: skip
+        assert (
+            run_cli(
+                "narf-fit", cli_fit.main, ["--config", "tiny", "--set", "train.bogus=1", "--out", str(tmp_path / "x")]
+            )
+            == 2
+        )
         assert "unknown config key 'train.bogus'" in capsys.readouterr().err
-        assert run_cli("narf-fit", cli_fit.main, ["--config", "tiny", "--subject", "kick", "--data-root",
-                                                  str(tmp_path), "--out", str(tmp_path / "y")]) == 2  # fmt: skip
+        assert (
+            run_cli(
+                "narf-fit",
+                cli_fit.main,
+                ["--config", "tiny", "--subject", "kick", "--data-root", str(tmp_path), "--out", str(tmp_path / "y")],
+            )
+            == 2
+        )
         assert "no subject 'kick'" in capsys.readouterr().err
         (tmp_path / "file").write_text("")
-        assert run_cli("narf-fit", cli_fit.main, ["--config", "tiny", "--data-root", str(data_root_64), "--out",
-                                                  str(tmp_path / "file")]) == 2  # fmt: skip
+        assert (
+            run_cli(
+                "narf-fit",
+                cli_fit.main,
+                ["--config", "tiny", "--data-root", str(data_root_64), "--out", str(tmp_path / "file")],
+            )
+            == 2
+        )
         assert "exists and is a file" in capsys.readouterr().err
         assert not list(tmp_path.glob("x/checkpoint.pt"))
 
@@ -163,16 +203,25 @@ class TestBadInput:
         from pipelines.synthetic.capture import SynthConfig, generate_capture
 
         root = tmp_path / "root"
-        generate_capture(root / "synthetic" / "taichi", SynthConfig(resolution=48, frames=1, cameras=2,
-                                                                    calib_shots=0, workers=1), progress=False)
+        generate_capture(
+            root / "synthetic" / "taichi",
+            SynthConfig(resolution=48, frames=1, cameras=2, calib_shots=0, workers=1),
+            progress=False,
+        )
         _fit(root, tmp_path / "run", "train.steps=1").fit()
         with pytest.raises(ValueError, match="split 'novel_pose' is empty"):
             evaluate_run(tmp_path / "run", ["novel_pose"], progress=False)
 
 
 def test_learning_rate_decays_to_its_floor(data_root_64, tmp_path):
-    trainer = _fit(data_root_64, tmp_path / "run", "train.steps=10", "train.log_every=1", "train.lr_decay=0.5",
-                   "train.lr_min=0.001")  # fmt: skip
+    trainer = _fit(
+        data_root_64,
+        tmp_path / "run",
+        "train.steps=10",
+        "train.log_every=1",
+        "train.lr_decay=0.5",
+        "train.lr_min=0.001",
+    )
     trainer.fit()
     rates = [json.loads(line)["lr"] for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     # the learning rates are float64 products of 0.01 and 0.5, rounded once when logged: approx's rtol 1e-6

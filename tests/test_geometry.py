@@ -21,8 +21,9 @@ def gen():
     return torch.Generator().manual_seed(0)
 
 
-ANGLES = torch.tensor([0.0, 1e-9, 1e-5, 5e-4, 1e-3, 0.3, 1.0, 2.0, 3.0, math.pi - 1e-3, math.pi - 1e-6, math.pi],
-                      dtype=torch.float64)
+ANGLES = torch.tensor(
+    [0.0, 1e-9, 1e-5, 5e-4, 1e-3, 0.3, 1.0, 2.0, 3.0, math.pi - 1e-3, math.pi - 1e-6, math.pi], dtype=torch.float64
+)
 
 
 class TestSe3Log:
@@ -42,8 +43,9 @@ class TestSe3Log:
 
     def test_matches_kornia_reference(self, gen):
         angles = torch.rand(200, generator=gen, dtype=torch.float64) * 3.0
-        transform = se3_exp(torch.cat([_random_rotvecs(200, angles, gen),
-                                       torch.randn(200, 3, generator=gen, dtype=torch.float64)], -1))
+        transform = se3_exp(
+            torch.cat([_random_rotvecs(200, angles, gen), torch.randn(200, 3, generator=gen, dtype=torch.float64)], -1)
+        )
         ref = Se3.from_matrix(transform).log()  # kornia: (translation part, rotation part)
         ours = se3_log(transform)
         # kornia goes through quaternions, we through arccos: both float64, angles <= 3 rad (away from pi, where
@@ -61,8 +63,13 @@ class TestSe3Log:
         assert torch.allclose(so3_log(so3_exp(omega)), omega, atol=1e-9)
 
     def test_gradcheck(self, gen):
-        xi = torch.cat([_random_rotvecs(4, torch.tensor([0.2, 1.0, 2.0, 2.5], dtype=torch.float64), gen),
-                        torch.randn(4, 3, generator=gen, dtype=torch.float64)], -1).requires_grad_()
+        xi = torch.cat(
+            [
+                _random_rotvecs(4, torch.tensor([0.2, 1.0, 2.0, 2.5], dtype=torch.float64), gen),
+                torch.randn(4, 3, generator=gen, dtype=torch.float64),
+            ],
+            -1,
+        ).requires_grad_()
         assert torch.autograd.gradcheck(lambda x: se3_log(se3_exp(x)), (xi,))
 
     def test_bad_shape_names_argument(self):

@@ -66,7 +66,7 @@ def test_fk_against_slow_loop(body_model64):
         world = [None] * 24
         rest = body.rest_joints[b]
         root = torch.eye(4, dtype=torch.float64)
-        root[:3, :3] = axis_angle_to_rotation_matrix(rh[b:b + 1])[0]
+        root[:3, :3] = axis_angle_to_rotation_matrix(rh[b : b + 1])[0]
         root[:3, 3] = th[b]
         for j in range(24):
             local = torch.eye(4, dtype=torch.float64)

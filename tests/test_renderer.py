@@ -33,8 +33,9 @@ def test_compositing_gradcheck():
     col = torch.rand(3, 5, 3, dtype=torch.float64, requires_grad=True)
     depths = torch.sort(torch.rand(3, 5, dtype=torch.float64), dim=-1).values
     far = torch.full((3,), 1.5, dtype=torch.float64)
-    assert torch.autograd.gradcheck(lambda s, c: composite(weights_from_density(s, depths, far), c, depths, 0.0)[0],
-                                     (sig, col))  # fmt: skip
+    assert torch.autograd.gradcheck(
+        lambda s, c: composite(weights_from_density(s, depths, far), c, depths, 0.0)[0], (sig, col)
+    )
 
 
 def test_ray_box_against_brute_force():
@@ -101,8 +102,19 @@ def test_render_rays_of_a_constant_field_hand_computed():
     dirs = torch.tensor([[0, 0, 1.0]] * 3, dtype=torch.float64)
     near, far = torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64), torch.tensor([2.0, 3.0, 0.0], dtype=torch.float64)
     hit = torch.tensor([True, True, False])
-    out = render_rays(field_fn, origins, dirs, near, far, hit, 8, 8, background=1.0, randomized=True,
-                      generator=torch.Generator().manual_seed(0))  # fmt: skip
+    out = render_rays(
+        field_fn,
+        origins,
+        dirs,
+        near,
+        far,
+        hit,
+        8,
+        8,
+        background=1.0,
+        randomized=True,
+        generator=torch.Generator().manual_seed(0),
+    )
     expected = 1 - torch.exp(-sigma * (far - torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64)))
     # the first sample lies after near: the skipped piece [near, t_0] is at most one stratum
     assert (out.mask[:2] - expected[:2]).abs().max() < 1 - math.exp(-sigma * 2 / 8)
@@ -113,5 +125,6 @@ def test_render_rays_of_a_constant_field_hand_computed():
 
 def test_render_rays_rejects_bad_shapes():
     with pytest.raises(ValueError, match="origins"):
-        render_rays(None, torch.zeros(3), torch.zeros(3), torch.zeros(1), torch.zeros(1), torch.ones(1, dtype=bool),
-                    4, 4)
+        render_rays(
+            None, torch.zeros(3), torch.zeros(3), torch.zeros(1), torch.zeros(1), torch.ones(1, dtype=bool), 4, 4
+        )

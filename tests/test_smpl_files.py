@@ -127,5 +127,6 @@ def test_bad_smpl_files_give_clear_errors(tmp_path, standin):
     with pytest.raises(SmplFileError, match=r"'weights' has shape \(6890, 20\)"):
         load_smpl_dict(tmp_path / "broken.pkl")
     with pytest.raises(SmplFileError, match="no SMPL model file"):
-        resolve_smpl_file(tmp_path / "empty_dir_that_exists" if (tmp_path / "empty_dir_that_exists").mkdir() is None
-                          else None)
+        resolve_smpl_file(
+            tmp_path / "empty_dir_that_exists" if (tmp_path / "empty_dir_that_exists").mkdir() is None else None
+        )

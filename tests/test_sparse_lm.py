@@ -57,8 +57,9 @@ def test_minimum_matches_scipy_least_squares_with_huber_loss():
     fun, analytic, sparsity, truth = _curves_problem()
     x0 = np.concatenate([np.tile([1.0, 0.0], N_CURVES), [0.0]])
     ours = solve_sparse_lm(fun, x0, scipy.sparse.csr_matrix(sparsity), huber=0.05, point_dim=1, tol=1e-14)
-    reference = least_squares(fun, x0, jac=analytic, loss="huber", f_scale=0.05, method="trf", xtol=1e-15,
-                              ftol=1e-15, gtol=1e-15)  # fmt: skip
+    reference = least_squares(
+        fun, x0, jac=analytic, loss="huber", f_scale=0.05, method="trf", xtol=1e-15, ftol=1e-15, gtol=1e-15
+    )
     assert ours.converged
     # both solvers stop at tolerances ~1e-14; the minimum of this well-conditioned problem is then fixed to ~1e-8
     # by the finite-difference Jacobian's error (1e-10) times the inverse curvature (~1e2)

@@ -46,14 +46,36 @@ def test_synth_cli_errors_are_one_line(tmp_path, capsys):
 
 def test_synth_cli_writes_a_capture(tmp_path):
     out = tmp_path / "cap"
-    result = subprocess.run([sys.executable, "-c", "from pipelines.cli.synth import entrypoint; entrypoint()",
-                             "--out", str(out), "--resolution", "48", "--frames", "2", "--cameras", "2",
-                             "--calib-shots", "1", "--calib-close-ups", "1", "--workers", "1"], capture_output=True,
-                            text=True)  # fmt: skip
+    result = subprocess.run(
+        [
+            sys.executable,
+            "-c",
+            "from pipelines.cli.synth import entrypoint; entrypoint()",
+            "--out",
+            str(out),
+            "--resolution",
+            "48",
+            "--frames",
+            "2",
+            "--cameras",
+            "2",
+            "--calib-shots",
+            "1",
+            "--calib-close-ups",
+            "1",
+            "--workers",
+            "1",
+        ],
+        capture_output=True,
+        text=True,
+    )
     assert result.returncode == 0, result.stderr
     assert "wrote" in result.stdout and (out / "annots.npy").is_file() and (out / "calib" / "board.json").is_file()
     assert (out / "calib" / "Camera_B2" / "intrinsics" / "000.jpg").is_file()
-    help_text = subprocess.run([sys.executable, "-c", "from pipelines.cli.synth import entrypoint; entrypoint()",
-                                "--help"], capture_output=True, text=True).stdout  # fmt: skip
+    help_text = subprocess.run(
+        [sys.executable, "-c", "from pipelines.cli.synth import entrypoint; entrypoint()", "--help"],
+        capture_output=True,
+        text=True,
+    ).stdout
     for flag in ("--subject", "--out", "--resolution", "--frames", "--cameras", "--seed"):
         assert flag in help_text

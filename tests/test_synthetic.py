@@ -33,10 +33,13 @@ def test_projected_vertices_reproduce_masks(tiny_capture, body_model):
         vertices = np.load(tiny_capture / "new_vertices" / f"{frame}.npy")
         for c in range(4):
             R, T = np.array(cams["R"][c]), np.array(cams["T"][c]) / 1000.0
-            rendered = cv2.imread(str(tiny_capture / "mask" / annots["ims"][frame]["ims"][c].replace(".jpg", ".png")),
-                                  cv2.IMREAD_UNCHANGED).astype(bool)
-            projected = _rasterise(vertices, body_model.faces, np.array(cams["K"][c]), np.array(cams["D"][c]),
-                                   cv2.Rodrigues(R)[0], T, 256)
+            rendered = cv2.imread(
+                str(tiny_capture / "mask" / annots["ims"][frame]["ims"][c].replace(".jpg", ".png")),
+                cv2.IMREAD_UNCHANGED,
+            ).astype(bool)
+            projected = _rasterise(
+                vertices, body_model.faces, np.array(cams["K"][c]), np.array(cams["D"][c]), cv2.Rodrigues(R)[0], T, 256
+            )
             ious.append((rendered & projected).sum() / (rendered | projected).sum())
     assert min(ious) >= 0.98, ious
 
@@ -94,14 +97,18 @@ def test_calibration_shots_detectable(tiny_capture):
     from pipelines.calibration.board import BoardSpec
 
     spec = json.loads((tiny_capture / "calib" / "board.json").read_text())
-    board = BoardSpec(**{k: spec[k] for k in ("squares_x", "squares_y", "square_length", "marker_length",
-                                              "dictionary")}).board()  # fmt: skip
+    board = BoardSpec(
+        **{k: spec[k] for k in ("squares_x", "squares_y", "square_length", "marker_length", "dictionary")}
+    ).board()
     detector = cv2.aruco.CharucoDetector(board)
     cameras, _ = read_annots(tiny_capture / "annots.npy")
     truth = np.load(tiny_capture / "calib" / "ground_truth.npz")
     shots = [(cam, f"{shot:03d}.jpg", pose) for cam in cameras for shot, pose in enumerate(truth["world_from_board"])]
-    shots += [(cam, f"intrinsics/{k:03d}.jpg", pose) for c, cam in enumerate(cameras)
-              for k, pose in enumerate(truth["close_world_from_board"][c])]  # fmt: skip
+    shots += [
+        (cam, f"intrinsics/{k:03d}.jpg", pose)
+        for c, cam in enumerate(cameras)
+        for k, pose in enumerate(truth["close_world_from_board"][c])
+    ]
     found, close_found = 0, 0
     for cam, name, pose in shots:
         image = cv2.imread(str(tiny_capture / "calib" / cam.name / name), cv2.IMREAD_GRAYSCALE)
@@ -147,8 +154,11 @@ def test_generation_refuses_foreign_folder_and_bad_config(tmp_path):
 def test_animatable_nerf_lbs_folder(tmp_path, body_model):
     from pipelines.synthetic.lbs import BOX_PADDING, VOXEL
 
-    root = generate_capture(tmp_path / "cap", SynthConfig(resolution=48, frames=2, cameras=2, calib_shots=0,
-                                                          workers=1, lbs=True), progress=False)  # fmt: skip
+    root = generate_capture(
+        tmp_path / "cap",
+        SynthConfig(resolution=48, frames=2, cameras=2, calib_shots=0, workers=1, lbs=True),
+        progress=False,
+    )
     lbs = root / "lbs"
     assert np.load(lbs / "joints.npy").shape == (24, 3) and np.load(lbs / "parents.npy")[0] == 4294967295
     assert np.load(lbs / "weights.npy").shape == (6890, 24) and np.load(lbs / "faces.npy").shape == (13776, 3)

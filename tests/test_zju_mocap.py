@@ -29,8 +29,11 @@ def test_load_frame_follows_neuralbody_order(tiny_capture):
     assert 2.5 < np.linalg.norm(frame.camera.centre[:2]) < 3.5  # T converted from millimetres
     white = ZjuCapture(tiny_capture, ratio=0.5, white_background=True).load_frame(2, 1)
     assert np.all(white.image[outside] == 1.0)
-    undistorted = cv2.undistort(cv2.cvtColor(cv2.imread(str(frame.image_path)), cv2.COLOR_BGR2RGB).astype(np.float32)
-                                / 255, raw_cameras[1].K, raw_cameras[1].dist)
+    undistorted = cv2.undistort(
+        cv2.cvtColor(cv2.imread(str(frame.image_path)), cv2.COLOR_BGR2RGB).astype(np.float32) / 255,
+        raw_cameras[1].K,
+        raw_cameras[1].dist,
+    )
     expected = cv2.resize(undistorted, (128, 128), interpolation=cv2.INTER_AREA)
     inside = frame.mask.astype(bool)
     # the same OpenCV float32 operations in the same order: identical up to SIMD lane order (a few eps32 ~ 5e-7)
@@ -52,8 +55,9 @@ def test_313_layout(tiny_capture_313):
     assert frame.frame_index == 2
     assert (tiny_capture_313 / "params" / "3.npy").is_file() and not (tiny_capture_313 / "params" / "0.npy").exists()
     # the reader casts float64 params to float32: allclose's rtol 1e-5 covers that rounding (6e-8 relative)
-    assert np.allclose(cap.params(2).poses, np.load(tiny_capture_313 / "params" / "3.npy", allow_pickle=True)
-                       .item()["poses"][0])
+    assert np.allclose(
+        cap.params(2).poses, np.load(tiny_capture_313 / "params" / "3.npy", allow_pickle=True).item()["poses"][0]
+    )
     assert cap.vertices(2).shape == (6890, 3)
 
 

@@ -31,10 +31,16 @@ RIGID = ("rt_nerf", "rt_nerf_no_pose", "rp_nerf")
 
 #: Supplement cost columns (params, FLOPs per ray, memory per ray) for the paper-size presets.
 PAPER_COSTS = {
-    "narf_d": (1.10e6, 205e6, 382e3), "narf_d_sigmoid": (1.10e6, 205e6, 382e3), "narf_h": (1.06e6, 197e6, 344e3),
-    "narf_p": (11.8e6, 2149e6, 6544e3), "narf_p_32": (0.32e6, 59e6, 824e3), "narf_p_64": (0.98e6, 178e6, 1641e3),
-    "narf_p_128": (3.28e6, 596e6, 3275e3), "p_nerf_table": (0.85e6, 156e6, 356e3), "d_narf": (0.66e6, 121e6, 382e3),
-}  # fmt: skip
+    "narf_d": (1.10e6, 205e6, 382e3),
+    "narf_d_sigmoid": (1.10e6, 205e6, 382e3),
+    "narf_h": (1.06e6, 197e6, 344e3),
+    "narf_p": (11.8e6, 2149e6, 6544e3),
+    "narf_p_32": (0.32e6, 59e6, 824e3),
+    "narf_p_64": (0.98e6, 178e6, 1641e3),
+    "narf_p_128": (3.28e6, 596e6, 3275e3),
+    "p_nerf_table": (0.85e6, 156e6, 356e3),
+    "d_narf": (0.66e6, 121e6, 382e3),
+}
 
 
 def build_field(name: str, **kwargs) -> Field:
@@ -66,5 +72,17 @@ def paper_presets() -> dict[str, Field]:
     return presets
 
 
-__all__ = ["MODELS", "IMAGE_MODELS", "ARTICULATED", "RIGID", "PAPER_COSTS", "Cost", "Field", "FieldOutput",
-           "PoseBatch", "build_field", "build_model", "paper_presets"]  # fmt: skip
+__all__ = [
+    "MODELS",
+    "IMAGE_MODELS",
+    "ARTICULATED",
+    "RIGID",
+    "PAPER_COSTS",
+    "Cost",
+    "Field",
+    "FieldOutput",
+    "PoseBatch",
+    "build_field",
+    "build_model",
+    "paper_presets",
+]

@@ -42,7 +42,6 @@ class Field(nn.Module):
     Subclasses implement ``_forward(points, dirs, pose, local, z)``.
     """
 
-
     def __init__(self, n_parts: int, latent_dim: int = 0):
         super().__init__()
         self.n_parts, self.latent_dim = n_parts, latent_dim
@@ -67,8 +66,9 @@ class Field(nn.Module):
         """gamma_4(zeta) per ray: (R, 1, 152)."""
         return positional_encoding(pose.bone_lengths, 4)[:, None]
 
-    def forward(self, points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch,
-                latent: torch.Tensor | None = None) -> FieldOutput:  # fmt: skip
+    def forward(
+        self, points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch, latent: torch.Tensor | None = None
+    ) -> FieldOutput:
         """Evaluate the field.
 
         Args:
@@ -83,8 +83,10 @@ class Field(nn.Module):
         check_shape("points", points, (-1, -1, 3))
         check_shape("dirs", dirs, (points.shape[0], 3))
         if pose.world_from_part.shape[:2] != (points.shape[0], self.n_parts):
-            raise ValueError(f"pose: expected {points.shape[0]} per-ray entries of {self.n_parts} parts, got "
-                             f"{tuple(pose.world_from_part.shape[:2])}")  # fmt: skip
+            raise ValueError(
+                f"pose: expected {points.shape[0]} per-ray entries of {self.n_parts} parts, got "
+                f"{tuple(pose.world_from_part.shape[:2])}"
+            )
         x_local, d_local = part_local(points, dirs, pose)
         u, in_box = self.box_coordinates(x_local)
         z_s = z_a = None

@@ -55,8 +55,9 @@ class _Decoder(nn.Module):
     def __init__(self, out_channels: int):
         super().__init__()
         widths = _ENCODER[::-1]  # 256 (4 px) ... 32 (128 px)
-        self.blocks = nn.ModuleList(_ResBlock(widths[k] + widths[k + 1], widths[k + 1], down=False)
-                                    for k in range(len(widths) - 1))  # fmt: skip
+        self.blocks = nn.ModuleList(
+            _ResBlock(widths[k] + widths[k + 1], widths[k + 1], down=False) for k in range(len(widths) - 1)
+        )
         self.out = nn.Conv2d(widths[-1], out_channels, 3, padding=1)
 
     def forward(self, bottom: torch.Tensor, skips: list[torch.Tensor], pose: torch.Tensor) -> torch.Tensor:

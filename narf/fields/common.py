@@ -89,8 +89,15 @@ class RadianceHead(nn.Module):
         density_act: ``leaky_backward`` or ``softplus``.
     """
 
-    def __init__(self, density_dims: dict[str, int], color_dims: dict[str, int], width: int, groups: int = 1,
-                 latent_dim: int = 0, density_act: str = "leaky_backward"):  # fmt: skip
+    def __init__(
+        self,
+        density_dims: dict[str, int],
+        color_dims: dict[str, int],
+        width: int,
+        groups: int = 1,
+        latent_dim: int = 0,
+        density_act: str = "leaky_backward",
+    ):
         super().__init__()
         self.width, self.groups, self.latent_dim = width, groups, latent_dim
         self.density_embed = nn.ModuleDict({k: WNLinear(d, width, groups) for k, d in density_dims.items()})
@@ -115,14 +122,25 @@ class RadianceHead(nn.Module):
             total = embedded if total is None else total + embedded
         return total
 
-    def forward(self, density_inputs: dict[str, torch.Tensor], color_inputs: dict[str, torch.Tensor],
-                z_s: torch.Tensor | None = None, z_a: torch.Tensor | None = None):  # fmt: skip
+    def forward(
+        self,
+        density_inputs: dict[str, torch.Tensor],
+        color_inputs: dict[str, torch.Tensor],
+        z_s: torch.Tensor | None = None,
+        z_a: torch.Tensor | None = None,
+    ):
         """Returns sigma (G, R, S) and rgb (G, R, S, 3). Latents are (G or 1, R, 1, latent_dim)."""
         embedded = self._embed_sum(self.density_embed, density_inputs)
         return self.forward_embedded(embedded, self._embed_sum(self.color_embed, color_inputs), {}, z_s, z_a)
 
-    def forward_embedded(self, embedded: torch.Tensor, color_embedded: torch.Tensor,
-                         extra_density: dict[str, torch.Tensor], z_s=None, z_a=None):  # fmt: skip
+    def forward_embedded(
+        self,
+        embedded: torch.Tensor,
+        color_embedded: torch.Tensor,
+        extra_density: dict[str, torch.Tensor],
+        z_s=None,
+        z_a=None,
+    ):
         """As ``forward`` from already embedded sums (G, R, S or 1, H) and (G, R, S or 1, H/2); blocks in
         ``extra_density`` are embedded and added here."""
         if extra_density:

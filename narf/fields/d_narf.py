@@ -20,8 +20,9 @@ class DNarf(Field):
     def __init__(self, n_parts: int = 19, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward"):
         super().__init__(n_parts, latent_dim)
         self.selector = PartSelector(n_parts)
-        self.head = RadianceHead({"x": 60, "zeta": 152}, {"dirs": 24, "pose": 48}, width, latent_dim=latent_dim,
-                                 density_act=density_act)  # fmt: skip
+        self.head = RadianceHead(
+            {"x": 60, "zeta": 152}, {"dirs": 24, "pose": 48}, width, latent_dim=latent_dim, density_act=density_act
+        )
 
     def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
         encoded_zeta = self.zeta_encoding(pose)
@@ -30,8 +31,10 @@ class DNarf(Field):
         blended_dirs = torch.einsum("rsp,rpc->rsc", probs, d_local)
         blended_xi = torch.einsum("rsp,rpc->rsc", probs, pose.pose_features)
         density = {"x": positional_encoding(canonical / 1.25, 10)[None], "zeta": encoded_zeta[None]}
-        colour = {"dirs": positional_encoding(blended_dirs, 4)[None],
-                  "pose": positional_encoding(blended_xi / math.pi, 4)[None]}  # fmt: skip
+        colour = {
+            "dirs": positional_encoding(blended_dirs, 4)[None],
+            "pose": positional_encoding(blended_xi / math.pi, 4)[None],
+        }
         sigma, rgb = self.head(density, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], probs)
 

@@ -18,8 +18,15 @@ class NarfD(NarfH):
         (others as NarfH)
     """
 
-    def __init__(self, n_parts: int = 19, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward",
-                 selector: str = "softmax", fast: bool = True):  # fmt: skip
+    def __init__(
+        self,
+        n_parts: int = 19,
+        width: int = 256,
+        latent_dim: int = 0,
+        density_act: str = "leaky_backward",
+        selector: str = "softmax",
+        fast: bool = True,
+    ):
         super().__init__(n_parts, width, latent_dim, density_act, fast)
         if selector not in ("softmax", "sigmoid"):
             raise ValueError(f"selector must be 'softmax' or 'sigmoid', got '{selector}'")

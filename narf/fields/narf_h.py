@@ -22,12 +22,23 @@ class NarfH(Field):
         fast: evaluate only in-box (sample, part) pairs (``sparse_parts``); False runs the dense reference.
     """
 
-    def __init__(self, n_parts: int = 19, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward",
-                 fast: bool = True):  # fmt: skip
+    def __init__(
+        self,
+        n_parts: int = 19,
+        width: int = 256,
+        latent_dim: int = 0,
+        density_act: str = "leaky_backward",
+        fast: bool = True,
+    ):
         super().__init__(n_parts, latent_dim)
         self.fast = fast
-        self.head = RadianceHead({"parts": 60 * n_parts, "zeta": 152}, {"pose": 48 * n_parts, "dirs": 24 * n_parts},
-                                 width, latent_dim=latent_dim, density_act=density_act)  # fmt: skip
+        self.head = RadianceHead(
+            {"parts": 60 * n_parts, "zeta": 152},
+            {"pose": 48 * n_parts, "dirs": 24 * n_parts},
+            width,
+            latent_dim=latent_dim,
+            density_act=density_act,
+        )
 
     def part_weights(self, encoded_u, in_box, pose):
         """Per-sample part weights used to mask the blocks (R, S, P) and the segmentation probabilities."""
@@ -47,7 +58,9 @@ class NarfH(Field):
         masked_u = (weights[..., None] * encoded_u).reshape(1, r, s, p * 60)
         encoded_xi = positional_encoding(pose.pose_features / math.pi, 4)[:, None]  # (R, 1, P, 48)
         encoded_d = positional_encoding(d_local, 4)[:, None]  # (R, 1, P, 24)
-        colour = {"pose": (weights[..., None] * encoded_xi).reshape(1, r, s, p * 48),
-                  "dirs": (weights[..., None] * encoded_d).reshape(1, r, s, p * 24)}  # fmt: skip
+        colour = {
+            "pose": (weights[..., None] * encoded_xi).reshape(1, r, s, p * 48),
+            "dirs": (weights[..., None] * encoded_d).reshape(1, r, s, p * 24),
+        }
         sigma, rgb = self.head({"parts": masked_u, "zeta": encoded_zeta[None]}, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], probs)

@@ -20,21 +20,37 @@ class NarfP(Field):
         n_parts: P. width: H per part (paper 32/64/128/256). temperature: tau (10).
     """
 
-    def __init__(self, n_parts: int = 19, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward",
-                 temperature: float = 10.0):  # fmt: skip
+    def __init__(
+        self,
+        n_parts: int = 19,
+        width: int = 256,
+        latent_dim: int = 0,
+        density_act: str = "leaky_backward",
+        temperature: float = 10.0,
+    ):
         super().__init__(n_parts, latent_dim)
         if temperature <= 0:
             raise ValueError(f"temperature must be positive, got {temperature}")
         self.temperature = temperature
-        self.head = RadianceHead({"u": 60, "zeta": 152}, {"pose": 48, "dirs": 24}, width, groups=n_parts,
-                                 latent_dim=latent_dim, density_act=density_act)  # fmt: skip
+        self.head = RadianceHead(
+            {"u": 60, "zeta": 152},
+            {"pose": 48, "dirs": 24},
+            width,
+            groups=n_parts,
+            latent_dim=latent_dim,
+            density_act=density_act,
+        )
 
     def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
         p = self.n_parts
-        density = {"u": positional_encoding(u, 10).permute(2, 0, 1, 3),
-                   "zeta": self.zeta_encoding(pose)[None].expand(p, -1, -1, -1)}  # fmt: skip
-        colour = {"pose": positional_encoding(pose.pose_features / math.pi, 4).permute(1, 0, 2)[:, :, None],
-                  "dirs": positional_encoding(d_local, 4).permute(1, 0, 2)[:, :, None]}  # fmt: skip
+        density = {
+            "u": positional_encoding(u, 10).permute(2, 0, 1, 3),
+            "zeta": self.zeta_encoding(pose)[None].expand(p, -1, -1, -1),
+        }
+        colour = {
+            "pose": positional_encoding(pose.pose_features / math.pi, 4).permute(1, 0, 2)[:, :, None],
+            "dirs": positional_encoding(d_local, 4).permute(1, 0, 2)[:, :, None],
+        }
         sigma_parts, rgb_parts = self.head(density, colour, z_s, z_a)  # (P, R, S), (P, R, S, 3)
         sigma_parts = sigma_parts.permute(1, 2, 0)
         sigma_parts = torch.where(in_box, sigma_parts, torch.zeros_like(sigma_parts))

@@ -16,9 +16,9 @@ class RtNerf(Field):
         use_pose: False gives "RT-NeRF w/o xi".
     """
 
-
-    def __init__(self, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward",
-                 use_pose: bool = True):  # fmt: skip
+    def __init__(
+        self, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward", use_pose: bool = True
+    ):
         super().__init__(1, latent_dim)
         self.use_pose = use_pose
         colour = {"dirs": 24, "pose": 48} if use_pose else {"dirs": 24}
@@ -36,11 +36,11 @@ class RpNerf(Field):
     """RP-NeRF: density from the global gamma(x / (1.25 s)) (60) and gamma(xi/pi) (48); colour from gamma(xi/pi),
     gamma(d) (world)."""
 
-
     def __init__(self, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward"):
         super().__init__(1, latent_dim)
-        self.head = RadianceHead({"x": 60, "pose": 48}, {"pose": 48, "dirs": 24}, width, latent_dim=latent_dim,
-                                 density_act=density_act)  # fmt: skip
+        self.head = RadianceHead(
+            {"x": 60, "pose": 48}, {"pose": 48, "dirs": 24}, width, latent_dim=latent_dim, density_act=density_act
+        )
 
     def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
         x_hat = points / (1.25 * pose.reach[:, None, None])

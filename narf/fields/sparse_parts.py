@@ -28,8 +28,9 @@ def _segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: i
     return exp / total[segments]
 
 
-def sparse_masked_inputs(model, u: torch.Tensor, in_box: torch.Tensor, d_local: torch.Tensor, pose,
-                         encoded_zeta: torch.Tensor):  # fmt: skip
+def sparse_masked_inputs(
+    model, u: torch.Tensor, in_box: torch.Tensor, d_local: torch.Tensor, pose, encoded_zeta: torch.Tensor
+):
     """Embedded density and colour inputs of NARF_D / NARF_H without the out-of-box zeros.
 
     Args:
@@ -72,7 +73,8 @@ def sparse_masked_inputs(model, u: torch.Tensor, in_box: torch.Tensor, d_local: 
         weights = probs * math.sqrt(p_count) / norm[sample].clamp_min(1e-12)
     else:
         n_in = torch.zeros(r_count * s_count, dtype=u.dtype, device=u.device).index_add(
-            0, sample, torch.ones_like(sample, dtype=u.dtype))
+            0, sample, torch.ones_like(sample, dtype=u.dtype)
+        )
         weights, probs = torch.ones_like(sample, dtype=u.dtype), 1.0 / n_in[sample]
     hidden_width = features.shape[-1]
     density = torch.zeros(r_count * s_count, hidden_width, dtype=u.dtype, device=u.device)
@@ -83,8 +85,11 @@ def sparse_masked_inputs(model, u: torch.Tensor, in_box: torch.Tensor, d_local: 
     colour = colour + head.color_embed["pose"].bias[0] + head.color_embed["dirs"].bias[0]
     segmentation = torch.zeros(r_count * s_count, p_count, dtype=u.dtype, device=u.device)
     segmentation = segmentation.index_put((sample, part), probs if torch.is_tensor(probs) else weights)
-    return (density.reshape(1, r_count, s_count, -1), colour.reshape(1, r_count, s_count, -1),
-            segmentation.reshape(r_count, s_count, p_count))  # fmt: skip
+    return (
+        density.reshape(1, r_count, s_count, -1),
+        colour.reshape(1, r_count, s_count, -1),
+        segmentation.reshape(r_count, s_count, p_count),
+    )
 
 
 def _colour_table(head, pose, d_local: torch.Tensor) -> torch.Tensor:

@@ -35,8 +35,12 @@ def resolve_smpl_file(smpl_dir: str | Path | None = None, gender: str = "neutral
         if candidate.is_file():
             return candidate
         short = {"female": "f", "male": "m"}.get(gender.lower(), gender.lower())
-        names = [f"SMPL_{gender.upper()}.pkl", f"smpl/SMPL_{gender.upper()}.pkl",
-                 f"basicmodel_{short}_lbs_10_207_0_v1.0.0.pkl", f"basicmodel_{short}_lbs_10_207_0_v1.1.0.pkl"]
+        names = [
+            f"SMPL_{gender.upper()}.pkl",
+            f"smpl/SMPL_{gender.upper()}.pkl",
+            f"basicmodel_{short}_lbs_10_207_0_v1.0.0.pkl",
+            f"basicmodel_{short}_lbs_10_207_0_v1.1.0.pkl",
+        ]
         present = {p.name.lower(): p for p in candidate.glob("*.pkl")} if candidate.is_dir() else {}
         for name in names:
             if (candidate / name).is_file():

@@ -116,11 +116,21 @@ class BodyModel:
         th = _as_tensor("Th", th, (3,), self.dtype)
         shapes = _as_tensor("shapes", shapes, (10,), self.dtype)
         if not poses.shape[0] == rh.shape[0] == th.shape[0] == shapes.shape[0]:
-            raise ValueError(f"batch sizes differ: poses {poses.shape[0]}, Rh {rh.shape[0]}, Th {th.shape[0]}, "
-                             f"shapes {shapes.shape[0]}")  # fmt: skip
+            raise ValueError(
+                f"batch sizes differ: poses {poses.shape[0]}, Rh {rh.shape[0]}, Th {th.shape[0]}, "
+                f"shapes {shapes.shape[0]}"
+            )
         posedirs = self.smpl.posedirs if pose_blendshapes else torch.zeros_like(self.smpl.posedirs)
-        vertices_smpl, _ = lbs(shapes, poses, self.smpl.v_template, self.smpl.shapedirs, posedirs,
-                               self.smpl.J_regressor, self.smpl.parents, self.smpl.lbs_weights)  # fmt: skip
+        vertices_smpl, _ = lbs(
+            shapes,
+            poses,
+            self.smpl.v_template,
+            self.smpl.shapedirs,
+            posedirs,
+            self.smpl.J_regressor,
+            self.smpl.parents,
+            self.smpl.lbs_weights,
+        )
         world_from_smpl = rigid_from_rotvec_translation(rh, th)
         vertices = vertices_smpl @ world_from_smpl[:, :3, :3].transpose(1, 2) + th[:, None]
         return posed_from_rest_joints(poses, world_from_smpl, self.rest_joints(shapes), vertices)
@@ -143,8 +153,9 @@ class BodyModel:
         return fit_part_boxes(vertices, world_from_part, reach, self.parts_of_vertices, scale_pad, abs_pad)
 
 
-def posed_from_rest_joints(poses: torch.Tensor, world_from_smpl: torch.Tensor, rest_joints: torch.Tensor,
-                           vertices: torch.Tensor | None = None) -> PosedBody:  # fmt: skip
+def posed_from_rest_joints(
+    poses: torch.Tensor, world_from_smpl: torch.Tensor, rest_joints: torch.Tensor, vertices: torch.Tensor | None = None
+) -> PosedBody:
     """Forward kinematics of a (possibly edited) rest skeleton into a PosedBody.
 
     Args:
@@ -156,10 +167,14 @@ def posed_from_rest_joints(poses: torch.Tensor, world_from_smpl: torch.Tensor, r
     joints = world_from_joint[..., :3, 3]
     reach = kinematic_reach(joints)
     return PosedBody(
-        vertices=torch.empty(0) if vertices is None else vertices, world_from_joint=world_from_joint,
-        world_from_part=world_from_part, rest_joints=rest_joints, bone_lengths=bone_lengths(joints), reach=reach,
+        vertices=torch.empty(0) if vertices is None else vertices,
+        world_from_joint=world_from_joint,
+        world_from_part=world_from_part,
+        rest_joints=rest_joints,
+        bone_lengths=bone_lengths(joints),
+        reach=reach,
         pose_features=part_pose_features(world_from_part, reach),
-    )  # fmt: skip
+    )
 
 
 def smplx_params_from_zju(model: BodyModel, poses, rh, th, shapes) -> dict[str, torch.Tensor]:
@@ -176,8 +191,7 @@ def smplx_params_from_zju(model: BodyModel, poses, rh, th, shapes) -> dict[str, 
     rot_root = rigid_from_rotvec_translation(poses[:, :3], torch.zeros_like(rh))[:, :3, :3]
     pelvis = model.rest_joints(shapes)[:, 0]
     transl = th + (rot_rh @ pelvis[..., None])[..., 0] - pelvis
-    return {"global_orient": so3_log(rot_rh @ rot_root), "body_pose": poses[:, 3:], "betas": shapes,
-            "transl": transl}  # fmt: skip
+    return {"global_orient": so3_log(rot_rh @ rot_root), "body_pose": poses[:, 3:], "betas": shapes, "transl": transl}
 
 
 def pose_batch(body: PosedBody) -> PoseBatch:
@@ -186,5 +200,6 @@ def pose_batch(body: PosedBody) -> PoseBatch:
 
     rest = body.rest_joints[:, list(PART_JOINTS)]
     offsets = (rest - body.rest_joints[:, :1]) / body.reach[:, None, None]
-    return PoseBatch(body.world_from_part, body.reach, body.bone_lengths, body.pose_features, offsets,
-                     body.world_from_joint)  # fmt: skip
+    return PoseBatch(
+        body.world_from_part, body.reach, body.bone_lengths, body.pose_features, offsets, body.world_from_joint
+    )

@@ -26,14 +26,34 @@ from narf.kinematics import SMPL_PARENTS
 N_VERTS, N_FACES, N_BETAS = 6890, 13776, 10
 
 #: Rest joints close to SMPL's neutral body (metres, y up, +x = body left, +z = forward).
-REST_JOINTS = np.array([
-    [-0.0018, -0.2233, 0.0282], [0.0695, -0.3141, 0.0239], [-0.0677, -0.3147, 0.0214], [-0.0025, -0.1033, 0.0120],
-    [0.1040, -0.6710, 0.0156], [-0.1060, -0.6740, 0.0146], [0.0050, 0.0302, 0.0290], [0.0870, -1.0770, -0.0298],
-    [-0.0880, -1.0820, -0.0300], [0.0020, 0.0880, 0.0310], [0.1200, -1.1370, 0.0900], [-0.1180, -1.1400, 0.0950],
-    [-0.0010, 0.2950, -0.0040], [0.0770, 0.2040, -0.0050], [-0.0790, 0.2030, -0.0090], [0.0050, 0.3600, 0.0490],
-    [0.1700, 0.2300, -0.0150], [-0.1700, 0.2300, -0.0150], [0.4300, 0.2100, -0.0300], [-0.4300, 0.2100, -0.0300],
-    [0.6800, 0.2200, -0.0250], [-0.6800, 0.2200, -0.0250], [0.7600, 0.2100, -0.0350], [-0.7600, 0.2100, -0.0350],
-])  # fmt: skip
+REST_JOINTS = np.array(
+    [
+        [-0.0018, -0.2233, 0.0282],
+        [0.0695, -0.3141, 0.0239],
+        [-0.0677, -0.3147, 0.0214],
+        [-0.0025, -0.1033, 0.0120],
+        [0.1040, -0.6710, 0.0156],
+        [-0.1060, -0.6740, 0.0146],
+        [0.0050, 0.0302, 0.0290],
+        [0.0870, -1.0770, -0.0298],
+        [-0.0880, -1.0820, -0.0300],
+        [0.0020, 0.0880, 0.0310],
+        [0.1200, -1.1370, 0.0900],
+        [-0.1180, -1.1400, 0.0950],
+        [-0.0010, 0.2950, -0.0040],
+        [0.0770, 0.2040, -0.0050],
+        [-0.0790, 0.2030, -0.0090],
+        [0.0050, 0.3600, 0.0490],
+        [0.1700, 0.2300, -0.0150],
+        [-0.1700, 0.2300, -0.0150],
+        [0.4300, 0.2100, -0.0300],
+        [-0.4300, 0.2100, -0.0300],
+        [0.6800, 0.2200, -0.0250],
+        [-0.6800, 0.2200, -0.0250],
+        [0.7600, 0.2100, -0.0350],
+        [-0.7600, 0.2100, -0.0350],
+    ]
+)
 
 
 @dataclass(frozen=True)
@@ -61,31 +81,84 @@ def _j(i: int) -> list[float]:
 
 def _left_specs() -> list[TubeSpec]:
     torso = TubeSpec(
-        "torso", np.array([[0.0, -0.40, 0.01], _j(0), _j(3), _j(6), _j(9), _j(12), _j(15), [0.005, 0.60, 0.01]]),
-        (-1, 0, 3, 6, 9, 12, 15, -1), (0, 0, 3, 6, 9, 12, 15),
-        ((0.0, 0.06, 0.05), (0.3, 0.15, 0.10), (1.0, 0.175, 0.115), (2.0, 0.15, 0.105), (3.0, 0.16, 0.11),
-         (4.0, 0.17, 0.115), (4.5, 0.185, 0.12), (4.8, 0.19, 0.095), (4.95, 0.11, 0.07), (5.0, 0.06, 0.055),
-         (5.6, 0.058, 0.058), (6.0, 0.075, 0.09), (6.4, 0.085, 0.10), (6.75, 0.075, 0.09), (7.0, 0.025, 0.03)),
-        (1.0, 0.0, 0.0), 65, 44)  # fmt: skip
+        "torso",
+        np.array([[0.0, -0.40, 0.01], _j(0), _j(3), _j(6), _j(9), _j(12), _j(15), [0.005, 0.60, 0.01]]),
+        (-1, 0, 3, 6, 9, 12, 15, -1),
+        (0, 0, 3, 6, 9, 12, 15),
+        (
+            (0.0, 0.06, 0.05),
+            (0.3, 0.15, 0.10),
+            (1.0, 0.175, 0.115),
+            (2.0, 0.15, 0.105),
+            (3.0, 0.16, 0.11),
+            (4.0, 0.17, 0.115),
+            (4.5, 0.185, 0.12),
+            (4.8, 0.19, 0.095),
+            (4.95, 0.11, 0.07),
+            (5.0, 0.06, 0.055),
+            (5.6, 0.058, 0.058),
+            (6.0, 0.075, 0.09),
+            (6.4, 0.085, 0.10),
+            (6.75, 0.075, 0.09),
+            (7.0, 0.025, 0.03),
+        ),
+        (1.0, 0.0, 0.0),
+        65,
+        44,
+    )
     leg = TubeSpec(
-        "left_leg", np.array([[0.065, -0.24, 0.025], _j(1), _j(4), _j(7), [0.087, -1.12, -0.035]]),
-        (-1, 1, 4, 7, -1), (0, 1, 4, 7),
-        ((0.0, 0.06, 0.06), (0.5, 0.08, 0.085), (1.0, 0.085, 0.088), (1.3, 0.078, 0.08), (1.9, 0.055, 0.056),
-         (2.0, 0.052, 0.054), (2.3, 0.055, 0.06), (2.9, 0.037, 0.04), (3.0, 0.036, 0.04), (4.0, 0.03, 0.035)),
-        (1.0, 0.0, 0.0), 40, 24)  # fmt: skip
+        "left_leg",
+        np.array([[0.065, -0.24, 0.025], _j(1), _j(4), _j(7), [0.087, -1.12, -0.035]]),
+        (-1, 1, 4, 7, -1),
+        (0, 1, 4, 7),
+        (
+            (0.0, 0.06, 0.06),
+            (0.5, 0.08, 0.085),
+            (1.0, 0.085, 0.088),
+            (1.3, 0.078, 0.08),
+            (1.9, 0.055, 0.056),
+            (2.0, 0.052, 0.054),
+            (2.3, 0.055, 0.06),
+            (2.9, 0.037, 0.04),
+            (3.0, 0.036, 0.04),
+            (4.0, 0.03, 0.035),
+        ),
+        (1.0, 0.0, 0.0),
+        40,
+        24,
+    )
     foot = TubeSpec(
-        "left_foot", np.array([[0.085, -1.12, -0.09], [0.087, -1.12, -0.03], _j(10), [0.125, -1.14, 0.17]]),
-        (-1, -1, 10, -1), (7, 7, 10),
+        "left_foot",
+        np.array([[0.085, -1.12, -0.09], [0.087, -1.12, -0.03], _j(10), [0.125, -1.14, 0.17]]),
+        (-1, -1, 10, -1),
+        (7, 7, 10),
         ((0.0, 0.03, 0.03), (0.5, 0.04, 0.045), (1.0, 0.045, 0.05), (2.0, 0.05, 0.03), (3.0, 0.02, 0.015)),
-        (1.0, 0.0, 0.0), 14, 12)  # fmt: skip
+        (1.0, 0.0, 0.0),
+        14,
+        12,
+    )
     arm = TubeSpec(
         "left_arm",
         np.array([[0.04, 0.215, -0.005], _j(13), _j(16), _j(18), _j(20), _j(22), [0.85, 0.205, -0.035]]),
-        (-1, 13, 16, 18, 20, 22, -1), (13, 13, 16, 18, 20, 22),
-        ((0.0, 0.04, 0.04), (1.0, 0.06, 0.06), (2.0, 0.058, 0.055), (2.4, 0.048, 0.048), (3.0, 0.038, 0.04),
-         (3.3, 0.04, 0.042), (4.0, 0.027, 0.032), (4.5, 0.022, 0.045), (5.0, 0.016, 0.045), (5.6, 0.012, 0.038),
-         (6.0, 0.008, 0.01)),
-        (0.0, 1.0, 0.0), 44, 20)  # fmt: skip
+        (-1, 13, 16, 18, 20, 22, -1),
+        (13, 13, 16, 18, 20, 22),
+        (
+            (0.0, 0.04, 0.04),
+            (1.0, 0.06, 0.06),
+            (2.0, 0.058, 0.055),
+            (2.4, 0.048, 0.048),
+            (3.0, 0.038, 0.04),
+            (3.3, 0.04, 0.042),
+            (4.0, 0.027, 0.032),
+            (4.5, 0.022, 0.045),
+            (5.0, 0.016, 0.045),
+            (5.6, 0.012, 0.038),
+            (6.0, 0.008, 0.01),
+        ),
+        (0.0, 1.0, 0.0),
+        44,
+        20,
+    )
     return [torso, leg, foot, arm]
 
 
@@ -99,9 +172,16 @@ def _mirror(spec: TubeSpec) -> TubeSpec:
     for k, j in enumerate(swap):
         if j >= 0:
             nodes[k] = REST_JOINTS[j]
-    return TubeSpec(spec.name.replace("left", "right"), nodes, tuple(swap),
-                    tuple(_MIRROR_JOINT[j] for j in spec.segment_joints), spec.profile, spec.side,
-                    spec.n_rings, spec.n_segments)  # fmt: skip
+    return TubeSpec(
+        spec.name.replace("left", "right"),
+        nodes,
+        tuple(swap),
+        tuple(_MIRROR_JOINT[j] for j in spec.segment_joints),
+        spec.profile,
+        spec.side,
+        spec.n_rings,
+        spec.n_segments,
+    )
 
 
 def tube_specs() -> list[TubeSpec]:
@@ -164,8 +244,11 @@ def _build_tube(spec: TubeSpec) -> _Tube:
     half_d = knots[idx, 2] + u * (knots[idx + 1, 2] - knots[idx, 2])
     n_rings, n_seg = len(rings_t), spec.n_segments
     phi = 2 * np.pi * np.arange(n_seg) / n_seg
-    ring_pts = (centres[:, None] + half_w[:, None, None] * np.cos(phi)[None, :, None] * side[:, None]
-                + half_d[:, None, None] * np.sin(phi)[None, :, None] * depth[:, None])  # fmt: skip
+    ring_pts = (
+        centres[:, None]
+        + half_w[:, None, None] * np.cos(phi)[None, :, None] * side[:, None]
+        + half_d[:, None, None] * np.sin(phi)[None, :, None] * depth[:, None]
+    )
     cap = 0.35 * np.minimum(half_w[[0, -1]], half_d[[0, -1]])
     poles = np.stack([centres[0] - cap[0] * tangents[0], centres[-1] + cap[1] * tangents[-1]])
     vertices = np.concatenate([ring_pts.reshape(-1, 3), poles])
@@ -214,15 +297,28 @@ def _ring_weights(spec: TubeSpec, frac: np.ndarray) -> np.ndarray:
 
 
 #: (child tube, parent tube) pairs joined by a hidden connected sum.
-_JOINS = (("left_leg", "torso"), ("right_leg", "torso"), ("left_foot", "left_leg"), ("right_foot", "right_leg"),
-          ("left_arm", "torso"), ("right_arm", "torso"))  # fmt: skip
+_JOINS = (
+    ("left_leg", "torso"),
+    ("right_leg", "torso"),
+    ("left_foot", "left_leg"),
+    ("right_foot", "right_leg"),
+    ("left_arm", "torso"),
+    ("right_arm", "torso"),
+)
 #: Where smplx's vertex-picked extra joints should sit on the body (left side; right side mirrored).
 _EXTRA_TARGETS = {
-    "nose": (0.0, 0.42, 0.16), "leye": (0.035, 0.46, 0.12), "lear": (0.09, 0.44, 0.02),
-    "LBigToe": (0.105, -1.14, 0.19), "LSmallToe": (0.15, -1.14, 0.16), "LHeel": (0.085, -1.16, -0.12),
-    "lthumb": (0.78, 0.21, 0.06), "lindex": (0.85, 0.205, 0.04), "lmiddle": (0.86, 0.205, 0.01),
-    "lring": (0.85, 0.205, -0.02), "lpinky": (0.83, 0.205, -0.05),
-}  # fmt: skip
+    "nose": (0.0, 0.42, 0.16),
+    "leye": (0.035, 0.46, 0.12),
+    "lear": (0.09, 0.44, 0.02),
+    "LBigToe": (0.105, -1.14, 0.19),
+    "LSmallToe": (0.15, -1.14, 0.16),
+    "LHeel": (0.085, -1.16, -0.12),
+    "lthumb": (0.78, 0.21, 0.06),
+    "lindex": (0.85, 0.205, 0.04),
+    "lmiddle": (0.86, 0.205, 0.01),
+    "lring": (0.85, 0.205, -0.02),
+    "lpinky": (0.83, 0.205, -0.05),
+}
 
 
 def _connected_sum(faces: np.ndarray, vertices: np.ndarray, child: np.ndarray, parent: np.ndarray) -> np.ndarray:
@@ -266,11 +362,14 @@ def _merge_tubes(specs: list[TubeSpec]) -> dict:
         for joint, ring in tube.joint_rings.items():
             regressor[joint, ring + offsets[k]] = 1.0 / len(ring)
     return {
-        "vertices": vertices, "faces": faces, "regressor": regressor,
+        "vertices": vertices,
+        "faces": faces,
+        "regressor": regressor,
         "weights": np.concatenate([t.weights for t in tubes]),
         "centres": np.concatenate([t.centres for t in tubes]),
-        "tube": np.searchsorted(offsets, np.arange(len(vertices)), side="right") - 1, "names": names,
-    }  # fmt: skip
+        "tube": np.searchsorted(offsets, np.arange(len(vertices)), side="right") - 1,
+        "names": names,
+    }
 
 
 def _extra_vertex_permutation(vertices: np.ndarray) -> np.ndarray:
@@ -278,8 +377,9 @@ def _extra_vertex_permutation(vertices: np.ndarray) -> np.ndarray:
     wanted = {}
     for name, target in _EXTRA_TARGETS.items():
         wanted[name] = np.asarray(target)
-        mirror = {"leye": "reye", "lear": "rear"}.get(name) or (name.replace("L", "R", 1) if name[0] == "L"
-                                                                  else "r" + name[1:] if name[0] == "l" else None)
+        mirror = {"leye": "reye", "lear": "rear"}.get(name) or (
+            name.replace("L", "R", 1) if name[0] == "L" else "r" + name[1:] if name[0] == "l" else None
+        )
         if mirror and mirror != name:
             wanted[mirror] = np.asarray(target) * np.array([-1.0, 1.0, 1.0])
     perm = -np.ones(len(vertices), dtype=np.int64)
@@ -349,9 +449,14 @@ def build_standin_model() -> dict:
     kintree[0, 0] = 4294967295
     j_regressor = scipy.sparse.csc_matrix(regressor)
     return {
-        "v_template": v, "f": faces, "weights": weights, "J_regressor": j_regressor,
-        "J": j_regressor @ v, "kintree_table": kintree,
+        "v_template": v,
+        "f": faces,
+        "weights": weights,
+        "J_regressor": j_regressor,
+        "J": j_regressor @ v,
+        "kintree_table": kintree,
         "shapedirs": _shape_directions(v, centres, tube, merged["names"]),
         "posedirs": _pose_directions(v, centres, weights),
-        "bs_style": "lbs", "bs_type": "lrotmin",
-    }  # fmt: skip
+        "bs_style": "lbs",
+        "bs_type": "lrotmin",
+    }

@@ -21,8 +21,9 @@ class BoardSpec:
         if not hasattr(cv2.aruco, self.dictionary):
             raise ValueError(f"unknown ArUco dictionary '{self.dictionary}'")
         dictionary = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, self.dictionary))
-        return cv2.aruco.CharucoBoard((self.squares_x, self.squares_y), self.square_length, self.marker_length,
-                                      dictionary)  # fmt: skip
+        return cv2.aruco.CharucoBoard(
+            (self.squares_x, self.squares_y), self.square_length, self.marker_length, dictionary
+        )
 
     @property
     def size(self) -> tuple[float, float]:

@@ -18,8 +18,11 @@ import numpy as np
 from pipelines.calibration.board import BoardSpec
 
 MIN_CORNERS = 6
-_FIX_FLAGS = {"k3": cv2.CALIB_FIX_K3, "tangential": cv2.CALIB_ZERO_TANGENT_DIST,
-              "principal_point": cv2.CALIB_FIX_PRINCIPAL_POINT}  # fmt: skip
+_FIX_FLAGS = {
+    "k3": cv2.CALIB_FIX_K3,
+    "tangential": cv2.CALIB_ZERO_TANGENT_DIST,
+    "principal_point": cv2.CALIB_FIX_PRINCIPAL_POINT,
+}
 
 
 class CalibrationError(ValueError):
@@ -49,8 +52,9 @@ class Intrinsics:
     rejected: list[str] = field(default_factory=list)
 
 
-def detect_charuco(image: np.ndarray, board: cv2.aruco.CharucoBoard, shot: str = "",
-                   upscale: int | None = None) -> Detection | None:  # fmt: skip
+def detect_charuco(
+    image: np.ndarray, board: cv2.aruco.CharucoBoard, shot: str = "", upscale: int | None = None
+) -> Detection | None:
     """ChArUco corners of a grayscale or BGR image, refined to sub-pixel; None when fewer than 6 are found.
 
     The board is searched in the image enlarged ``upscale`` times (default: 2 for images whose longer side is
@@ -81,8 +85,11 @@ def _shot_images(folder: Path) -> list[tuple[str, Path]]:
     suffixes = (".jpg", ".jpeg", ".png")
     shots = [(p.stem, p) for p in sorted(folder.iterdir()) if p.suffix.lower() in suffixes]
     if (folder / "intrinsics").is_dir():
-        shots += [(f"{folder.name}/intrinsics/{p.stem}", p) for p in sorted((folder / "intrinsics").iterdir())
-                  if p.suffix.lower() in suffixes]  # fmt: skip
+        shots += [
+            (f"{folder.name}/intrinsics/{p.stem}", p)
+            for p in sorted((folder / "intrinsics").iterdir())
+            if p.suffix.lower() in suffixes
+        ]
     return shots
 
 
@@ -108,8 +115,10 @@ def detect_folder(folder: Path, spec: BoardSpec) -> tuple[list[Detection], tuple
         if size is None:
             size = (image.shape[1], image.shape[0])
         elif (image.shape[1], image.shape[0]) != size:
-            raise CalibrationError(f"{path}: image is {image.shape[1]}x{image.shape[0]}, other images of "
-                                   f"{folder.name} are {size[0]}x{size[1]}")  # fmt: skip
+            raise CalibrationError(
+                f"{path}: image is {image.shape[1]}x{image.shape[0]}, other images of "
+                f"{folder.name} are {size[0]}x{size[1]}"
+            )
         if cv2.Laplacian(image, cv2.CV_64F).var() < 5.0:
             report[shot] = "blank or blurred"
             continue
@@ -123,8 +132,12 @@ def detect_folder(folder: Path, spec: BoardSpec) -> tuple[list[Detection], tuple
 
 
 def calibrate_intrinsics(
-    camera: str, detections: list[Detection], image_size: tuple[int, int],
-    fixed: frozenset[str] = frozenset({"k3"}), outlier_factor: float = 3.0, min_views: int = 3,
+    camera: str,
+    detections: list[Detection],
+    image_size: tuple[int, int],
+    fixed: frozenset[str] = frozenset({"k3"}),
+    outlier_factor: float = 3.0,
+    min_views: int = 3,
 ) -> Intrinsics:
     """Per-camera pinhole + distortion with outlier-view rejection; ``fixed`` names parameter groups held at
     their initial value: ``k3`` (0), ``tangential`` (p1 = p2 = 0), ``principal_point`` (the image centre).
@@ -134,8 +147,10 @@ def calibrate_intrinsics(
     """
     views = [d for d in detections if len(d.ids) >= MIN_CORNERS]
     if len(views) < min_views:
-        raise CalibrationError(f"camera {camera}: the board is detected in {len(views)} shot(s), at least "
-                               f"{min_views} are needed for its intrinsics")  # fmt: skip
+        raise CalibrationError(
+            f"camera {camera}: the board is detected in {len(views)} shot(s), at least "
+            f"{min_views} are needed for its intrinsics"
+        )
     flags = 0
     for group in fixed:
         flags |= _FIX_FLAGS[group]
@@ -157,10 +172,12 @@ def _solve(views: list[Detection], image_size: tuple[int, int], flags: int) -> d
     image_points = [v.image_points.astype(np.float32) for v in views]
     width, height = image_size
     # the image centre in OpenCV's pixel-centre convention is ((w - 1) / 2, (h - 1) / 2)
-    guess = np.array([[1.2 * max(width, height), 0, (width - 1) / 2], [0, 1.2 * max(width, height), (height - 1) / 2],
-                      [0, 0, 1]])  # fmt: skip
-    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(object_points, image_points, image_size, guess, None,
-                                                     flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS)  # fmt: skip
+    guess = np.array(
+        [[1.2 * max(width, height), 0, (width - 1) / 2], [0, 1.2 * max(width, height), (height - 1) / 2], [0, 0, 1]]
+    )
+    rms, K, dist, rvecs, tvecs = cv2.calibrateCamera(
+        object_points, image_points, image_size, guess, None, flags=flags | cv2.CALIB_USE_INTRINSIC_GUESS
+    )
     view_rms = {}
     for view, obj, img, rvec, tvec in zip(views, object_points, image_points, rvecs, tvecs):
         projected = cv2.projectPoints(obj, rvec, tvec, K, dist)[0].reshape(-1, 2)

@@ -20,8 +20,13 @@ def _save(path: Path, canvas: np.ndarray) -> None:
     tmp.replace(path)
 
 
-def draw_rig(path: Path, cameras: list[Camera], world_from_board: dict[str, np.ndarray],
-             board_size: tuple[float, float], size: int = 800) -> None:  # fmt: skip
+def draw_rig(
+    path: Path,
+    cameras: list[Camera],
+    world_from_board: dict[str, np.ndarray],
+    board_size: tuple[float, float],
+    size: int = 800,
+) -> None:
     """Top view (world x right, y down the image; z is vertical): camera centres with viewing directions and
     frusta, and the outline of every board pose (the reference board in red)."""
     centres = np.array([c.centre for c in cameras])
@@ -40,14 +45,23 @@ def draw_rig(path: Path, cameras: list[Camera], world_from_board: dict[str, np.n
         forward = camera.cam_from_world[2, :3]
         right = camera.cam_from_world[0, :3]
         left, right_pt = (camera.centre + 0.35 * forward + s * 0.15 * right for s in (-1, 1))
-        cv2.polylines(canvas, [to_px(np.array([camera.centre, left, right_pt])[:, :2])], True, (200, 90, 20), 2,
-                      cv2.LINE_AA)  # fmt: skip
+        cv2.polylines(
+            canvas, [to_px(np.array([camera.centre, left, right_pt])[:, :2])], True, (200, 90, 20), 2, cv2.LINE_AA
+        )
         (text_w, _), _ = cv2.getTextSize(camera.name, _FONT, 0.35, 1)
         x, y = to_px(camera.centre[:2] - 0.25 * forward[:2])
         anchor = (int(np.clip(x - text_w // 2, 2, size - text_w - 2)), int(np.clip(y, 12, size - 4)))
         cv2.putText(canvas, camera.name, anchor, _FONT, 0.35, (0, 0, 0), 1, cv2.LINE_AA)  # label centred, kept inside
-    cv2.putText(canvas, "rig from above (world x, y; z vertical); red: reference board", (10, 20), _FONT, 0.5,
-                (0, 0, 0), 1, cv2.LINE_AA)  # fmt: skip
+    cv2.putText(
+        canvas,
+        "rig from above (world x, y; z vertical); red: reference board",
+        (10, 20),
+        _FONT,
+        0.5,
+        (0, 0, 0),
+        1,
+        cv2.LINE_AA,
+    )
     _save(path, canvas)
 
 
@@ -88,10 +102,12 @@ def compare_cameras(previous: list[Camera], solved: list[Camera]) -> dict:
     cameras = {}
     for k, (a, b) in enumerate(zip(previous, solved)):
         rot_a, rot_b = a.cam_from_world[:3, :3], b.cam_from_world[:3, :3]
-        cameras[b.name] = {"centre_mm": float(np.linalg.norm(new[k] - old[k]) * 1000),
-                           "rotation_deg": _rotation_deg(rot_b @ rot_a.T),
-                           "focal_pct": float(abs(b.K[0, 0] / a.K[0, 0] - 1) * 100),
-                           "aligned_centre_mm": float(np.linalg.norm(aligned[k] - old[k]) * 1000),
-                           "aligned_rotation_deg": _rotation_deg(rot_b @ old_from_new.T @ rot_a.T)}  # fmt: skip
+        cameras[b.name] = {
+            "centre_mm": float(np.linalg.norm(new[k] - old[k]) * 1000),
+            "rotation_deg": _rotation_deg(rot_b @ rot_a.T),
+            "focal_pct": float(abs(b.K[0, 0] / a.K[0, 0] - 1) * 100),
+            "aligned_centre_mm": float(np.linalg.norm(aligned[k] - old[k]) * 1000),
+            "aligned_rotation_deg": _rotation_deg(rot_b @ old_from_new.T @ rot_a.T),
+        }
     worst = {key: max(v[key] for v in cameras.values()) for key in next(iter(cameras.values()))}
     return {"max": worst, "alignment_scale": scale, "cameras": cameras}

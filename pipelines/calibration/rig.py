@@ -54,8 +54,9 @@ def _pose(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     return out
 
 
-def initial_extrinsics(intrinsics: dict[str, Intrinsics], detections: dict[str, list[Detection]],
-                       reference: str) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:  # fmt: skip
+def initial_extrinsics(
+    intrinsics: dict[str, Intrinsics], detections: dict[str, list[Detection]], reference: str
+) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
     """Breadth-first placement of cameras and boards from the reference shot (module docstring)."""
     cam_from_board: dict[tuple[str, str], np.ndarray] = {}
     corners: dict[tuple[str, str], int] = {}
@@ -89,8 +90,10 @@ def initial_extrinsics(intrinsics: dict[str, Intrinsics], detections: dict[str, 
                 queue.append(("board", shot))
     missing = sorted(set(detections) - set(cam_from_world))
     if missing:
-        raise CalibrationError(f"camera(s) {', '.join(missing)} share no board shot with the rest of the rig "
-                               f"(connected to the reference shot '{reference}')")  # fmt: skip
+        raise CalibrationError(
+            f"camera(s) {', '.join(missing)} share no board shot with the rest of the rig "
+            f"(connected to the reference shot '{reference}')"
+        )
     return cam_from_world, world_from_board
 
 
@@ -132,8 +135,12 @@ def _observations(detections, cams, boards, world_from_board) -> _Observations:
             obs_board += [board_index.get(det.shot, -1)] * len(det.ids)
             points.append(det.object_points)
             pixels.append(det.image_points)
-    return _Observations(np.array(obs_cam), np.array(obs_board), np.concatenate(points).astype(np.float64),
-                         np.concatenate(pixels).astype(np.float64))  # fmt: skip
+    return _Observations(
+        np.array(obs_cam),
+        np.array(obs_board),
+        np.concatenate(points).astype(np.float64),
+        np.concatenate(pixels).astype(np.float64),
+    )
 
 
 def _residuals(x: np.ndarray, obs: _Observations, n_cam_params: int) -> np.ndarray:
@@ -159,8 +166,9 @@ def _refine(x0: np.ndarray, obs: _Observations, n_cam_params: int, free: np.ndar
             pattern_rows.append(2 * rows[has_board] + r)
             pattern_cols.append(n_cam_params + obs.board[has_board] * N_BOARD_PARAMS + k)
     pattern_rows, pattern_cols = np.concatenate(pattern_rows), np.concatenate(pattern_cols)
-    sparsity = scipy.sparse.csc_matrix((np.ones(len(pattern_rows), dtype=bool), (pattern_rows, pattern_cols)),
-                                       shape=(2 * len(obs.cam), len(x0)))  # fmt: skip
+    sparsity = scipy.sparse.csc_matrix(
+        (np.ones(len(pattern_rows), dtype=bool), (pattern_rows, pattern_cols)), shape=(2 * len(obs.cam), len(x0))
+    )
 
     def residuals(z: np.ndarray) -> np.ndarray:
         x = x0.copy()
@@ -173,8 +181,12 @@ def _refine(x0: np.ndarray, obs: _Observations, n_cam_params: int, free: np.ndar
 
 
 def bundle_adjust(
-    intrinsics: dict[str, Intrinsics], detections: dict[str, list[Detection]], reference: str,
-    cam_from_world: dict[str, np.ndarray], world_from_board: dict[str, np.ndarray], outlier_px: float = 1.0,
+    intrinsics: dict[str, Intrinsics],
+    detections: dict[str, list[Detection]],
+    reference: str,
+    cam_from_world: dict[str, np.ndarray],
+    world_from_board: dict[str, np.ndarray],
+    outlier_px: float = 1.0,
     fixed: frozenset[str] = frozenset({"k3"}),
 ) -> RigSolution:
     """Joint refinement of all cameras (pose + intrinsics but the ``fixed`` groups of ``FIXABLE``) and
@@ -193,8 +205,15 @@ def bundle_adjust(
     x = []
     for cam in cams:
         K, dist = intrinsics[cam].K, intrinsics[cam].dist
-        x += [*cv2.Rodrigues(cam_from_world[cam][:3, :3])[0].ravel(), *cam_from_world[cam][:3, 3],
-              K[0, 0], K[1, 1], K[0, 2], K[1, 2], *dist[:5]]  # fmt: skip
+        x += [
+            *cv2.Rodrigues(cam_from_world[cam][:3, :3])[0].ravel(),
+            *cam_from_world[cam][:3, 3],
+            K[0, 0],
+            K[1, 1],
+            K[0, 2],
+            K[1, 2],
+            *dist[:5],
+        ]
     for board in boards:
         x += [*cv2.Rodrigues(world_from_board[board][:3, :3])[0].ravel(), *world_from_board[board][:3, 3]]
     n_cam_params = len(cams) * N_CAM_PARAMS
@@ -225,5 +244,13 @@ def _solution(x, fun, cams, boards, reference, obs_cam, rejected) -> RigSolution
         p = x[offset + j * N_BOARD_PARAMS : offset + (j + 1) * N_BOARD_PARAMS]
         world_from_board[board] = _pose(p[:3], p[3:])
     camera_rms = {cam: float(np.sqrt(np.mean(errors[obs_cam == i] ** 2))) for i, cam in enumerate(cams)}
-    return RigSolution(K, dist, cam_from_world, world_from_board, float(np.sqrt(np.mean(errors**2))), camera_rms,
-                       float(np.mean(errors)), rejected)  # fmt: skip
+    return RigSolution(
+        K,
+        dist,
+        cam_from_world,
+        world_from_board,
+        float(np.sqrt(np.mean(errors**2))),
+        camera_rms,
+        float(np.mean(errors)),
+        rejected,
+    )

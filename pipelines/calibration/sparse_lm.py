@@ -45,8 +45,13 @@ def column_groups(sparsity: scipy.sparse.spmatrix) -> np.ndarray:
     return groups
 
 
-def sparse_jacobian(fun: Callable[[np.ndarray], np.ndarray], x: np.ndarray, sparsity: scipy.sparse.spmatrix,
-                    groups: np.ndarray, rel_step: float = 1e-6) -> scipy.sparse.csr_matrix:  # fmt: skip
+def sparse_jacobian(
+    fun: Callable[[np.ndarray], np.ndarray],
+    x: np.ndarray,
+    sparsity: scipy.sparse.spmatrix,
+    groups: np.ndarray,
+    rel_step: float = 1e-6,
+) -> scipy.sparse.csr_matrix:
     """(R, M) central-difference Jacobian of ``fun`` at ``x`` with the given pattern and column groups."""
     pattern = scipy.sparse.coo_matrix(sparsity)
     step = rel_step * np.maximum(1.0, np.abs(x))
@@ -67,8 +72,13 @@ def _huber(residuals: np.ndarray, point_dim: int, delta: float) -> tuple[float, 
 
 
 def solve_sparse_lm(
-    fun: Callable[[np.ndarray], np.ndarray], x0: np.ndarray, sparsity: scipy.sparse.spmatrix, huber: float = 1.0,
-    point_dim: int = 2, max_iter: int = 100, tol: float = 1e-10,
+    fun: Callable[[np.ndarray], np.ndarray],
+    x0: np.ndarray,
+    sparsity: scipy.sparse.spmatrix,
+    huber: float = 1.0,
+    point_dim: int = 2,
+    max_iter: int = 100,
+    tol: float = 1e-10,
 ) -> LmResult:
     """Minimise sum(Huber(|r_i|)) over the ``point_dim``-vectors r_i of ``fun(x)`` from ``x0``.
 

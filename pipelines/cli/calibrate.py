@@ -38,8 +38,10 @@ def _fixed_groups(text: str) -> frozenset[str]:
 
     groups = frozenset(g.strip() for g in text.split(",") if g.strip() and g.strip() != "none")
     if groups - set(FIXABLE):
-        raise ValueError(f"--fix {text}: unknown group(s) {sorted(groups - set(FIXABLE))}; choose from "
-                         f"{', '.join(sorted(FIXABLE))} or none")  # fmt: skip
+        raise ValueError(
+            f"--fix {text}: unknown group(s) {sorted(groups - set(FIXABLE))}; choose from "
+            f"{', '.join(sorted(FIXABLE))} or none"
+        )
     return groups
 
 
@@ -54,8 +56,9 @@ def _camera_order(capture: Path, calib: Path) -> tuple[list[str], list[list[str]
     return folders, None, None
 
 
-def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: bool = True,
-                      fixed: frozenset[str] = frozenset({"k3"})):  # fmt: skip
+def calibrate_capture(
+    capture: Path, spec: BoardSpec, reference: str, progress: bool = True, fixed: frozenset[str] = frozenset({"k3"})
+):
     """Detection, intrinsics, graph initialisation and bundle adjustment of every camera of a capture."""
     from tqdm import tqdm
 
@@ -73,10 +76,12 @@ def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: 
         found, size, report = detect_folder(calib / name, spec)
         if not found:
             reasons = ", ".join(f"{n} {r}" for r, n in Counter(report.values()).items())
-            raise CalibrationError(f"camera {name} never sees the board ({len(report)} shots in {calib / name}: "
-                                   f"{reasons}); check the board definition ({spec.squares_x}x{spec.squares_y} "
-                                   f"squares of {spec.square_length} m, markers {spec.marker_length} m, "
-                                   f"{spec.dictionary}) against the printed board")  # fmt: skip
+            raise CalibrationError(
+                f"camera {name} never sees the board ({len(report)} shots in {calib / name}: "
+                f"{reasons}); check the board definition ({spec.squares_x}x{spec.squares_y} "
+                f"squares of {spec.square_length} m, markers {spec.marker_length} m, "
+                f"{spec.dictionary}) against the printed board"
+            )
         detections[name], reports[name], sizes[name] = found, report, size
         intrinsics[name] = calibrate_intrinsics(name, found, size, fixed)
     cam_from_world, world_from_board = initial_extrinsics(intrinsics, detections, reference)
@@ -84,11 +89,24 @@ def calibrate_capture(capture: Path, spec: BoardSpec, reference: str, progress: 
     cameras = [Camera(n, solution.K[n], solution.dist[n], solution.cam_from_world[n], *sizes[n]) for n in names]
     shared = {shot: pose for shot, pose in solution.world_from_board.items() if "/intrinsics/" not in shot}
     figures = {"world_from_board": shared, "camera_rms": solution.camera_rms}
-    report = {"board": asdict(spec), "reference_shot": reference, "fixed": sorted(fixed),
-              "mean_reprojection_px": solution.mean_error, "rms_px": solution.rms,
-              "rejected_corners": solution.rejected, "cameras": {n: {"rms_px": solution.camera_rms[n], "shots_used":
-              len(detections[n]), "intrinsics_only_rms_px": intrinsics[n].rms, "rejected_views": intrinsics[n].rejected,
-              "detections": reports[n]} for n in names}}  # fmt: skip
+    report = {
+        "board": asdict(spec),
+        "reference_shot": reference,
+        "fixed": sorted(fixed),
+        "mean_reprojection_px": solution.mean_error,
+        "rms_px": solution.rms,
+        "rejected_corners": solution.rejected,
+        "cameras": {
+            n: {
+                "rms_px": solution.camera_rms[n],
+                "shots_used": len(detections[n]),
+                "intrinsics_only_rms_px": intrinsics[n].rms,
+                "rejected_views": intrinsics[n].rejected,
+                "detections": reports[n],
+            }
+            for n in names
+        },
+    }
     if previous is not None:
         from pipelines.calibration.report import compare_cameras
 
@@ -102,23 +120,29 @@ def write_colmap_text(folder: Path, cameras: list[Camera]) -> None:
     from scipy.spatial.transform import Rotation
 
     folder.mkdir(parents=True, exist_ok=True)
-    cam_lines, image_lines = ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"], [
-        "# Image list: IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME; then POINTS2D (empty)"]
+    cam_lines, image_lines = (
+        ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"],
+        ["# Image list: IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME; then POINTS2D (empty)"],
+    )
     for index, cam in enumerate(cameras, start=1):
         k, d = cam.K, cam.dist
-        cam_lines.append(f"{index} OPENCV {cam.width} {cam.height} {k[0, 0]:.10g} {k[1, 1]:.10g} {k[0, 2]:.10g} "
-                         f"{k[1, 2]:.10g} {d[0]:.10g} {d[1]:.10g} {d[2]:.10g} {d[3]:.10g}")  # fmt: skip
+        cam_lines.append(
+            f"{index} OPENCV {cam.width} {cam.height} {k[0, 0]:.10g} {k[1, 1]:.10g} {k[0, 2]:.10g} "
+            f"{k[1, 2]:.10g} {d[0]:.10g} {d[1]:.10g} {d[2]:.10g} {d[3]:.10g}"
+        )
         qx, qy, qz, qw = Rotation.from_matrix(cam.cam_from_world[:3, :3]).as_quat()
         tx, ty, tz = cam.cam_from_world[:3, 3]
-        image_lines += [f"{index} {qw:.12g} {qx:.12g} {qy:.12g} {qz:.12g} {tx:.12g} {ty:.12g} {tz:.12g} {index} "
-                        f"{cam.name.replace(' ', '_')}.jpg", ""]  # fmt: skip
+        image_lines += [
+            f"{index} {qw:.12g} {qx:.12g} {qy:.12g} {qz:.12g} {tx:.12g} {ty:.12g} {tz:.12g} {index} "
+            f"{cam.name.replace(' ', '_')}.jpg",
+            "",
+        ]
     (folder / "cameras.txt").write_text("\n".join(cam_lines) + "\n")
     (folder / "images.txt").write_text("\n".join(image_lines) + "\n")
     (folder / "points3D.txt").write_text("# 3D point list (empty)\n")
 
 
-def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None, report: dict,
-                  figures: dict) -> None:  # fmt: skip
+def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None, report: dict, figures: dict) -> None:
     """Write into a hidden temporary folder, then move the files into ``out`` (nothing partial on failure)."""
     staging = out.parent / f".{out.name}.partial"
     shutil.rmtree(staging, ignore_errors=True)
@@ -167,7 +191,8 @@ def main(argv: list[str] | None = None) -> int:
         "convention: board on the floor, z down, metres). Writes annots.npy (T in mm), intri.yml/extri.yml, a "
         "COLMAP text model (colmap/), report.json, rig.png and residuals.png to --out; only --write-annots "
         "touches the capture's own annots.npy (backed up first).",
-        formatter_class=HelpFormatter)  # fmt: skip
+        formatter_class=HelpFormatter,
+    )
     parser.add_argument("capture", type=Path, help="capture folder holding calib/<camera>/*.jpg")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: CAPTURE_DIR/calibration)")
     parser.add_argument("--board-json", type=Path, default=None, help="board definition (default: calib/board.json)")
@@ -177,8 +202,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--marker-length", type=float, default=None, help="marker side in metres")
     parser.add_argument("--dictionary", default=None, help="ArUco dictionary, e.g. DICT_5X5_100")
     parser.add_argument("--reference-shot", default="000", help="shot whose board defines the world frame")
-    parser.add_argument("--fix", default="k3", help="comma-separated parameter groups held fixed: k3 (= 0), "
-                        "tangential (p1 = p2 = 0), principal_point (image centre); 'none' frees all")  # fmt: skip
+    parser.add_argument(
+        "--fix",
+        default="k3",
+        help="comma-separated parameter groups held fixed: k3 (= 0), "
+        "tangential (p1 = p2 = 0), principal_point (image centre); 'none' frees all",
+    )
     parser.add_argument("--write-annots", action="store_true", help="also merge the cams into CAPTURE/annots.npy")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
@@ -192,13 +221,17 @@ def main(argv: list[str] | None = None) -> int:
         raise FileExistsError(f"{out}: exists and is not a folder")
     write_outputs(out, cameras, ims, report, figures)
     worst = max(report["cameras"].items(), key=lambda kv: kv[1]["rms_px"])
-    print(f"narf-calibrate: {len(cameras)} cameras, mean reprojection {report['mean_reprojection_px']:.2f} px "
-          f"(worst camera {worst[0]}: {worst[1]['rms_px']:.2f} px RMS); wrote {out}")  # fmt: skip
+    print(
+        f"narf-calibrate: {len(cameras)} cameras, mean reprojection {report['mean_reprojection_px']:.2f} px "
+        f"(worst camera {worst[0]}: {worst[1]['rms_px']:.2f} px RMS); wrote {out}"
+    )
     if "against_previous_annots" in report:
         diff = report["against_previous_annots"]["max"]
-        print(f"narf-calibrate: against the capture's annots.npy: max centre difference {diff['centre_mm']:.1f} mm, "
-              f"rotation {diff['rotation_deg']:.3f} deg, focal {diff['focal_pct']:.3f} % (after a similarity "
-              f"alignment: {diff['aligned_centre_mm']:.1f} mm, {diff['aligned_rotation_deg']:.3f} deg)")  # fmt: skip
+        print(
+            f"narf-calibrate: against the capture's annots.npy: max centre difference {diff['centre_mm']:.1f} mm, "
+            f"rotation {diff['rotation_deg']:.3f} deg, focal {diff['focal_pct']:.3f} % (after a similarity "
+            f"alignment: {diff['aligned_centre_mm']:.1f} mm, {diff['aligned_rotation_deg']:.3f} deg)"
+        )
     if args.write_annots:
         backup = merge_into_capture(args.capture, cameras)
         print(f"narf-calibrate: updated {args.capture / 'annots.npy'} (previous file: {backup.name})")

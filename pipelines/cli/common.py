@@ -23,8 +23,18 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         return super()._get_help_string(action)
 
 
-KNOWN_ERRORS = (CaptureError, SmplFileError, ValueError, RuntimeError, IsADirectoryError, FileExistsError,
-                FileNotFoundError, NotADirectoryError, PermissionError, KeyError)  # fmt: skip
+KNOWN_ERRORS = (
+    CaptureError,
+    SmplFileError,
+    ValueError,
+    RuntimeError,
+    IsADirectoryError,
+    FileExistsError,
+    FileNotFoundError,
+    NotADirectoryError,
+    PermissionError,
+    KeyError,
+)
 
 
 def run_cli(prog: str, main: Callable[[list[str] | None], int | None], argv: list[str] | None = None) -> int:

@@ -15,7 +15,8 @@ def main(argv: list[str] | None = None) -> int:
         prog="narf-convert-smpl",
         description="Convert an official SMPL pickle (basicModel_*_lbs_10_207_0_v1.0.0.pkl, with chumpy objects) "
         "into a plain numpy/scipy pickle, without installing chumpy. Point --smpl-dir or NARF_SMPL_DIR at the "
-        "output folder afterwards.")  # fmt: skip
+        "output folder afterwards.",
+    )
     parser.add_argument("src", type=Path, help="official SMPL .pkl")
     parser.add_argument("dst", type=Path, help="output, e.g. models/smpl/SMPL_NEUTRAL.pkl")
     args = parser.parse_args(argv)

@@ -20,10 +20,15 @@ def main(argv: list[str] | None = None) -> int:
         "Mask L2 (x10^4) per view and averaged, under the full-image and the Neural Body bounding-box crop "
         "protocols. Writes RUN/eval/metrics.json, RUN/eval/metrics.md (supplement layout) and image grids "
         "(ground truth | render | depth | part segmentation | error).",
-        formatter_class=HelpFormatter)  # fmt: skip
+        formatter_class=HelpFormatter,
+    )
     parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")
-    parser.add_argument("--split", default="novel_pose", choices=ALL_SPLITS,
-                        help="novel_pose / novel_view are the Neural Body splits; 'all' = the four pose x view splits")
+    parser.add_argument(
+        "--split",
+        default="novel_pose",
+        choices=ALL_SPLITS,
+        help="novel_pose / novel_view are the Neural Body splits; 'all' = the four pose x view splits",
+    )
     parser.add_argument("--limit", type=int, default=None, help="evaluate at most N views per split, evenly spread")
     parser.add_argument("--grids", type=int, default=4, help="image grids to write per split")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")

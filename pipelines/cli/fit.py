@@ -16,22 +16,39 @@ def build_parser() -> argparse.ArgumentParser:
         description="Fit a NARF avatar (default NARF_D) to a multi-view capture in the ZJU-MoCap layout. Writes "
         "config.yaml, checkpoint.pt (atomic, every few minutes and at the end), log.jsonl, curve.png and val/ "
         "renders into --out. A killed fit resumes with --resume and ends where an uninterrupted one would.",
-        formatter_class=HelpFormatter)  # fmt: skip
+        formatter_class=HelpFormatter,
+    )
     parser.add_argument("--subject", default=None, help="subject name or folder (default from the preset: taichi)")
     parser.add_argument("--data-root", default=None, help="data root (default: $NARF_DATA or data/)")
-    parser.add_argument("--config", default=None,
-                        help="preset name (cpu, paper, tiny, cnn) or YAML file; default: cnn for --model cnn, else "
-                        "paper with CUDA and cpu without")  # fmt: skip
-    parser.add_argument("--model", default=None, help="model name (narf_d, narf_d_sigmoid, narf_h, narf_p, p_nerf, "
-                        "d_narf, or cnn: the CNN baseline, trained in image space); overrides the preset")  # fmt: skip
+    parser.add_argument(
+        "--config",
+        default=None,
+        help="preset name (cpu, paper, tiny, cnn) or YAML file; default: cnn for --model cnn, else "
+        "paper with CUDA and cpu without",
+    )
+    parser.add_argument(
+        "--model",
+        default=None,
+        help="model name (narf_d, narf_d_sigmoid, narf_h, narf_p, p_nerf, "
+        "d_narf, or cnn: the CNN baseline, trained in image space); overrides the preset",
+    )
     parser.add_argument("--out", type=Path, default=None, help="run folder (default: runs/<subject>-<model>)")
-    parser.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
-                        help="override a config value, e.g. --set train.steps=5000 (repeatable)")
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="override a config value, e.g. --set train.steps=5000 (repeatable)",
+    )
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--resume", action="store_true", help="continue the checkpoint in --out")
     parser.add_argument("--max-minutes", type=float, default=None, help="stop (and checkpoint) after this long")
-    parser.add_argument("--smpl-dir", default=None, help="SMPL model folder or file (default: $NARF_SMPL_DIR, else "
-                        "the generated stand-in)")  # fmt: skip
+    parser.add_argument(
+        "--smpl-dir",
+        default=None,
+        help="SMPL model folder or file (default: $NARF_SMPL_DIR, else the generated stand-in)",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
 
@@ -66,10 +83,16 @@ def main(argv: list[str] | None = None) -> int:
         raise FileNotFoundError(f"{out}: no checkpoint to resume")
     run_dir = prepare_run_dir(out, config, args.resume)
     trainer = start_trainer(config, run_dir, device, resume=args.resume, progress=not args.quiet)
-    size = f"{trainer.config.model.image_size}^2" if trainer.config.model.name == "cnn" else \
-        f"width {trainer.config.model.width}"
-    print(f"narf-fit: {trainer.config.model.name} ({size}) on "
-          f"{trainer.fit_data.description}, device {device}, torch {torch.__version__}", file=sys.stderr)  # fmt: skip
+    size = (
+        f"{trainer.config.model.image_size}^2"
+        if trainer.config.model.name == "cnn"
+        else f"width {trainer.config.model.width}"
+    )
+    print(
+        f"narf-fit: {trainer.config.model.name} ({size}) on "
+        f"{trainer.fit_data.description}, device {device}, torch {torch.__version__}",
+        file=sys.stderr,
+    )
     result = trainer.fit(args.max_minutes)
     state = "finished" if result.finished else "stopped (resume with --resume)"
     print(f"narf-fit: {state} at step {result.step}, training PSNR {result.psnr:.2f} dB; run folder {run_dir}")

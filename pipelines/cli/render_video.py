@@ -19,14 +19,16 @@ def main(argv: list[str] | None = None) -> int:
         "circles a held pose at the rig's distance and height; 'poses' plays the held-out frames (or another "
         "subject's params folder, retargeted to this subject's shape) from one camera; 'bones' grows and shrinks "
         "the legs (bone-length edit).",
-        formatter_class=HelpFormatter)  # fmt: skip
+        formatter_class=HelpFormatter,
+    )
     parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")
     parser.add_argument("--kind", choices=KINDS, default="orbit", help="what to render")
     parser.add_argument("--out", type=Path, default=None, help="output .mp4 (default: RUN/videos/<kind>.mp4)")
     parser.add_argument("--frames", type=int, default=60, help="number of video frames")
     parser.add_argument("--fps", type=int, default=24, help="frames per second")
-    parser.add_argument("--camera", type=int, default=None, help="camera index for poses/bones (default: first "
-                        "test view)")  # fmt: skip
+    parser.add_argument(
+        "--camera", type=int, default=None, help="camera index for poses/bones (default: first test view)"
+    )
     parser.add_argument("--params-dir", type=Path, default=None, help="poses: a folder of ZJU params/*.npy to play")
     parser.add_argument("--scale", type=float, default=1.3, help="bones: largest leg-length factor")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
@@ -35,8 +37,18 @@ def main(argv: list[str] | None = None) -> int:
     if args.frames < 1 or args.fps < 1:
         raise ValueError("--frames and --fps must be positive")
     out = args.out or args.run / "videos" / f"{args.kind}.mp4"
-    path = render_video(args.run, args.kind, out, args.frames, args.fps, str(auto_device(args.device)),
-                        args.params_dir, args.camera, args.scale, not args.quiet)  # fmt: skip
+    path = render_video(
+        args.run,
+        args.kind,
+        out,
+        args.frames,
+        args.fps,
+        str(auto_device(args.device)),
+        args.params_dir,
+        args.camera,
+        args.scale,
+        not args.quiet,
+    )
     print(f"narf-render-video: wrote {path}")
     return 0
 

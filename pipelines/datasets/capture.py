@@ -25,11 +25,26 @@ from pipelines.datasets.zju_mocap import (
 
 MASK_SOURCES = ("cihp", "mask", "union")
 #: Neural Body frame ranges per subject id: (train begin, n train, novel-pose begin, n novel).
-NEURALBODY_FRAMES = {313: (0, 60, 60, 1000), 315: (0, 400, 400, 1000), 377: (0, 300, 300, 317),
-                     386: (0, 300, 300, 346), 387: (0, 300, 300, 354), 390: (700, 300, 0, 700),
-                     392: (0, 300, 300, 256), 393: (0, 300, 300, 358), 394: (0, 300, 300, 559)}  # fmt: skip
-SPLITS = ("train", "same_pose_same_view", "same_pose_novel_view", "novel_pose_same_view", "novel_pose_novel_view",
-          "novel_pose", "novel_view")  # fmt: skip
+NEURALBODY_FRAMES = {
+    313: (0, 60, 60, 1000),
+    315: (0, 400, 400, 1000),
+    377: (0, 300, 300, 317),
+    386: (0, 300, 300, 346),
+    387: (0, 300, 300, 354),
+    390: (700, 300, 0, 700),
+    392: (0, 300, 300, 256),
+    393: (0, 300, 300, 358),
+    394: (0, 300, 300, 559),
+}
+SPLITS = (
+    "train",
+    "same_pose_same_view",
+    "same_pose_novel_view",
+    "novel_pose_same_view",
+    "novel_pose_novel_view",
+    "novel_pose",
+    "novel_view",
+)
 
 
 @dataclass(frozen=True)
@@ -96,8 +111,14 @@ class ZjuCapture:
         white_background: composite onto white instead of black.
     """
 
-    def __init__(self, root: str | Path, ratio: float = 0.5, mask_source: str = "cihp", new_params: bool = True,
-                 white_background: bool = False):  # fmt: skip
+    def __init__(
+        self,
+        root: str | Path,
+        ratio: float = 0.5,
+        mask_source: str = "cihp",
+        new_params: bool = True,
+        white_background: bool = False,
+    ):
         self.root = Path(root)
         if not (self.root / "annots.npy").is_file():
             raise CaptureError(f"{self.root}: no annots.npy (not a ZJU-MoCap subject folder)")
@@ -161,8 +182,9 @@ class ZjuCapture:
                 raise CaptureError(f"{path}: missing or unreadable mask")
             raw = raw[..., 0] if raw.ndim == 3 else raw
             if raw.shape != shape:
-                raise CaptureError(f"{path}: mask is {raw.shape[1]}x{raw.shape[0]} but the image is "
-                                   f"{shape[1]}x{shape[0]}")  # fmt: skip
+                raise CaptureError(
+                    f"{path}: mask is {raw.shape[1]}x{raw.shape[0]} but the image is {shape[1]}x{shape[0]}"
+                )
             masks.append(raw != 0)
             if folder == "mask_cihp":
                 labels = raw.astype(np.uint8)
@@ -179,14 +201,17 @@ class ZjuCapture:
             raise CaptureError(f"{path}: missing or unreadable image")
         camera = self.cameras[cam]
         if (bgr.shape[1], bgr.shape[0]) != (camera.width, camera.height):
-            raise CaptureError(f"{path}: image is {bgr.shape[1]}x{bgr.shape[0]}, camera {camera.name} images are "
-                               f"{camera.width}x{camera.height}")  # fmt: skip
+            raise CaptureError(
+                f"{path}: image is {bgr.shape[1]}x{bgr.shape[0]}, camera {camera.name} images are "
+                f"{camera.width}x{camera.height}"
+            )
         image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
         mask, labels = self._read_mask(frame, cam, image.shape[:2])
         if np.any(camera.dist != 0):
             image = cv2.undistort(image, camera.K, camera.dist)
-            maps = cv2.initUndistortRectifyMap(camera.K, camera.dist, None, camera.K, (camera.width, camera.height),
-                                               cv2.CV_32FC1)  # fmt: skip
+            maps = cv2.initUndistortRectifyMap(
+                camera.K, camera.dist, None, camera.K, (camera.width, camera.height), cv2.CV_32FC1
+            )
             mask = cv2.remap(mask.astype(np.uint8), *maps, cv2.INTER_NEAREST) > 0
             labels = cv2.remap(labels, *maps, cv2.INTER_NEAREST)
         band = boundary_band(mask)
@@ -198,7 +223,14 @@ class ZjuCapture:
             labels = cv2.resize(labels, size, interpolation=cv2.INTER_NEAREST)
         background = 1.0 if self.white_background else 0.0
         image[~mask & ~band] = background
-        return Frame(frame_index=self._frame_of_entry[frame][0], camera_index=cam, image=image,
-                     mask=mask.astype(np.float32), band=band, labels=labels,
-                     camera=camera.undistorted().scaled(self.ratio), params=self.params(frame),
-                     image_path=path)  # fmt: skip
+        return Frame(
+            frame_index=self._frame_of_entry[frame][0],
+            camera_index=cam,
+            image=image,
+            mask=mask.astype(np.float32),
+            band=band,
+            labels=labels,
+            camera=camera.undistorted().scaled(self.ratio),
+            params=self.params(frame),
+            image_path=path,
+        )

@@ -17,8 +17,12 @@ import scipy.sparse
 
 REQUIRED_KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
 #: Module renames so that pickles written under numpy 2 / new scipy load under numpy 1.x / older scipy too.
-_LEGACY_MODULES = {"numpy._core.multiarray": "numpy.core.multiarray", "numpy._core.numeric": "numpy.core.numeric",
-                   "numpy._core": "numpy.core", "scipy.sparse._csc": "scipy.sparse.csc"}  # fmt: skip
+_LEGACY_MODULES = {
+    "numpy._core.multiarray": "numpy.core.multiarray",
+    "numpy._core.numeric": "numpy.core.numeric",
+    "numpy._core": "numpy.core",
+    "scipy.sparse._csc": "scipy.sparse.csc",
+}
 
 
 class SmplFileError(ValueError):
@@ -69,9 +73,11 @@ def validate_smpl_dict(model: dict, source: str) -> None:
         raise SmplFileError(f"{source}: missing SMPL keys {missing}")
     n_verts = np.asarray(model["v_template"]).shape[0]
     checks = {
-        "v_template": (n_verts, 3), "weights": (n_verts, 24), "J_regressor": (24, n_verts),
+        "v_template": (n_verts, 3),
+        "weights": (n_verts, 24),
+        "J_regressor": (24, n_verts),
         "kintree_table": (2, 24),
-    }  # fmt: skip
+    }
     for key, shape in checks.items():
         got = model[key].shape
         if tuple(got) != shape:

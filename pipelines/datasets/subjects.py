@@ -14,8 +14,17 @@ from pathlib import Path
 from pipelines.datasets.zju_mocap import CaptureError
 
 #: ZJU-MoCap action names -> subject ids (docs/formats.md, ZJU-MoCap).
-ZJU_SUBJECTS = {"twirl": 313, "taichi": 315, "warmup": 377, "punch1": 386, "punch2": 387, "kick": 390,
-                "swing1": 392, "swing3": 393, "swing2": 394}  # fmt: skip
+ZJU_SUBJECTS = {
+    "twirl": 313,
+    "taichi": 315,
+    "warmup": 377,
+    "punch1": 386,
+    "punch2": 387,
+    "kick": 390,
+    "swing1": 392,
+    "swing3": 393,
+    "swing2": 394,
+}
 
 
 def data_root(explicit: str | Path | None = None) -> Path:

@@ -143,8 +143,12 @@ def read_params(path: Path) -> SmplParams:
 
 def write_params(path: Path, params: SmplParams) -> None:
     """Write an EasyMocap/ZJU params file: a dict of (1, n) float64 arrays."""
-    data = {"poses": params.poses[None].astype(np.float64), "Rh": params.rh[None].astype(np.float64),
-            "Th": params.th[None].astype(np.float64), "shapes": params.shapes[None].astype(np.float64)}  # fmt: skip
+    data = {
+        "poses": params.poses[None].astype(np.float64),
+        "Rh": params.rh[None].astype(np.float64),
+        "Th": params.th[None].astype(np.float64),
+        "shapes": params.shapes[None].astype(np.float64),
+    }
     _save_npy(path, np.array(data, dtype=object))
 
 
@@ -158,9 +162,12 @@ def _save_npy(path: Path, array: np.ndarray) -> None:
 
 def write_annots(path: Path, cameras: list[Camera], ims: list[list[str]]) -> None:
     """Write ``annots.npy``: cams K, D (5,1), R, T (3,1) in millimetres; ims per frame."""
-    cams = {"K": [c.K.astype(np.float64) for c in cameras], "D": [c.dist.reshape(5, 1) for c in cameras],
-            "R": [c.cam_from_world[:3, :3].copy() for c in cameras],
-            "T": [c.cam_from_world[:3, 3:4] * 1000.0 for c in cameras]}  # fmt: skip
+    cams = {
+        "K": [c.K.astype(np.float64) for c in cameras],
+        "D": [c.dist.reshape(5, 1) for c in cameras],
+        "R": [c.cam_from_world[:3, :3].copy() for c in cameras],
+        "T": [c.cam_from_world[:3, 3:4] * 1000.0 for c in cameras],
+    }
     for frame_ims in ims:
         if len(frame_ims) != len(cameras):
             raise ValueError(f"each ims entry must list {len(cameras)} paths, got {len(frame_ims)}")
@@ -176,8 +183,9 @@ def _orthonormalise(rotation: np.ndarray) -> np.ndarray:
     return fixed
 
 
-def read_annots(path: Path, image_size: tuple[int, int] | None = None,
-                check_folders: bool = True) -> tuple[list[Camera], list[list[str]]]:  # fmt: skip
+def read_annots(
+    path: Path, image_size: tuple[int, int] | None = None, check_folders: bool = True
+) -> tuple[list[Camera], list[list[str]]]:
     """Read ``annots.npy`` into cameras (T converted to metres, R re-orthonormalised) and per-frame image paths.
 
     Args:
@@ -194,8 +202,9 @@ def read_annots(path: Path, image_size: tuple[int, int] | None = None,
             raise CaptureError(f"{path}: cams lacks '{key}'")
     n_cams = len(cams["K"])
     if not all(len(cams[k]) == n_cams for k in ("D", "R", "T")):
-        raise CaptureError(f"{path}: cams K/D/R/T list different numbers of cameras "
-                           f"({[len(cams[k]) for k in ('K', 'D', 'R', 'T')]})")  # fmt: skip
+        raise CaptureError(
+            f"{path}: cams K/D/R/T list different numbers of cameras ({[len(cams[k]) for k in ('K', 'D', 'R', 'T')]})"
+        )
     ims = [list(entry["ims"]) for entry in data["ims"]]
     for f, entry in enumerate(ims):
         if len(entry) != n_cams:
@@ -219,8 +228,11 @@ def read_annots(path: Path, image_size: tuple[int, int] | None = None,
         cam_from_world[:3, 3] = np.asarray(cams["T"][c], dtype=np.float64).reshape(3) / 1000.0
         dist = np.asarray(cams["D"][c], dtype=np.float64).reshape(-1)
         dist = np.pad(dist, (0, max(0, 5 - dist.size)))[:5]
-        cameras.append(Camera(folder, np.asarray(cams["K"][c], dtype=np.float64).reshape(3, 3), dist,
-                              cam_from_world, width, height))  # fmt: skip
+        cameras.append(
+            Camera(
+                folder, np.asarray(cams["K"][c], dtype=np.float64).reshape(3, 3), dist, cam_from_world, width, height
+            )
+        )
     return cameras, ims
 
 

@@ -179,17 +179,27 @@ def pose_sequence(body: BodyModel, motion: dict[str, np.ndarray]) -> tuple[list[
     new[..., 2] -= lift[:, None]
     th = motion["Th"].copy()
     th[:, 2] -= lift
-    params = [SmplParams(motion["poses"][f].astype(np.float32), motion["Rh"][f].astype(np.float32),
-                         th[f].astype(np.float32), motion["shapes"][f].astype(np.float32))
-              for f in range(len(th))]  # fmt: skip
+    params = [
+        SmplParams(
+            motion["poses"][f].astype(np.float32),
+            motion["Rh"][f].astype(np.float32),
+            th[f].astype(np.float32),
+            motion["shapes"][f].astype(np.float32),
+        )
+        for f in range(len(th))
+    ]
     return params, old, new
 
 
 def _render_frames(state: dict, vertices: np.ndarray, config: SynthConfig, progress: bool) -> None:
     """Render and write every frame of every camera, in ``config.workers`` forked processes."""
     tasks = [(f, vertices[f]) for f in range(config.frames)]
-    bar = tqdm(total=config.frames, desc=f"rendering {config.frames} frames x {config.cameras} cameras",
-               unit="frame", disable=not progress)  # fmt: skip
+    bar = tqdm(
+        total=config.frames,
+        desc=f"rendering {config.frames} frames x {config.cameras} cameras",
+        unit="frame",
+        disable=not progress,
+    )
     _prepare_state(state)
     if config.workers > 1:
         with mp.get_context("fork").Pool(config.workers, _init_worker) as pool:
@@ -227,8 +237,9 @@ def _write_sequence(root: Path, layout: str, params: list[SmplParams], old: np.n
         np.save(root / "new_vertices" / f"{f + base}.npy", new[f].astype(np.float32))
 
 
-def generate_capture(out: str | Path, config: SynthConfig = SynthConfig(), smpl_path: str | Path | None = None,
-                     progress: bool = True) -> Path:  # fmt: skip
+def generate_capture(
+    out: str | Path, config: SynthConfig = SynthConfig(), smpl_path: str | Path | None = None, progress: bool = True
+) -> Path:
     """Generate (or reuse) a synthetic capture at ``out``; returns ``out``."""
     config.validate()
     out = Path(out)
@@ -238,8 +249,9 @@ def generate_capture(out: str | Path, config: SynthConfig = SynthConfig(), smpl_
         return out
     if out.exists() and any(out.iterdir()):
         if not is_complete(out):
-            raise FileExistsError(f"{out}: folder is not empty and holds no finished synthetic capture; "
-                                  "choose another --out or remove it")  # fmt: skip
+            raise FileExistsError(
+                f"{out}: folder is not empty and holds no finished synthetic capture; choose another --out or remove it"
+            )
         shutil.rmtree(out)  # a finished capture with other settings: regenerate
     partial = out.parent / f".{out.name}.partial"
     shutil.rmtree(partial, ignore_errors=True)
@@ -248,8 +260,10 @@ def generate_capture(out: str | Path, config: SynthConfig = SynthConfig(), smpl_
     params, old, new = pose_sequence(body, taichi_motion(config.frames, config.seed))
     cameras = ring_cameras(config.cameras, config.resolution, config.seed)
     if config.layout == "313":
-        cameras = [Camera(f"Camera ({c + 1})", cam.K, cam.dist, cam.cam_from_world, cam.width, cam.height)
-                   for c, cam in enumerate(cameras)]  # fmt: skip
+        cameras = [
+            Camera(f"Camera ({c + 1})", cam.K, cam.dist, cam.cam_from_world, cam.width, cam.height)
+            for c, cam in enumerate(cameras)
+        ]
     _write_sequence(partial, config.layout, params, old, new)
     ims = [[image_relpath(config.layout, c, f) for c in range(config.cameras)] for f in range(config.frames)]
     for folder in ("", "mask_cihp", "mask"):
@@ -258,9 +272,15 @@ def generate_capture(out: str | Path, config: SynthConfig = SynthConfig(), smpl_
     write_annots(partial / "annots.npy", cameras, ims)
     write_easymocap_cameras(partial, cameras)
     rest = body.rest_body(torch.as_tensor(params[0].shapes)[None]).vertices[0].numpy()
-    state = {"root": partial, "layout": config.layout, "jpeg_quality": config.jpeg_quality, "cameras": cameras,
-             "faces": body.faces, "rest_vertices": rest,
-             "labels": vertex_regions(rest, body.skinning_weights.numpy())}  # fmt: skip
+    state = {
+        "root": partial,
+        "layout": config.layout,
+        "jpeg_quality": config.jpeg_quality,
+        "cameras": cameras,
+        "faces": body.faces,
+        "rest_vertices": rest,
+        "labels": vertex_regions(rest, body.skinning_weights.numpy()),
+    }
     _render_frames(state, new, config, progress)
     if config.lbs:
         from pipelines.synthetic.lbs import write_lbs
@@ -270,10 +290,17 @@ def generate_capture(out: str | Path, config: SynthConfig = SynthConfig(), smpl_
     if config.calib_shots > 0:
         from pipelines.synthetic.charuco_shots import write_calibration_shots
 
-        write_calibration_shots(partial / "calib", cameras, config.calib_shots, config.seed, progress=progress,
-                                close_ups=config.calib_close_ups)  # fmt: skip
-    (partial / MARKER).write_text(json.dumps({"version": GENERATOR_VERSION, "config": asdict(config),
-                                              "smpl": str(body.path)}, indent=2))  # fmt: skip
+        write_calibration_shots(
+            partial / "calib",
+            cameras,
+            config.calib_shots,
+            config.seed,
+            progress=progress,
+            close_ups=config.calib_close_ups,
+        )
+    (partial / MARKER).write_text(
+        json.dumps({"version": GENERATOR_VERSION, "config": asdict(config), "smpl": str(body.path)}, indent=2)
+    )
     if out.exists():
         out.rmdir()
     partial.rename(out)

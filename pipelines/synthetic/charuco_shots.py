@@ -104,8 +104,13 @@ def _board_hits(centre: np.ndarray, dirs: np.ndarray, world_from_board: np.ndarr
 
 
 def _render_board(
-    camera: Camera, dirs: np.ndarray, background: np.ndarray, texture: np.ndarray, world_from_board: np.ndarray,
-    spec: BoardSpec, supersample: int = _SUPERSAMPLE,
+    camera: Camera,
+    dirs: np.ndarray,
+    background: np.ndarray,
+    texture: np.ndarray,
+    world_from_board: np.ndarray,
+    spec: BoardSpec,
+    supersample: int = _SUPERSAMPLE,
 ) -> np.ndarray:
     """(H, W, 3) shot: the board over ``background``, each pixel the mean of ``supersample``^2 sub-pixel rays
     (a sensor integrates over the pixel area; point-sampled edges would jitter the corners by ~0.1 px)."""
@@ -145,8 +150,13 @@ def _render_board(
 
 
 def write_calibration_shots(
-    folder: Path, cameras: list[Camera], n_shots: int, seed: int, spec: BoardSpec = BoardSpec(),
-    progress: bool = True, close_ups: int = 0,
+    folder: Path,
+    cameras: list[Camera],
+    n_shots: int,
+    seed: int,
+    spec: BoardSpec = BoardSpec(),
+    progress: bool = True,
+    close_ups: int = 0,
 ) -> None:
     """Render ``n_shots`` board poses into every camera, plus ``close_ups`` per-camera close-up shots under
     ``<camera>/intrinsics/``, and write the ``calib/`` folder (module docstring)."""
@@ -170,7 +180,8 @@ def write_calibration_shots(
             image = _render_board(camera, dirs, background, texture, pose, spec)
             bgr = cv2.cvtColor((image * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)
             cv2.imwrite(str(path), bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
-    (folder / "board.json").write_text(json.dumps({**asdict(spec), "reference_shot": 0,
-                                                   "cameras": [c.name for c in cameras]}, indent=2))  # fmt: skip
+    (folder / "board.json").write_text(
+        json.dumps({**asdict(spec), "reference_shot": 0, "cameras": [c.name for c in cameras]}, indent=2)
+    )
     extra = {} if close is None else {"close_world_from_board": close}
     np.savez(folder / "ground_truth.npz", world_from_board=poses, **extra)

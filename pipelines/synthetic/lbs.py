@@ -35,14 +35,22 @@ def weight_grid(vertices: np.ndarray, weights: np.ndarray) -> np.ndarray:
 def _posed_smpl_frame(body: BodyModel, poses: np.ndarray, shapes: np.ndarray) -> np.ndarray:
     smpl = body.smpl
     with torch.no_grad():
-        verts, _ = lbs(torch.as_tensor(shapes, dtype=body.dtype)[None], torch.as_tensor(poses, dtype=body.dtype)[None],
-                       smpl.v_template, smpl.shapedirs, smpl.posedirs, smpl.J_regressor, smpl.parents,
-                       smpl.lbs_weights)  # fmt: skip
+        verts, _ = lbs(
+            torch.as_tensor(shapes, dtype=body.dtype)[None],
+            torch.as_tensor(poses, dtype=body.dtype)[None],
+            smpl.v_template,
+            smpl.shapedirs,
+            smpl.posedirs,
+            smpl.J_regressor,
+            smpl.parents,
+            smpl.lbs_weights,
+        )
     return verts[0].numpy()
 
 
-def write_lbs(root: Path, body: BodyModel, params: list[SmplParams], vertices_world: np.ndarray,
-              param_indices: list[int]) -> None:  # fmt: skip
+def write_lbs(
+    root: Path, body: BodyModel, params: list[SmplParams], vertices_world: np.ndarray, param_indices: list[int]
+) -> None:
     """Write ``root/lbs``: joints, parents, weights, faces, tvertices, bigpose_vertices, tbw, bigpose_bw,
     bweights/{i}.npy (one per frame, named like the params files) and smpl_params.npy."""
     out = Path(root) / "lbs"
@@ -67,6 +75,8 @@ def write_lbs(root: Path, body: BodyModel, params: list[SmplParams], vertices_wo
         rot = rigid_from_rotvec_translation(torch.as_tensor(p.rh)[None], torch.zeros(1, 3))[0, :3, :3].numpy()
         smpl_frame = (verts - p.th) @ rot  # R^T (v - Th) for row vectors
         np.save(out / "bweights" / f"{index}.npy", weight_grid(smpl_frame, weights))
-    stacked = {k: np.stack([getattr(p, a) for p in params]) for k, a in
-               (("poses", "poses"), ("Rh", "rh"), ("Th", "th"), ("shapes", "shapes"))}  # fmt: skip
+    stacked = {
+        k: np.stack([getattr(p, a) for p in params])
+        for k, a in (("poses", "poses"), ("Rh", "rh"), ("Th", "th"), ("shapes", "shapes"))
+    }
     np.save(out / "smpl_params.npy", stacked, allow_pickle=True)

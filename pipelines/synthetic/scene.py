@@ -13,8 +13,17 @@ from pipelines.datasets.zju_mocap import Camera
 #: SMPL rest frame (y up, z forward) -> world (z down): x -> x, y -> -z, z -> +y.
 WORLD_FROM_SMPL_BASE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
 #: CIHP labels used by the generator.
-LABEL = {"hair": 2, "upper_clothes": 5, "pants": 9, "torso_skin": 10, "face": 13, "left_arm": 14,
-         "right_arm": 15, "left_shoe": 18, "right_shoe": 19}  # fmt: skip
+LABEL = {
+    "hair": 2,
+    "upper_clothes": 5,
+    "pants": 9,
+    "torso_skin": 10,
+    "face": 13,
+    "left_arm": 14,
+    "right_arm": 15,
+    "left_shoe": 18,
+    "right_shoe": 19,
+}
 
 
 def look_at(centre: np.ndarray, target: np.ndarray, down: tuple[float, float, float] = (0.0, 0.0, 1.0)) -> np.ndarray:
@@ -46,11 +55,22 @@ def ring_cameras(n_cameras: int, resolution: int, seed: int, radius: float = 3.0
         centre = np.array([rad * np.sin(angle), -rad * np.cos(angle), -1.9 + rng.uniform(-0.08, 0.08)])
         target = np.array([rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), -0.9 + rng.uniform(-0.05, 0.05)])
         focal = (1100 + rng.uniform(-40, 40)) * scale
-        K = np.array([[focal, 0, resolution / 2 + rng.uniform(-12, 12) * scale],
-                      [0, focal * (1 + rng.uniform(-0.002, 0.002)), resolution / 2 + rng.uniform(-12, 12) * scale],
-                      [0, 0, 1]])  # fmt: skip
-        dist = np.array([rng.uniform(-0.08, 0.02), rng.uniform(-0.02, 0.05), rng.uniform(-5e-4, 5e-4),
-                         rng.uniform(-5e-4, 5e-4), 0.0])  # fmt: skip
+        K = np.array(
+            [
+                [focal, 0, resolution / 2 + rng.uniform(-12, 12) * scale],
+                [0, focal * (1 + rng.uniform(-0.002, 0.002)), resolution / 2 + rng.uniform(-12, 12) * scale],
+                [0, 0, 1],
+            ]
+        )
+        dist = np.array(
+            [
+                rng.uniform(-0.08, 0.02),
+                rng.uniform(-0.02, 0.05),
+                rng.uniform(-5e-4, 5e-4),
+                rng.uniform(-5e-4, 5e-4),
+                0.0,
+            ]
+        )
         cameras.append(Camera(f"Camera_B{c + 1}", K, dist, look_at(centre, target), resolution, resolution))
     return cameras
 
@@ -110,7 +130,8 @@ def vertex_regions(rest_vertices: np.ndarray, skinning_weights: np.ndarray) -> n
     head_top = y.max()
     labels[np.isin(joint, (1, 2, 4, 5)) | (np.isin(joint, (0, 3)) & (y < -0.17))] = LABEL["pants"]
     labels[np.isin(joint, (7, 8, 10, 11))] = np.where(left, LABEL["left_shoe"], LABEL["right_shoe"])[
-        np.isin(joint, (7, 8, 10, 11))]
+        np.isin(joint, (7, 8, 10, 11))
+    ]
     labels[joint == 12] = LABEL["torso_skin"]
     head = joint == 15
     hair = head & ((y > head_top - 0.09) | ((z < 0.02) & (y > head_top - 0.22)))
