@@ -1,4 +1,5 @@
-"""``narf-synth``: write a synthetic multi-view capture of the stand-in body in the ZJU-MoCap layout."""
+"""``narf-synth``: write synthetic data of the stand-in body in a real layout: a ZJU-MoCap multi-view capture
+(default), a THUman-like set in NARF's ``render_128`` layout, or SURREAL-like clips."""
 
 from __future__ import annotations
 
@@ -10,24 +11,38 @@ from pathlib import Path
 from pipelines.cli.common import HelpFormatter, run_cli
 from pipelines.datasets.subjects import data_root, synthetic_path
 from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
+from pipelines.synthetic.surreal import SurrealSynthConfig, generate_surreal, is_surreal_complete
+from pipelines.synthetic.thuman import ThumanSynthConfig, generate_thuman, is_thuman_complete
 
 
 def build_parser() -> argparse.ArgumentParser:
     d = SynthConfig()
     parser = argparse.ArgumentParser(
         prog="narf-synth",
-        description="Render a synthetic multi-view capture (images, CIHP and binary masks, SMPL params and "
-        "vertices, annots.npy, EasyMocap cameras, ChArUco calibration shots) that ZJU-MoCap loaders read "
-        "unchanged. A finished capture with the same settings is reused.",
+        description="Render synthetic data of the stand-in body in a real layout. --dataset zju (default): a "
+        "multi-view capture (images, CIHP and binary masks, SMPL params and vertices, annots.npy, EasyMocap cameras, "
+        "ChArUco calibration shots) that ZJU-MoCap loaders read unchanged; thuman: many people in NARF's render_128 "
+        "layout (train / same_view / novel_view and the _view2 encoder inputs) plus raw THUman items; surreal: "
+        "SURREAL clips (mp4, _info/_segm/_depth.mat) of unclothed people. A finished set with the same settings is "
+        "reused.",
         formatter_class=HelpFormatter,
     )
+    parser.add_argument("--dataset", choices=("zju", "thuman", "surreal"), default="zju", help="which layout to write")
     parser.add_argument("--subject", default=d.subject, choices=SYNTHETIC_SUBJECTS, help="motion / subject name")
     parser.add_argument(
-        "--out", type=Path, default=None, help="output folder (default: <data-root>/synthetic/<subject>)"
+        "--out",
+        type=Path,
+        default=None,
+        help="output folder (default: <data-root>/synthetic/<subject>, or synthetic/thuman, synthetic/surreal)",
     )
     parser.add_argument("--data-root", default=None, help="data root (default: $NARF_DATA or data/)")
     parser.add_argument("--resolution", type=int, default=d.resolution, help="square image size in pixels")
-    parser.add_argument("--frames", type=int, default=d.frames, help="number of frames (30 fps)")
+    parser.add_argument(
+        "--frames",
+        type=int,
+        default=None,
+        help="frames (30 fps) of the capture (zju: 300) or of each clip (surreal: 40)",
+    )
     parser.add_argument("--cameras", type=int, default=d.cameras, help="number of ring cameras")
     parser.add_argument("--seed", type=int, default=d.seed, help="seed of rig, motion and jitter")
     parser.add_argument(
@@ -48,6 +63,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=d.calib_close_ups,
         help="per-camera close-up board shots under calib/<camera>/intrinsics/",
     )
+    t, s = ThumanSynthConfig(), SurrealSynthConfig()
+    parser.add_argument("--people", type=int, default=t.people, help="thuman: number of people")
+    parser.add_argument("--train-poses", type=int, default=t.train_poses, help="thuman: training meshes per person")
+    parser.add_argument("--novel-poses", type=int, default=t.novel_poses, help="thuman: held-out meshes per person")
+    parser.add_argument(
+        "--renders-per-mesh", type=int, default=t.renders_per_mesh, help="thuman: train renders per mesh"
+    )
+    parser.add_argument("--raw-items", type=int, default=t.raw_items, help="thuman: meshes also written as raw items")
+    parser.add_argument("--clips", type=int, default=s.clips, help="surreal: number of clips (one person each)")
     parser.add_argument("--workers", type=int, default=d.workers, help="render processes")
     parser.add_argument(
         "--lbs",
@@ -62,12 +86,35 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def _other_dataset(args) -> int:
+    root = data_root(args.data_root)
+    if args.dataset == "thuman":
+        config = ThumanSynthConfig(
+            args.people, args.train_poses, args.novel_poses, args.renders_per_mesh, args.raw_items, args.seed
+        )
+        out, complete, generate = args.out or root / "synthetic" / "thuman", is_thuman_complete, generate_thuman
+    else:
+        config = SurrealSynthConfig(clips=args.clips, frames=args.frames or SurrealSynthConfig().frames, seed=args.seed)
+        out, complete, generate = args.out or root / "synthetic" / "surreal", is_surreal_complete, generate_surreal
+    config.validate()
+    if complete(out, config):
+        print(f"narf-synth: {out} already holds this {args.dataset} set")
+        return 0
+    start = time.perf_counter()
+    generate(out, config, smpl_path=args.smpl_dir)
+    size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file()) / 1e6
+    print(f"narf-synth: wrote the {args.dataset} set {out} ({size:.0f} MB) in {time.perf_counter() - start:.0f} s")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.dataset != "zju":
+        return _other_dataset(args)
     config = SynthConfig(
         subject=args.subject,
         resolution=args.resolution,
-        frames=args.frames,
+        frames=args.frames or SynthConfig().frames,
         cameras=args.cameras,
         seed=args.seed,
         layout=args.layout,

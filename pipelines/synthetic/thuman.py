@@ -1,0 +1,236 @@
+"""A THUman-like set in NARF's layout (``docs/formats.md §6``), from the stand-in body: many people, each in a
+few poses; ``render_128`` splits rendered as NARF's ``render_THUman.py`` renders them, with the ``_view2``
+encoder-input copies; and raw items (``mesh.obj`` with vertex colours, ``smpl.obj``, CRLF ``smpl_params.txt``,
+``cam.txt``) for ``narf-prepare-thuman``.
+
+Meshes are ordered person-major within two blocks: every person's training poses first, then every person's
+held-out poses (novel pose = mesh index >= ``n_train_meshes``, as NARF's autoencoder split takes the last meshes
+of its list). ``synthetic.json`` is written last, into a staging folder that is renamed when complete.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from pipelines.body.model import BodyModel
+from pipelines.datasets.thuman import RENDER_SIZE, THUMAN_K
+from pipelines.synthetic.people import Person, person_colours, random_person, random_poses, raycast
+
+THUMAN_VERSION = 1
+MARKER = "synthetic.json"
+SPLITS = {"train": False, "same_view": False, "novel_view": True}  # split -> novel-view camera distribution
+AXIS_FLIP = np.diag([1.0, -1.0, -1.0])  # NARF's axis_transformation
+#: NARF renders with one fixed lighting for the autoencoder set; here two world lights and an ambient term.
+LIGHTS = [(np.array([0.3, -0.8, -0.5]), 0.6), (np.array([-0.6, -0.2, -0.7]), 0.3)]
+
+
+@dataclass(frozen=True)
+class ThumanSynthConfig:
+    """Size of the THUman-like set.
+
+    Attributes:
+        people: number of people. train_poses / novel_poses: meshes per person for training / held out.
+        renders_per_mesh: train renders per mesh (NARF's ``all``: 10; same_view and novel_view: 1 each).
+        raw_items: how many meshes also get a raw item folder. seed: everything is deterministic under it.
+    """
+
+    people: int = 40
+    train_poses: int = 4
+    novel_poses: int = 1
+    renders_per_mesh: int = 10
+    raw_items: int = 8
+    seed: int = 0
+
+    def validate(self) -> None:
+        if min(self.people, self.train_poses, self.renders_per_mesh) < 1 or min(self.novel_poses, self.raw_items) < 0:
+            raise ValueError(f"people, train_poses and renders_per_mesh must be >= 1, got {self}")
+
+
+def _rotation(x: float, y: float, z: float) -> np.ndarray:
+    rx, ry, rz = (cv2.Rodrigues(np.array(v, dtype=np.float64))[0] for v in ([x, 0, 0], [0, y, 0], [0, 0, z]))
+    return rx @ ry @ rz
+
+
+def sample_camera(rng: np.random.Generator, novel_view: bool) -> np.ndarray:
+    """(4, 4) cam_from_world as NARF samples it: t = (0, 0, 2) (novel: t_z ~ U(1.5, 2.5)), rotation by
+    U(0, 2 pi) about (sin th cos ph, cos th, sin th sin ph), th ~ U(0, 0.3) (novel: U(0, pi))."""
+    t_z = rng.uniform(1.5, 2.5) if novel_view else 2.0
+    theta = rng.uniform(0, np.pi) if novel_view else rng.uniform(0, 0.3)
+    phi, angle = rng.uniform(0, 2 * np.pi), rng.uniform(0, 2 * np.pi)
+    axis = np.array([np.sin(theta) * np.cos(phi), np.cos(theta), np.sin(theta) * np.sin(phi)])
+    out = np.eye(4)
+    out[:3, :3] = cv2.Rodrigues(axis * angle)[0]
+    out[:3, 3] = [0.0, 0.0, t_z]
+    return out
+
+
+def narf_frame(vertices: np.ndarray, world_from_joint: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """NARF's preprocessing of an SMPL-frame mesh: flip axes (bone_params), centre on the hips, scale by 0.5.
+
+    Returns bone_params (24, 4, 4) after the flip, and the centred vertices (V, 3) and transforms (24, 4, 4).
+    """
+    bones = world_from_joint.copy()
+    bones[:, :3] = AXIS_FLIP @ bones[:, :3]
+    flipped = vertices @ AXIS_FLIP
+    shift = -bones[[1, 2], :3, 3].mean(axis=0)
+    centred = bones.copy()
+    centred[:, :3, 3] = (bones[:, :3, 3] + shift) * 0.5
+    return bones, (flipped + shift) * 0.5, centred
+
+
+def _render_pair(state: dict, vertices, bones, rng, novel_view: bool) -> list[tuple]:
+    """One render and its _view2 copy: same random rotation/scale of the body, two cameras."""
+    rotation = _rotation(rng.uniform(-0.3, 0.3), rng.uniform(-np.pi, np.pi), rng.uniform(-0.3, 0.3))
+    scale = rng.uniform(1.0, 1.5)
+    world_vertices = vertices @ rotation.T * scale
+    pose_to_world = bones.copy()
+    pose_to_world[:, :3, :3] = rotation @ bones[:, :3, :3]
+    pose_to_world[:, :3, 3] = bones[:, :3, 3] @ rotation.T * scale
+    out = []
+    for novel in (novel_view, False):
+        cam_from_world = sample_camera(rng, novel)
+        image = raycast(
+            world_vertices,
+            state["faces"],
+            state["colours"],
+            state["labels"],
+            THUMAN_K,
+            cam_from_world,
+            RENDER_SIZE,
+            RENDER_SIZE,
+            LIGHTS,
+        )
+        out.append((image, cam_from_world @ pose_to_world, pose_to_world))
+    return out
+
+
+def _save_render(folder: Path, index: int, render: tuple) -> None:
+    image, pose_to_camera, pose_to_world = render
+    rgba = np.concatenate([image["rgb"], image["alpha"][..., None]], axis=-1)
+    cv2.imwrite(str(folder / f"color_{index:08d}.png"), np.uint8(rgba * 255)[..., [2, 1, 0, 3]])
+    np.save(folder / f"pose_to_camera_{index:08d}.npy", pose_to_camera)
+    np.save(folder / f"pose_to_world_{index:08d}.npy", pose_to_world)
+
+
+def _mesh_plan(config: ThumanSynthConfig) -> list[tuple[int, int]]:
+    """(person, pose slot) per mesh: every person's training poses, then every person's held-out poses."""
+    train = [(p, k) for p in range(config.people) for k in range(config.train_poses)]
+    held = [(p, config.train_poses + k) for p in range(config.people) for k in range(config.novel_poses)]
+    return train + held
+
+
+def _obj_text(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray | None) -> str:
+    rows = np.hstack([vertices, colours]) if colours is not None else vertices
+    lines = ["v " + " ".join(f"{v:.6f}" for v in row) for row in rows]
+    lines += [f"f {a} {b} {c}" for a, b, c in faces + 1]
+    return "\n".join(lines) + "\n"
+
+
+def write_raw_item(folder: Path, betas, pose, vertices_smpl, faces, colours, rng: np.random.Generator) -> None:
+    """A raw THUman item: the scan is the SMPL mesh placed as ``M R^T + t`` (a rotation about the origin)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    root = np.eye(4)
+    root[:3, :3] = cv2.Rodrigues(np.array([0.0, rng.uniform(-np.pi, np.pi), 0.0]))[0]
+    root[:3, 3] = rng.uniform(-0.3, 0.3, 3)
+    scan = vertices_smpl @ root[:3, :3].T + root[:3, 3]
+    (folder / "mesh.obj").write_text(_obj_text(scan, faces, colours))
+    (folder / "smpl.obj").write_text(_obj_text(scan, faces, None))
+    lines = ["ShapeParams", " ".join(f"{b:.6f}" for b in betas) + " ", "RootTransformation"]
+    lines += [" ".join(f"{v:.6f}" for v in row) + " " for row in root]
+    lines += ["JointRotations"] + [f"{v:.6f}" for v in pose]
+    (folder / "smpl_params.txt").write_bytes(("\r\n".join(lines) + "\r\n").encode())
+    cam = np.eye(4)
+    cam[:3, 3] = [0.0, 0.0, 2.5] - root[:3, 3]  # a depth camera 2.5 m in front of the scan
+    (folder / "cam.txt").write_text("\n".join(" ".join(f"{v:.6f}" for v in row) for row in cam) + "\n")
+
+
+def is_thuman_complete(out: Path, config: ThumanSynthConfig | None = None) -> bool:
+    """True when ``out`` holds a finished THUman-like set (with these settings, if ``config`` is given)."""
+    marker = Path(out) / MARKER
+    try:
+        written = json.loads(marker.read_text()) if marker.is_file() else None
+    except (OSError, json.JSONDecodeError):
+        return False
+    if written is None or written.get("dataset") != "thuman":
+        return False
+    return config is None or (written.get("config") == asdict(config) and written.get("version") == THUMAN_VERSION)
+
+
+def _prepare_folders(root: Path) -> None:
+    for split in SPLITS:
+        for name in (split, f"{split}_view2"):
+            (root / name / "render_128" / "color").mkdir(parents=True, exist_ok=True)
+        (root / split / "render_128" / "bone_params").mkdir(parents=True, exist_ok=True)
+
+
+def _write_mesh(root: Path, state: dict, m: int, person: Person, pose: np.ndarray, rng, config) -> None:
+    betas = torch.as_tensor(person.betas, dtype=torch.float32)[None]
+    body = state["body"].pose_zju(
+        torch.as_tensor(pose, dtype=torch.float32)[None], torch.zeros(1, 3), torch.zeros(1, 3), betas
+    )
+    vertices = body.vertices[0].double().numpy()
+    bones, centred_vertices, centred_bones = narf_frame(vertices, body.world_from_joint[0].double().numpy())
+    per_mesh = {"train": config.renders_per_mesh, "same_view": 1, "novel_view": 1}
+    for split, novel in SPLITS.items():
+        np.save(root / split / "render_128" / "bone_params" / f"bone_params_{m:08d}.npy", bones)
+        for view in range(per_mesh[split]):
+            index = per_mesh[split] * m + view
+            main, view2 = _render_pair(state, centred_vertices, centred_bones, rng, novel)
+            _save_render(root / split / "render_128" / "color", index, main)
+            _save_render(root / f"{split}_view2" / "render_128" / "color", index, view2)
+    if m < config.raw_items:
+        item = f"results_syn_20260101_person{state['person_index']:03d}_1_{person.gender[0].upper()}"
+        folder = root / "raw" / item / f"{state['pose_slot']:04d}"
+        write_raw_item(folder, person.betas, pose, vertices, state["faces"], state["colours"], rng)
+        state["data_list"].append(f"{item}/{state['pose_slot']:04d}")
+
+
+def generate_thuman(
+    out: str | Path, config: ThumanSynthConfig = ThumanSynthConfig(), smpl_path=None, progress: bool = True
+) -> Path:
+    """Generate (or reuse) the THUman-like set at ``out`` (module docstring); returns ``out``."""
+    config.validate()
+    out = Path(out)
+    if is_thuman_complete(out, config):
+        return out
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not is_thuman_complete(out):
+        raise FileExistsError(f"{out}: exists and holds no finished THUman-like set; choose another --out")
+    partial = out.parent / f".{out.name}.partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    _prepare_folders(partial)
+    body = BodyModel(smpl_path)
+    rng = np.random.default_rng(config.seed)
+    people = [random_person(rng) for _ in range(config.people)]
+    poses = [random_poses(config.train_poses + config.novel_poses, rng) for _ in people]
+    weights = body.smpl.lbs_weights.numpy()
+    state = {"body": body, "faces": body.faces.astype(np.int64), "labels": np.zeros(body.n_vertices, np.uint8)}
+    state["data_list"] = []
+    plan = _mesh_plan(config)
+    for m, (p, slot) in enumerate(tqdm(plan, desc="thuman meshes", unit="mesh", disable=not progress)):
+        rest = body.rest_body(torch.as_tensor(people[p].betas, dtype=torch.float32)[None]).vertices[0].numpy()
+        state.update(colours=person_colours(people[p], rest, weights), person_index=p, pose_slot=slot)
+        _write_mesh(partial, state, m, people[p], poses[p][slot], np.random.default_rng([config.seed, m]), config)
+    (partial / "raw").mkdir(exist_ok=True)
+    (partial / "raw" / "data_list.txt").write_text("\n".join(state["data_list"]) + "\n")
+    marker = {
+        "dataset": "thuman",
+        "version": THUMAN_VERSION,
+        "config": asdict(config),
+        "n_meshes": len(plan),
+        "n_train_meshes": config.people * config.train_poses,
+        "renders_per_mesh": {"train": config.renders_per_mesh, "same_view": 1, "novel_view": 1},
+        "mesh_person": [p for p, _ in plan],
+    }
+    (partial / MARKER).write_text(json.dumps(marker, indent=1))
+    if out.exists():
+        shutil.rmtree(out)
+    partial.rename(out)
+    return out
