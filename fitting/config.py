@@ -18,6 +18,7 @@ class ConfigError(ValueError):
 
 @dataclass
 class DataConfig:
+    dataset: str = "zju"  #: zju (one subject, ZJU-MoCap layout) or thuman (autoencoder across people, render_128)
     subject: str = "taichi"  #: subject name or folder (ZJU-MoCap layout)
     data_root: str | None = None  #: data root (default: $NARF_DATA or data/)
     protocol: str = "narf"  #: narf (first 90 % frames train) or neuralbody
@@ -27,6 +28,8 @@ class DataConfig:
     white_background: bool = False  #: composite onto white instead of black
     frame_stride: int = 1  #: use every n-th training frame
     box_frames: int = 100  #: training frames used to fit the part boxes
+    train_meshes: int = 0  #: thuman: meshes that train (0: the set's synthetic.json, else NARF's 3545)
+    renders_per_mesh: int = 10  #: thuman: train renders per mesh (NARF: 10)
 
 
 @dataclass
@@ -39,6 +42,8 @@ class ModelConfig:
     box_scale_pad: float = 1.1  #: part boxes: h <- scale * h + abs
     box_abs_pad: float = 0.03  #: part boxes: additive padding (body units)
     image_size: int = 128  #: CNN baseline: side of its square bone maps and output images (paper: 128)
+    latent_dim: int = 0  #: autoencoder: size of z_s and of z_a (paper 256); 0 for a per-subject fit
+    encoder_channels: int = 32  #: autoencoder: image encoder base width c (paper 32: 32..512 channels)
 
 
 @dataclass
@@ -58,6 +63,7 @@ class TrainConfig:
     body_fraction: float = 0.7  #: share of rays on body pixels
     border_fraction: float = 0.2  #: share on a band around the silhouette; the rest on background in the box
     lr: float = 0.01  #: Adam learning rate (equalized-lr layers assume 0.01)
+    encoder_lr: float = 0.001  #: autoencoder: Adam learning rate of the image encoder (plain conv layers)
     lr_decay: float = 0.99995  #: multiplicative decay per step (upstream)
     lr_min: float = 0.0  #: floor of the decayed learning rate
     adam_eps: float = 1e-12  #: Adam epsilon (upstream)
@@ -66,6 +72,7 @@ class TrainConfig:
     validate_every: int = 1000  #: render a validation image every n steps (0: never)
     log_every: int = 50  #: write a log line every n steps
     seed: int = 0  #: seed of initialisation and ray sampling
+    deterministic: bool = True  #: deterministic kernels, so a resumed fit ends where an uninterrupted one would
 
 
 @dataclass
@@ -178,7 +185,20 @@ def validate_config(config: FitConfig) -> None:
         ("render.train_coarse", config.render.train_coarse >= 2),
         ("render.eval_coarse", config.render.eval_coarse >= 2),
         ("data.protocol", config.data.protocol in ("narf", "neuralbody")),
+        ("data.dataset", config.data.dataset in ("zju", "thuman")),
+        ("data.train_meshes", config.data.train_meshes >= 0),
+        ("data.renders_per_mesh", config.data.renders_per_mesh >= 1),
+        ("model.latent_dim", config.model.latent_dim >= 0),
+        ("model.encoder_channels", config.model.encoder_channels >= 1),
+        ("train.encoder_lr", config.train.encoder_lr > 0),
     ]
     for key, ok in checks:
         if not ok:
             raise ConfigError(f"config key '{key}' has an invalid value")
+    autoencoder = config.data.dataset == "thuman"
+    if autoencoder and config.model.latent_dim == 0:
+        raise ConfigError("model.latent_dim: the thuman dataset trains an autoencoder; set a latent size (paper 256)")
+    if autoencoder and config.model.name in IMAGE_MODELS:
+        raise ConfigError(f"model.name: '{config.model.name}' has no autoencoder form here; choose a NeRF-type model")
+    if not autoencoder and config.model.latent_dim:
+        raise ConfigError("model.latent_dim: only the thuman dataset (an autoencoder) uses latents; set it to 0")

@@ -30,9 +30,10 @@ _SHORT = {
 }
 
 
-def render_view(field, camera, pose, config: FitConfig) -> dict[str, torch.Tensor]:
+def render_view(field, camera, pose, config: FitConfig, latent: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
     """Full-image render of one (undistorted) camera and one-frame pose at the evaluation sample counts (the CNN
-    baseline: its image resampled to the camera's size; no segmentation, zero depth)."""
+    baseline: its image resampled to the camera's size; no segmentation, zero depth); ``latent`` (1, 2 L) is an
+    autoencoder's code."""
     device = next(field.parameters()).device
     K = torch.as_tensor(camera.K, dtype=torch.float32, device=device)
     cam_from_world = torch.as_tensor(camera.cam_from_world, dtype=torch.float32, device=device)
@@ -51,6 +52,7 @@ def render_view(field, camera, pose, config: FitConfig) -> dict[str, torch.Tenso
         config.render.eval_fine,
         background,
         config.render.chunk,
+        None if latent is None else latent.to(device),
     )
 
 

@@ -57,11 +57,12 @@ def to_numpy(render: dict) -> dict:
     }
 
 
-def write_validation(field, config, image: np.ndarray, camera, pose, path: Path) -> Path:
-    """Render ``camera`` / ``pose`` at evaluation samples and save ground truth | render | depth | ... ."""
+def write_validation(field, config, image: np.ndarray, camera, pose, path: Path, latent=None) -> Path:
+    """Render ``camera`` / ``pose`` (and an autoencoder ``latent``) at evaluation samples and save
+    ground truth | render | depth | ... ."""
     from fitting.evaluate import render_view
 
-    save_png(path, grid(image, to_numpy(render_view(field, camera, pose, config))))
+    save_png(path, grid(image, to_numpy(render_view(field, camera, pose, config, latent))))
     return path
 
 

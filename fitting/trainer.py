@@ -37,7 +37,7 @@ def make_field(config: FitConfig):
     m = config.model
     if m.name == "cnn":
         return build_model("cnn", image_size=m.image_size)
-    kwargs = {"width": m.width, "density_act": m.density_act}
+    kwargs = {"width": m.width, "density_act": m.density_act, "latent_dim": m.latent_dim}
     if m.name == "narf_p":
         kwargs["temperature"] = m.temperature
     if m.name == "p_nerf":
@@ -45,15 +45,17 @@ def make_field(config: FitConfig):
     return build_field(m.name, **kwargs)
 
 
-def ray_loss(config: FitConfig, field, batch, poses, generator, n_coarse: int, n_fine: int):
-    """L = mean 1/3 |C - C_gt|^2 + lambda_mask mean (M - M_gt)^2 (band skipped). Returns loss, colour MSE."""
+def ray_loss(config: FitConfig, field, batch, poses, generator, n_coarse: int, n_fine: int, latent=None):
+    """L = mean 1/3 |C - C_gt|^2 + lambda_mask mean (M - M_gt)^2 (band skipped). Returns loss, colour MSE.
+
+    ``latent``: optional (F, 2 * latent_dim) autoencoder codes, one per frame of ``poses``."""
     per_ray = poses.select(batch.frames)
     near, far, hit = ray_box_intersect(
         batch.origins, batch.dirs, per_ray.world_from_part, per_ray.reach, field.box_centres, field.box_half_extents
     )
     background = 1.0 if config.data.white_background else 0.0
     out = render_rays(
-        bind_field(field, batch.dirs, poses, batch.frames),
+        bind_field(field, batch.dirs, poses, batch.frames, latent),
         batch.origins,
         batch.dirs,
         near,
@@ -92,6 +94,9 @@ class Trainer:
         progress: bool = True,
     ):
         self.config, self.run_dir, self.device, self.progress = config, Path(run_dir), device, progress
+        # Adam's first steps move each weight by about lr * sign(gradient), so even rounding-level differences
+        # between runs (CPU kernels that sum in thread order, e.g. index_add) grow to 1e-2 within a few steps
+        torch.use_deterministic_algorithms(config.train.deterministic, warn_only=True)
         torch.manual_seed(config.train.seed)
         np.random.seed(config.train.seed)
         random.seed(config.train.seed)
@@ -100,9 +105,10 @@ class Trainer:
         self.field = make_field(config).to(device)
         if state is None and hasattr(self.field, "set_boxes"):
             self.field.set_boxes(data.boxes[0].to(device), data.boxes[1].to(device))
+        self._build_extra_modules()
         self.rays_per_step = config.train.images_per_step * config.train.rays_per_image
         self.optimiser = torch.optim.Adam(
-            self.field.parameters(), lr=config.train.lr, betas=(0.9, 0.999), eps=config.train.adam_eps
+            self._parameter_groups(), lr=config.train.lr, betas=(0.9, 0.999), eps=config.train.adam_eps
         )
         decay, floor = config.train.lr_decay, config.train.lr_min / config.train.lr
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimiser, lambda step: max(decay**step, floor))
@@ -110,6 +116,21 @@ class Trainer:
         self.step, self.elapsed = 0, 0.0
         if state is not None:
             self._restore(state)
+
+    def _build_extra_modules(self) -> None:
+        """Subclasses add trained modules here (after the seed, before the optimiser)."""
+
+    def _parameter_groups(self) -> list[dict]:
+        """Optimiser parameter groups; the field's use ``train.lr``."""
+        return [{"params": list(self.field.parameters())}]
+
+    def _extra_state(self) -> dict:
+        """Subclasses' additions to the checkpoint."""
+        return {}
+
+    def _validation_latent(self, item: tuple) -> torch.Tensor | None:
+        """The autoencoder code of a validation item (None for per-subject fits)."""
+        return None
 
     def _restore(self, state: dict) -> None:
         self.field.load_state_dict(state["model"])
@@ -131,6 +152,7 @@ class Trainer:
                 "scheduler": self.scheduler.state_dict(),
                 "frames": self.frames,
                 "rng": {"sampler": self.generator.get_state(), "torch": torch.get_rng_state()},
+                **self._extra_state(),
             },
         )
 
@@ -210,7 +232,8 @@ class Trainer:
         """Render one held-out view (a training pose from a test camera) next to its ground truth."""
         if self.fit_data.validation is None:
             return None
-        image, camera, pose = self.fit_data.validation()
+        item = self.fit_data.validation()
+        image, camera, pose = item[:3]
         self.field.eval()
         path = write_validation(
             self.field,
@@ -219,6 +242,7 @@ class Trainer:
             camera,
             pose.to(self.device),
             self.run_dir / "val" / f"step_{self.step:07d}.png",
+            self._validation_latent(item),
         )
         self.field.train()
         return path

@@ -116,6 +116,30 @@ def parts_from_joints(world_from_joint: torch.Tensor) -> torch.Tensor:
     return world_from_joint[..., list(PART_JOINTS), :, :]
 
 
+def rest_offsets_from_world(world_from_joint: torch.Tensor) -> torch.Tensor:
+    """Rest joints relative to the pelvis, recovered from posed joint frames (inverse of ``world_from_joints``).
+
+    ``G_j = G_par(j) [R(theta_j) | J_j - J_par(j)]`` gives ``J_j - J_par(j) = R_par(j)^T (t_j - t_par(j))`` with R the
+    chained rotation and t the posed joint, exactly, for any global transform (scale applies to t only).
+
+    Args:
+        world_from_joint: (..., 24, 4, 4) posed joint frames.
+
+    Returns:
+        (..., 24, 3) rest joints J_j - J_0 in the units of the translations.
+    """
+    check_shape("world_from_joint", world_from_joint, (..., N_JOINTS, 4, 4))
+    rotation, position = world_from_joint[..., :3, :3], world_from_joint[..., :3, 3]
+    offsets = [torch.zeros_like(position[..., 0, :])]
+    for j in range(1, N_JOINTS):
+        parent = SMPL_PARENTS[j]
+        local = (
+            rotation[..., parent, :, :].transpose(-1, -2) @ (position[..., j, :] - position[..., parent, :])[..., None]
+        )
+        offsets.append(offsets[parent] + local[..., 0])
+    return torch.stack(offsets, dim=-2)
+
+
 def bone_lengths(joint_positions: torch.Tensor) -> torch.Tensor:
     """Bone lengths zeta: ``zeta_c = |t_c - t_par(c)|`` for the 19 bones of ``BONE_CHILDREN``.
 

@@ -117,7 +117,11 @@ def bind_field(field, dirs: torch.Tensor, pose, frame_of_ray: torch.Tensor, late
 
     def field_fn(points: torch.Tensor, ray_ids: torch.Tensor):
         frames = frame_of_ray[ray_ids]
-        return field(points, dirs[ray_ids], pose.select(frames), None if latent is None else latent[frames])
+        # index_select, not latent[frames]: its backward (index_add) sums the many rays of one code in a fixed
+        # order on CPU, so autoencoder fits are bit-reproducible and resume exactly
+        return field(
+            points, dirs[ray_ids], pose.select(frames), None if latent is None else latent.index_select(0, frames)
+        )
 
     return field_fn
 

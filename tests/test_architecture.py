@@ -7,7 +7,13 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 FORBIDDEN = {"narf": ("fitting", "pipelines"), "fitting": ("pipelines",)}
-GLUE = ("pipelines.fit_session", "pipelines.evaluation", "pipelines.video")
+GLUE = (
+    "pipelines.fit_session",
+    "pipelines.autoencoder_session",
+    "pipelines.evaluation",
+    "pipelines.autoencoder_evaluation",
+    "pipelines.video",
+)
 #: pipelines sub-package -> the parts of pipelines/ it must not import (see pipelines/__init__.py)
 PIPELINES_FORBIDDEN = {
     "datasets": ("pipelines.body", "pipelines.calibration", "pipelines.synthetic", "pipelines.cli", *GLUE),

@@ -29,18 +29,21 @@ class _PreActDown(nn.Module):
 
 
 class ImageEncoder(nn.Module):
-    """3x3 conv 3->32, five residual down blocks (32->64->128->256->512->512 at 64..4 px), ReLU, flatten (8192),
-    linear -> 2 * latent_dim. Deterministic (no KL, no GAN)."""
+    """3x3 conv 3->c, five residual down blocks (c->2c->4c->8c->16c->16c at 64..4 px), ReLU, flatten, linear ->
+    2 * latent_dim, with c = ``base_channels`` (paper: 32, i.e. 32->...->512 and an 8192-wide flatten; a smaller c
+    is the CPU default). Deterministic (no KL, no GAN)."""
 
-    def __init__(self, latent_dim: int = 256, image_size: int = 128):
+    def __init__(self, latent_dim: int = 256, image_size: int = 128, base_channels: int = 32):
         super().__init__()
         if image_size % 32:
             raise ValueError(f"image_size must be a multiple of 32, got {image_size}")
         self.image_size = image_size
-        channels = (32, 64, 128, 256, 512, 512)
-        self.stem = nn.Conv2d(3, 32, 3, padding=1)
+        if base_channels < 1:
+            raise ValueError(f"base_channels must be positive, got {base_channels}")
+        channels = tuple(base_channels * k for k in (1, 2, 4, 8, 16, 16))
+        self.stem = nn.Conv2d(3, channels[0], 3, padding=1)
         self.blocks = nn.Sequential(*(_PreActDown(a, b) for a, b in zip(channels[:-1], channels[1:])))
-        self.head = nn.Linear(512 * (image_size // 32) ** 2, 2 * latent_dim)
+        self.head = nn.Linear(channels[-1] * (image_size // 32) ** 2, 2 * latent_dim)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         """images (B, 3, S, S) in [0, 1] -> z (B, 2 * latent_dim)."""

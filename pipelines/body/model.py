@@ -203,3 +203,26 @@ def pose_batch(body: PosedBody) -> PoseBatch:
     return PoseBatch(
         body.world_from_part, body.reach, body.bone_lengths, body.pose_features, offsets, body.world_from_joint
     )
+
+
+def pose_batch_from_joints(world_from_joint: torch.Tensor) -> PoseBatch:
+    """Model inputs from posed joint frames alone (NARF's THUman ``pose_to_world``, SURREAL bodies): the rest
+    skeleton is recovered from the chain (``narf.kinematics.rest_offsets_from_world``).
+
+    Args:
+        world_from_joint: (B, 24, 4, 4) chained rotations with the posed joints as origins.
+    """
+    from narf.kinematics import PART_JOINTS, rest_offsets_from_world
+
+    world_from_part = parts_from_joints(world_from_joint)
+    joints = world_from_joint[..., :3, 3]
+    reach = kinematic_reach(joints)
+    rest = rest_offsets_from_world(world_from_joint)[:, list(PART_JOINTS)]
+    return PoseBatch(
+        world_from_part,
+        reach,
+        bone_lengths(joints),
+        part_pose_features(world_from_part, reach),
+        rest / reach[:, None, None],
+        world_from_joint,
+    )

@@ -1,4 +1,5 @@
-"""``narf-eval``: metrics of a fitted run on the protocol splits, both full-image and Neural Body crop."""
+"""``narf-eval``: metrics of a fitted run on the protocol splits, both full-image and Neural Body crop; for an
+autoencoder run, the four THUman splits and the cross-dataset transfer to SURREAL beside the mean-code baseline."""
 
 from __future__ import annotations
 
@@ -10,8 +11,10 @@ from pipelines.cli.common import HelpFormatter, run_cli
 
 
 def main(argv: list[str] | None = None) -> int:
+    from fitting.checkpoint import load_checkpoint
     from fitting.evaluate import ALL_SPLITS, EVAL_SPLITS, markdown_table
     from fitting.trainer import auto_device
+    from pipelines.autoencoder_evaluation import AUTOENCODER_SPLITS, evaluate_autoencoder_run, markdown_autoencoder
     from pipelines.evaluation import evaluate_run
 
     parser = argparse.ArgumentParser(
@@ -19,16 +22,22 @@ def main(argv: list[str] | None = None) -> int:
         description="Render the held-out views of a split and report PSNR, SSIM (scikit-image, Gaussian 1.5) and "
         "Mask L2 (x10^4) per view and averaged, under the full-image and the Neural Body bounding-box crop "
         "protocols. Writes RUN/eval/metrics.json, RUN/eval/metrics.md (supplement layout) and image grids "
-        "(ground truth | render | depth | part segmentation | error).",
+        "(ground truth | render | depth | part segmentation | error). An autoencoder run (narf-fit --dataset "
+        "thuman) is evaluated on same_pose_same_view, novel_pose_same_view, same_pose_novel_view, "
+        "novel_pose_novel_view (the encoder sees a _view2 render of the same mesh) and cross_dataset (SURREAL: the "
+        "code of a clip's first frame reconstructs it and renders the clip's later poses), next to the mean-code "
+        "baseline; grids are encoder input | ground truth | render | depth | segmentation | error.",
         formatter_class=HelpFormatter,
     )
     parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")
     parser.add_argument(
         "--split",
         default="novel_pose",
-        choices=ALL_SPLITS,
-        help="novel_pose / novel_view are the Neural Body splits; 'all' = the four pose x view splits",
+        choices=sorted(set(ALL_SPLITS) | set(AUTOENCODER_SPLITS)),
+        help="novel_pose / novel_view are the Neural Body splits; 'all' = the four pose x view splits (autoencoder: "
+        "and cross_dataset)",
     )
+    parser.add_argument("--surreal", default=None, help="cross_dataset: SURREAL folder (default: the stand-in)")
     parser.add_argument("--limit", type=int, default=None, help="evaluate at most N views per split, evenly spread")
     parser.add_argument("--grids", type=int, default=4, help="image grids to write per split")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
@@ -36,8 +45,23 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
+    device = str(auto_device(args.device))
+    if load_checkpoint(args.run).get("kind") == "autoencoder":
+        if args.split not in (*AUTOENCODER_SPLITS, "all"):
+            raise ValueError(
+                f"{args.run}: an autoencoder run; choose --split from {', '.join(AUTOENCODER_SPLITS)}, all"
+            )
+        splits = list(AUTOENCODER_SPLITS) if args.split == "all" else [args.split]
+        report = evaluate_autoencoder_run(
+            args.run, splits, args.limit, device, not args.quiet, args.grids, surreal_root=args.surreal
+        )
+        print(markdown_autoencoder(report))
+        print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
+        return 0
+    if args.split not in ALL_SPLITS:
+        raise ValueError(f"{args.run}: a per-subject fit; '{args.split}' is an autoencoder split")
     splits = list(EVAL_SPLITS) if args.split == "all" else [args.split]
-    report = evaluate_run(args.run, splits, args.limit, str(auto_device(args.device)), not args.quiet, args.grids)
+    report = evaluate_run(args.run, splits, args.limit, device, not args.quiet, args.grids)
     print(markdown_table(report))
     print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
     return 0

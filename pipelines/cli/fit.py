@@ -1,4 +1,5 @@
-"""``narf-fit``: fit an avatar to one subject (synthetic stand-in when no real capture is found)."""
+"""``narf-fit``: fit an avatar to one subject (synthetic stand-in when no real capture is found), or train the
+autoencoder across people on a THUman-layout set (``--dataset thuman``)."""
 
 from __future__ import annotations
 
@@ -13,18 +14,26 @@ from pipelines.cli.common import HelpFormatter, run_cli
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="narf-fit",
-        description="Fit a NARF avatar (default NARF_D) to a multi-view capture in the ZJU-MoCap layout. Writes "
+        description="Fit a NARF avatar (default NARF_D) to a multi-view capture in the ZJU-MoCap layout, or with "
+        "--dataset thuman train the NARF autoencoder (image encoder + latent-conditioned field) across the people of "
+        "a THUman render_128 set (--data-root: the set's folder; default: the synthetic stand-in). Writes "
         "config.yaml, checkpoint.pt (atomic, every few minutes and at the end), log.jsonl, curve.png and val/ "
         "renders into --out. A killed fit resumes with --resume and ends where an uninterrupted one would.",
         formatter_class=HelpFormatter,
+    )
+    parser.add_argument(
+        "--dataset",
+        choices=("zju", "thuman"),
+        default=None,
+        help="zju: one subject (default); thuman: the autoencoder across people (presets ae_cpu / ae_paper)",
     )
     parser.add_argument("--subject", default=None, help="subject name or folder (default from the preset: taichi)")
     parser.add_argument("--data-root", default=None, help="data root (default: $NARF_DATA or data/)")
     parser.add_argument(
         "--config",
         default=None,
-        help="preset name (cpu, paper, tiny, cnn) or YAML file; default: cnn for --model cnn, else "
-        "paper with CUDA and cpu without",
+        help="preset name (cpu, paper, tiny, cnn, ae_cpu, ae_paper, ae_tiny) or YAML file; default: cnn for "
+        "--model cnn, ae_paper / ae_cpu for --dataset thuman, else paper with CUDA and cpu without",
     )
     parser.add_argument(
         "--model",
@@ -57,8 +66,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     import torch
 
+    from fitting.checkpoint import load_checkpoint
     from fitting.config import load_config
     from fitting.trainer import auto_device, prepare_run_dir
+    from pipelines.autoencoder_session import start_autoencoder
     from pipelines.fit_session import start_trainer
 
     if args.smpl_dir:
@@ -71,18 +82,27 @@ def main(argv: list[str] | None = None) -> int:
         overrides.insert(0, f"data.data_root={args.data_root}")
     if args.model:
         overrides.insert(0, f"model.name={args.model}")
+    if args.dataset:
+        overrides.insert(0, f"data.dataset={args.dataset}")
     if args.resume:
         if args.out is None:
             raise ValueError("--resume needs --out (the run folder to continue)")
         config = None
     else:
-        preset = args.config or ("cnn" if args.model == "cnn" else "paper" if device.type == "cuda" else "cpu")
-        config = load_config(preset, overrides)
-    out = args.out or Path("runs") / f"{Path(config.data.subject).name}-{config.model.name}"
+        gpu = device.type == "cuda"
+        if args.dataset == "thuman":
+            default = "ae_paper" if gpu else "ae_cpu"
+        else:
+            default = "cnn" if args.model == "cnn" else "paper" if gpu else "cpu"
+        config = load_config(args.config or default, overrides)
+    name = "thuman" if config is not None and config.data.dataset == "thuman" else None
+    out = args.out or Path("runs") / f"{name or Path(config.data.subject).name}-{config.model.name}"
     if args.resume and not (Path(out) / "checkpoint.pt").exists():
         raise FileNotFoundError(f"{out}: no checkpoint to resume")
     run_dir = prepare_run_dir(out, config, args.resume)
-    trainer = start_trainer(config, run_dir, device, resume=args.resume, progress=not args.quiet)
+    kind = load_checkpoint(run_dir).get("kind") if args.resume else config.data.dataset
+    start = start_autoencoder if kind in ("autoencoder", "thuman") else start_trainer
+    trainer = start(config, run_dir, device, resume=args.resume, progress=not args.quiet)
     size = (
         f"{trainer.config.model.image_size}^2"
         if trainer.config.model.name == "cnn"

@@ -1,0 +1,82 @@
+"""The NARF autoencoder (docs/model.md §4, supplement §A): an image encoder and a latent-conditioned field
+trained together on many people. Each training image is its own frame (its own pose); the encoder sees another
+render of the same mesh (NARF's ``_view2`` copy) and its code z = [z_s, z_a] conditions the field for every ray
+of the target image. Same losses as a per-subject fit (docs/model.md §6)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from fitting.data import FitData
+from fitting.trainer import Trainer, ray_loss
+from narf.fields.encoder import ImageEncoder
+
+
+@dataclass
+class AutoencoderData(FitData):
+    """FitData whose images each have their own pose, plus the encoder's inputs.
+
+    Attributes:
+        encoder_inputs: (N, 3, S, S) uint8 on the training device, the encoder's view of each training image's mesh.
+    """
+
+    encoder_inputs: torch.Tensor | None = None
+
+
+def build_encoder(config) -> ImageEncoder:
+    return ImageEncoder(config.model.latent_dim, image_size=128, base_channels=config.model.encoder_channels)
+
+
+def encode(encoder: ImageEncoder, images_u8: torch.Tensor) -> torch.Tensor:
+    """(B, 3, S, S) uint8 -> (B, 2 L) codes."""
+    return encoder(images_u8.float() / 255.0)
+
+
+class AutoencoderTrainer(Trainer):
+    """A Trainer whose field is conditioned on codes from a jointly trained image encoder."""
+
+    def _build_extra_modules(self) -> None:
+        self.encoder = build_encoder(self.config).to(self.device)
+        self.encoder_inputs = self.fit_data.encoder_inputs
+
+    def _parameter_groups(self) -> list[dict]:
+        return [
+            {"params": list(self.field.parameters())},
+            {"params": list(self.encoder.parameters()), "lr": self.config.train.encoder_lr},
+        ]
+
+    def _extra_state(self) -> dict:
+        return {"kind": "autoencoder", "encoder": self.encoder.state_dict()}
+
+    def _restore(self, state: dict) -> None:
+        self.encoder.load_state_dict(state["encoder"])
+        super()._restore(state)
+
+    def train_step(self) -> tuple[float, float]:
+        t = self.config.train
+        batch = self.data.sample(
+            t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction, self.generator
+        )
+        images, batch.frames = torch.unique(batch.frames, return_inverse=True)
+        latent = encode(self.encoder, self.encoder_inputs[images])
+        loss, colour = ray_loss(
+            self.config,
+            self.field,
+            batch,
+            self.data.poses.select(images),
+            self.generator,
+            self.config.render.train_coarse,
+            self.config.render.train_fine,
+            latent=latent,
+        )
+        return self.optimise(loss, colour)
+
+    def _validation_latent(self, item: tuple) -> torch.Tensor | None:
+        encoder_input = item[3]
+        self.encoder.eval()
+        with torch.no_grad():
+            latent = encode(self.encoder, encoder_input[None].to(self.device))
+        self.encoder.train()
+        return latent

@@ -1,0 +1,123 @@
+"""The autoencoder across people: poses from joint frames, a tiny fit on a tiny THUman-like set (resumable, and
+learning), its evaluation splits including the SURREAL transfer, and the errors for mixed-up runs."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from fitting.checkpoint import load_checkpoint
+from fitting.config import ConfigError, load_config
+from fitting.trainer import prepare_run_dir
+from pipelines.autoencoder_evaluation import evaluate_autoencoder_run, surreal_view
+from pipelines.autoencoder_session import start_autoencoder
+from pipelines.body.model import pose_batch, pose_batch_from_joints
+from pipelines.cli import eval as cli_eval
+from pipelines.cli import fit as cli_fit
+from pipelines.cli.common import run_cli
+from pipelines.datasets.surreal import check_clip
+from pipelines.synthetic.surreal import SurrealSynthConfig, generate_surreal
+from pipelines.synthetic.thuman import ThumanSynthConfig, generate_thuman
+
+
+@pytest.fixture(scope="module")
+def sets(tmp_path_factory):
+    root = tmp_path_factory.mktemp("ae_data")
+    thuman = ThumanSynthConfig(people=4, train_poses=2, novel_poses=1, renders_per_mesh=2, raw_items=0, seed=3)
+    generate_thuman(root / "thuman", thuman, progress=False)
+    generate_surreal(root / "synthetic" / "surreal", SurrealSynthConfig(clips=2, frames=4, seed=4), progress=False)
+    return root
+
+
+def _config(sets, *overrides):
+    return load_config("ae_tiny", [f"data.data_root={sets / 'thuman'}", *overrides])
+
+
+def test_pose_batch_from_joint_frames_matches_the_body_model(body_model64):
+    gen = torch.Generator().manual_seed(0)
+    poses, shapes = torch.randn(3, 72, generator=gen, dtype=torch.float64) * 0.3, torch.randn(3, 10, generator=gen)
+    body = body_model64.pose_zju(poses, torch.randn(3, 3, generator=gen), torch.randn(3, 3, generator=gen), shapes)
+    a, b = pose_batch(body), pose_batch_from_joints(body.world_from_joint)
+    for key in ("world_from_part", "reach", "bone_lengths", "pose_features"):
+        assert torch.equal(getattr(a, key), getattr(b, key)), key
+    # the rest skeleton is recovered through R^T of smplx's rotations, which are orthonormal only to ~1e-8 (its
+    # Rodrigues divides the axis by |theta + 1e-8|): offsets ~1 m carry errors ~1e-8 m
+    assert torch.allclose(a.rest_offsets, b.rest_offsets, atol=1e-7)
+
+
+def test_fit_learns_and_resumes_exactly(sets, tmp_path):
+    config = _config(sets, "train.steps=16")
+    straight = start_autoencoder(config, prepare_run_dir(tmp_path / "a", config, False), "cpu", progress=False)
+    straight.fit()
+    first = start_autoencoder(config, prepare_run_dir(tmp_path / "b", config, False), "cpu", progress=False)
+    for _ in range(6):
+        first.train_step()
+    first.checkpoint()
+    resumed = start_autoencoder(None, tmp_path / "b", "cpu", resume=True, progress=False)
+    assert resumed.step == 6
+    resumed.fit()
+    a, b = load_checkpoint(tmp_path / "a"), load_checkpoint(tmp_path / "b")
+    assert a["kind"] == b["kind"] == "autoencoder" and b["step"] == 16
+    for part in ("model", "encoder"):
+        for key, value in a[part].items():
+            # float32 replay of the same batches (see test_fitting): only reduction order may differ, << 1e-6
+            assert torch.allclose(value.float(), b[part][key].float(), atol=1e-6), (part, key)
+
+
+def test_longer_fit_lowers_the_loss(sets, tmp_path):
+    config = _config(sets, "train.steps=200", "train.log_every=20", "train.rays_per_image=64")
+    trainer = start_autoencoder(config, prepare_run_dir(tmp_path / "run", config, False), "cpu", progress=False)
+    trainer.fit()
+    log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    assert np.mean([r["loss"] for r in log[-3:]]) < 0.7 * np.mean([r["loss"] for r in log[:2]])
+
+
+def test_evaluation_splits_and_grids(sets, tmp_path, monkeypatch):
+    monkeypatch.setenv("NARF_DATA", str(sets))
+    config = _config(sets, "train.steps=4")
+    start_autoencoder(config, prepare_run_dir(tmp_path / "run", config, False), "cpu", progress=False).fit()
+    splits = ["same_pose_same_view", "novel_pose_novel_view", "cross_dataset"]
+    report = evaluate_autoencoder_run(tmp_path / "run", splits, limit=2, progress=False, grids=1)
+    assert report["splits"]["same_pose_same_view"]["n_views"] == 2
+    assert set(report["splits"]["novel_pose_novel_view"]["mean_code"]) == {"mask_l2", "psnr", "ssim"}
+    cross = report["splits"]["cross_dataset"]
+    assert cross["reconstruction"]["n_views"] == 2 and cross["novel_pose"]["n_views"] == 4
+    md = (tmp_path / "run" / "eval" / "metrics.md").read_text()
+    assert "| mean code (baseline) |" in md and "SURREAL novel pose" in md
+    assert len(list((tmp_path / "run" / "eval" / "grids").rglob("*.png"))) == 3
+
+
+def test_surreal_crop_camera_projects_the_body_into_the_crop(sets, body_model):
+    import imageio.v2 as imageio
+
+    info = sorted((sets / "synthetic" / "surreal").rglob("*_info.mat"))[0]
+    clip = check_clip(info)
+    with imageio.get_reader(str(info).replace("_info.mat", ".mp4")) as video:
+        view, pose = surreal_view(clip, info, 2, body_model, video)
+    assert view.image.shape == (128, 128, 3) and 0.05 < view.mask.mean() < 0.6
+    assert np.linalg.det(view.camera.cam_from_world[:3, :3]) > 0  # right-handed after the flip
+    joints = pose.world_from_joint[0, :, :3, 3].numpy().astype(np.float64)
+    cam = joints @ view.camera.cam_from_world[:3, :3].T + view.camera.cam_from_world[:3, 3]
+    uv = np.round((cam @ view.camera.K.T)[:, :2] / (cam @ view.camera.K.T)[:, 2:]).astype(int)
+    torso = uv[[0, 3, 6, 9]]
+    assert ((torso >= 0) & (torso < 128)).all() and all(view.mask[v, u] > 0.5 for u, v in torso)
+
+
+def test_mixed_up_runs_and_settings_fail_clearly(sets, tmp_path, capsys, data_root_64):
+    with pytest.raises(ConfigError, match="model.latent_dim: the thuman dataset trains an autoencoder"):
+        load_config("ae_tiny", ["model.latent_dim=0"])
+    with pytest.raises(ConfigError, match="only the thuman dataset"):
+        load_config("tiny", ["model.latent_dim=8"])
+    with pytest.raises(ConfigError, match="'cnn' has no autoencoder form"):
+        load_config("ae_tiny", ["model.name=cnn"])
+    subject = ["--config", "tiny", "--data-root", str(data_root_64), "--quiet", "--set", "train.steps=2"]
+    assert run_cli("narf-fit", cli_fit.main, [*subject, "--out", str(tmp_path / "subject")]) == 0
+    code = run_cli("narf-eval", cli_eval.main, ["--run", str(tmp_path / "subject"), "--split", "cross_dataset"])
+    assert code == 2 and "a per-subject fit; 'cross_dataset' is an autoencoder split" in capsys.readouterr().err
+    with pytest.raises(Exception, match="holds a per-subject fit, not an autoencoder"):
+        start_autoencoder(None, tmp_path / "subject", "cpu", resume=True, progress=False)
+    config = _config(sets, "train.steps=1")
+    start_autoencoder(config, prepare_run_dir(tmp_path / "ae", config, False), "cpu", progress=False).fit()
+    code = run_cli("narf-eval", cli_eval.main, ["--run", str(tmp_path / "ae"), "--split", "novel_pose"])
+    assert code == 2 and "an autoencoder run; choose --split from" in capsys.readouterr().err
