@@ -70,9 +70,10 @@ def resolve_thuman(config: FitConfig, quiet: bool = False, generate: bool = True
 
 
 def open_thuman(root: Path, config: FitConfig) -> ThumanSet:
-    """Mesh counts from the set's ``synthetic.json`` when present, else from the train renders and the config."""
-    marker = root / "synthetic.json"
-    if marker.is_file():
+    """Mesh counts from the set's ``synthetic.json`` (the stand-in) or ``thuman.json`` (``narf-prepare-thuman``)
+    when present, else from the train renders and the config (NARF's own renders)."""
+    marker = next((root / name for name in ("synthetic.json", "thuman.json") if (root / name).is_file()), None)
+    if marker is not None:
         written = json.loads(marker.read_text())
         return ThumanSet(root, written["n_meshes"], written["n_train_meshes"], written["renders_per_mesh"])
     per_mesh = {"train": config.data.renders_per_mesh, "same_view": 1, "novel_view": 1}

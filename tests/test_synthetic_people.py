@@ -109,3 +109,30 @@ def test_surreal_clips_read_back_and_the_body_lands_on_the_segmentation(surreal_
     # the same body through the same camera and sampling: only pixels whose coverage is within float32 rounding of
     # one half can differ (a handful on a ~5000-pixel silhouette)
     assert iou > 0.99, iou
+
+
+def test_prepare_thuman_renders_raw_items_like_the_stand_in(thuman_set, tmp_path, capsys):
+    from pipelines.cli.common import run_cli
+    from pipelines.cli.prepare_thuman import main
+
+    out = tmp_path / "prepared"
+    assert main([str(thuman_set / "raw"), "--out", str(out), "--renders-per-mesh", "2"]) == 0
+    marker = json.loads((out / "thuman.json").read_text())
+    assert marker["n_meshes"] == THUMAN.raw_items and marker["n_train_meshes"] == 1
+    assert count_renders(out / "train" / "render_128" / "color") == 2 * THUMAN.raw_items
+    assert count_renders(out / "novel_view_view2" / "render_128" / "color") == THUMAN.raw_items
+    for m in range(THUMAN.raw_items):  # the raw items are meshes 0.. of the stand-in set: the same joint frames
+        name = f"bone_params_{m:08d}.npy"
+        prepared = np.load(out / "train" / "render_128" / "bone_params" / name)
+        original = np.load(thuman_set / "train" / "render_128" / "bone_params" / name)
+        # smpl_params.txt keeps 6 decimals of betas and pose (5e-7 each), and the original body was posed in
+        # float32: joints ~1 m agree to ~1e-5 m
+        assert np.allclose(prepared, original, atol=1e-4)
+    view = read_render(out / "same_view" / "render_128" / "color", 0, renders_per_mesh=1)
+    assert 0.02 < view.mask.mean() < 0.8 and view.image.max() > 0.2
+    bad = tmp_path / "bad" / "results_x_1_F" / "0000"
+    bad.mkdir(parents=True)
+    (bad / "smpl_params.txt").write_text("ShapeParams\r\n1 2 3\r\n")
+    assert run_cli("narf-prepare-thuman", main, [str(tmp_path / "bad"), "--out", str(tmp_path / "never")]) == 2
+    assert "smpl_params.txt: line 3 should be 'RootTransformation'" in capsys.readouterr().err
+    assert not (tmp_path / "never").exists()

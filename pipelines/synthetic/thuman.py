@@ -1,7 +1,7 @@
 """A THUman-like set in NARF's layout (``docs/formats.md §6``), from the stand-in body: many people, each in a
-few poses; ``render_128`` splits rendered as NARF's ``render_THUman.py`` renders them, with the ``_view2``
-encoder-input copies; and raw items (``mesh.obj`` with vertex colours, ``smpl.obj``, CRLF ``smpl_params.txt``,
-``cam.txt``) for ``narf-prepare-thuman``.
+few poses; ``render_128`` splits rendered as NARF's ``render_THUman.py`` renders them (``narf_render``), with
+the ``_view2`` encoder-input copies; and raw items (``mesh.obj`` with vertex colours, ``smpl.obj``, CRLF
+``smpl_params.txt``, ``cam.txt``) for ``narf-prepare-thuman``.
 
 Meshes are ordered person-major within two blocks: every person's training poses first, then every person's
 held-out poses (novel pose = mesh index >= ``n_train_meshes``, as NARF's autoencoder split takes the last meshes
@@ -21,15 +21,11 @@ import torch
 from tqdm import tqdm
 
 from pipelines.body.model import BodyModel
-from pipelines.datasets.thuman import RENDER_SIZE, THUMAN_K
-from pipelines.synthetic.people import Person, person_colours, random_person, random_poses, raycast
+from pipelines.synthetic.narf_render import prepare_folders, render_mesh_splits
+from pipelines.synthetic.people import Person, person_colours, random_person, random_poses
 
 THUMAN_VERSION = 1
 MARKER = "synthetic.json"
-SPLITS = {"train": False, "same_view": False, "novel_view": True}  # split -> novel-view camera distribution
-AXIS_FLIP = np.diag([1.0, -1.0, -1.0])  # NARF's axis_transformation
-#: NARF renders with one fixed lighting for the autoencoder set; here two world lights and an ambient term.
-LIGHTS = [(np.array([0.3, -0.8, -0.5]), 0.6), (np.array([-0.6, -0.2, -0.7]), 0.3)]
 
 
 @dataclass(frozen=True)
@@ -52,72 +48,6 @@ class ThumanSynthConfig:
     def validate(self) -> None:
         if min(self.people, self.train_poses, self.renders_per_mesh) < 1 or min(self.novel_poses, self.raw_items) < 0:
             raise ValueError(f"people, train_poses and renders_per_mesh must be >= 1, got {self}")
-
-
-def _rotation(x: float, y: float, z: float) -> np.ndarray:
-    rx, ry, rz = (cv2.Rodrigues(np.array(v, dtype=np.float64))[0] for v in ([x, 0, 0], [0, y, 0], [0, 0, z]))
-    return rx @ ry @ rz
-
-
-def sample_camera(rng: np.random.Generator, novel_view: bool) -> np.ndarray:
-    """(4, 4) cam_from_world as NARF samples it: t = (0, 0, 2) (novel: t_z ~ U(1.5, 2.5)), rotation by
-    U(0, 2 pi) about (sin th cos ph, cos th, sin th sin ph), th ~ U(0, 0.3) (novel: U(0, pi))."""
-    t_z = rng.uniform(1.5, 2.5) if novel_view else 2.0
-    theta = rng.uniform(0, np.pi) if novel_view else rng.uniform(0, 0.3)
-    phi, angle = rng.uniform(0, 2 * np.pi), rng.uniform(0, 2 * np.pi)
-    axis = np.array([np.sin(theta) * np.cos(phi), np.cos(theta), np.sin(theta) * np.sin(phi)])
-    out = np.eye(4)
-    out[:3, :3] = cv2.Rodrigues(axis * angle)[0]
-    out[:3, 3] = [0.0, 0.0, t_z]
-    return out
-
-
-def narf_frame(vertices: np.ndarray, world_from_joint: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """NARF's preprocessing of an SMPL-frame mesh: flip axes (bone_params), centre on the hips, scale by 0.5.
-
-    Returns bone_params (24, 4, 4) after the flip, and the centred vertices (V, 3) and transforms (24, 4, 4).
-    """
-    bones = world_from_joint.copy()
-    bones[:, :3] = AXIS_FLIP @ bones[:, :3]
-    flipped = vertices @ AXIS_FLIP
-    shift = -bones[[1, 2], :3, 3].mean(axis=0)
-    centred = bones.copy()
-    centred[:, :3, 3] = (bones[:, :3, 3] + shift) * 0.5
-    return bones, (flipped + shift) * 0.5, centred
-
-
-def _render_pair(state: dict, vertices, bones, rng, novel_view: bool) -> list[tuple]:
-    """One render and its _view2 copy: same random rotation/scale of the body, two cameras."""
-    rotation = _rotation(rng.uniform(-0.3, 0.3), rng.uniform(-np.pi, np.pi), rng.uniform(-0.3, 0.3))
-    scale = rng.uniform(1.0, 1.5)
-    world_vertices = vertices @ rotation.T * scale
-    pose_to_world = bones.copy()
-    pose_to_world[:, :3, :3] = rotation @ bones[:, :3, :3]
-    pose_to_world[:, :3, 3] = bones[:, :3, 3] @ rotation.T * scale
-    out = []
-    for novel in (novel_view, False):
-        cam_from_world = sample_camera(rng, novel)
-        image = raycast(
-            world_vertices,
-            state["faces"],
-            state["colours"],
-            state["labels"],
-            THUMAN_K,
-            cam_from_world,
-            RENDER_SIZE,
-            RENDER_SIZE,
-            LIGHTS,
-        )
-        out.append((image, cam_from_world @ pose_to_world, pose_to_world))
-    return out
-
-
-def _save_render(folder: Path, index: int, render: tuple) -> None:
-    image, pose_to_camera, pose_to_world = render
-    rgba = np.concatenate([image["rgb"], image["alpha"][..., None]], axis=-1)
-    cv2.imwrite(str(folder / f"color_{index:08d}.png"), np.uint8(rgba * 255)[..., [2, 1, 0, 3]])
-    np.save(folder / f"pose_to_camera_{index:08d}.npy", pose_to_camera)
-    np.save(folder / f"pose_to_world_{index:08d}.npy", pose_to_world)
 
 
 def _mesh_plan(config: ThumanSynthConfig) -> list[tuple[int, int]]:
@@ -164,28 +94,15 @@ def is_thuman_complete(out: Path, config: ThumanSynthConfig | None = None) -> bo
     return config is None or (written.get("config") == asdict(config) and written.get("version") == THUMAN_VERSION)
 
 
-def _prepare_folders(root: Path) -> None:
-    for split in SPLITS:
-        for name in (split, f"{split}_view2"):
-            (root / name / "render_128" / "color").mkdir(parents=True, exist_ok=True)
-        (root / split / "render_128" / "bone_params").mkdir(parents=True, exist_ok=True)
-
-
 def _write_mesh(root: Path, state: dict, m: int, person: Person, pose: np.ndarray, rng, config) -> None:
     betas = torch.as_tensor(person.betas, dtype=torch.float32)[None]
     body = state["body"].pose_zju(
         torch.as_tensor(pose, dtype=torch.float32)[None], torch.zeros(1, 3), torch.zeros(1, 3), betas
     )
     vertices = body.vertices[0].double().numpy()
-    bones, centred_vertices, centred_bones = narf_frame(vertices, body.world_from_joint[0].double().numpy())
+    mesh = (vertices, state["faces"], state["colours"])
     per_mesh = {"train": config.renders_per_mesh, "same_view": 1, "novel_view": 1}
-    for split, novel in SPLITS.items():
-        np.save(root / split / "render_128" / "bone_params" / f"bone_params_{m:08d}.npy", bones)
-        for view in range(per_mesh[split]):
-            index = per_mesh[split] * m + view
-            main, view2 = _render_pair(state, centred_vertices, centred_bones, rng, novel)
-            _save_render(root / split / "render_128" / "color", index, main)
-            _save_render(root / f"{split}_view2" / "render_128" / "color", index, view2)
+    render_mesh_splits(root, m, mesh, body.world_from_joint[0].double().numpy(), per_mesh, rng)
     if m < config.raw_items:
         item = f"results_syn_20260101_person{state['person_index']:03d}_1_{person.gender[0].upper()}"
         folder = root / "raw" / item / f"{state['pose_slot']:04d}"
@@ -205,7 +122,7 @@ def generate_thuman(
         raise FileExistsError(f"{out}: exists and holds no finished THUman-like set; choose another --out")
     partial = out.parent / f".{out.name}.partial"
     shutil.rmtree(partial, ignore_errors=True)
-    _prepare_folders(partial)
+    prepare_folders(partial)
     body = BodyModel(smpl_path)
     rng = np.random.default_rng(config.seed)
     people = [random_person(rng) for _ in range(config.people)]
