@@ -140,6 +140,29 @@ def rest_offsets_from_world(world_from_joint: torch.Tensor) -> torch.Tensor:
     return torch.stack(offsets, dim=-2)
 
 
+def retarget(world_from_joint: torch.Tensor, rest_offsets: torch.Tensor) -> torch.Tensor:
+    """Joint frames with the rotations of ``world_from_joint`` on another skeleton: forward kinematics of the local
+    rotations R_par(j)^T R_j over the rest offsets J_j - J_par(j) of ``rest_offsets``, from the same root frame.
+
+    Args:
+        world_from_joint: (B, 24, 4, 4) the motion's joint frames.
+        rest_offsets: (B, 24, 3) the skeleton's rest joints relative to its pelvis (``rest_offsets_from_world``).
+
+    Returns:
+        (B, 24, 4, 4) joint frames of the skeleton in the motion's pose.
+    """
+    check_shape("world_from_joint", world_from_joint, (-1, N_JOINTS, 4, 4))
+    check_shape("rest_offsets", rest_offsets, (world_from_joint.shape[0], N_JOINTS, 3))
+    frames = [world_from_joint[:, 0]]
+    for j in range(1, N_JOINTS):
+        parent = SMPL_PARENTS[j]
+        out = world_from_joint[:, j].clone()
+        bone = (rest_offsets[:, j] - rest_offsets[:, parent])[..., None]
+        out[:, :3, 3] = frames[parent][:, :3, 3] + (frames[parent][:, :3, :3] @ bone)[..., 0]
+        frames.append(out)
+    return torch.stack(frames, dim=1)
+
+
 def bone_lengths(joint_positions: torch.Tensor) -> torch.Tensor:
     """Bone lengths zeta: ``zeta_c = |t_c - t_par(c)|`` for the 19 bones of ``BONE_CHILDREN``.
 

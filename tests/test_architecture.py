@@ -13,6 +13,7 @@ GLUE = (
     "pipelines.evaluation",
     "pipelines.autoencoder_evaluation",
     "pipelines.video",
+    "pipelines.autoencoder_video",
 )
 #: pipelines sub-package -> the parts of pipelines/ it must not import (see pipelines/__init__.py)
 PIPELINES_FORBIDDEN = {

@@ -121,3 +121,24 @@ def test_mixed_up_runs_and_settings_fail_clearly(sets, tmp_path, capsys, data_ro
     start_autoencoder(config, prepare_run_dir(tmp_path / "ae", config, False), "cpu", progress=False).fit()
     code = run_cli("narf-eval", cli_eval.main, ["--run", str(tmp_path / "ae"), "--split", "novel_pose"])
     assert code == 2 and "an autoencoder run; choose --split from" in capsys.readouterr().err
+
+
+def test_videos_of_encoded_people(sets, tmp_path, capsys):
+    import imageio.v2 as imageio
+
+    from pipelines.cli import render_video as cli_video
+
+    config = _config(sets, "train.steps=2")
+    start_autoencoder(config, prepare_run_dir(tmp_path / "ae", config, False), "cpu", progress=False).fit()
+    render = str(sets / "thuman" / "same_view" / "render_128" / "color" / "color_00000009.png")
+    info = str(sorted((sets / "synthetic" / "surreal").rglob("*_info.mat"))[0])
+    base = ["--run", str(tmp_path / "ae"), "--frames", "3", "--quiet"]
+    assert cli_video.main([*base, "--kind", "orbit", "--input", render]) == 0
+    assert cli_video.main([*base, "--kind", "interpolate", "--input", f"{info}:1", "--input", render]) == 0
+    frames = imageio.mimread(tmp_path / "ae" / "videos" / "interpolate.mp4")
+    assert len(frames) == 3 and frames[0].shape[0] == 128 and frames[0].shape[1] >= 128 * 3
+    code = run_cli("narf-render-video", cli_video.main, [*base, "--kind", "interpolate", "--input", render])
+    assert code == 2 and "--kind interpolate takes 2 --input, got 1" in capsys.readouterr().err
+    (tmp_path / "photo.png").write_bytes((sets / "thuman" / "synthetic.json").read_bytes())
+    code = run_cli("narf-render-video", cli_video.main, [*base, "--input", str(tmp_path / "photo.png")])
+    assert code == 2 and "an image without a skeleton" in capsys.readouterr().err

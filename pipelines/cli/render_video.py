@@ -1,4 +1,5 @@
-"""``narf-render-video``: mp4 videos of a fitted avatar (orbit, pose sequences, bone-length edits)."""
+"""``narf-render-video``: mp4 videos of a fitted avatar (orbit, pose sequences, bone-length edits), or of people
+encoded by an autoencoder run (orbit, poses, interpolation between two people)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ from pipelines.cli.common import HelpFormatter, run_cli
 
 
 def main(argv: list[str] | None = None) -> int:
+    from fitting.checkpoint import load_checkpoint
     from fitting.trainer import auto_device
+    from pipelines.autoencoder_video import AUTOENCODER_KINDS, render_autoencoder_video
     from pipelines.video import KINDS, render_video
 
     parser = argparse.ArgumentParser(
@@ -18,11 +21,24 @@ def main(argv: list[str] | None = None) -> int:
         description="Render an H.264 mp4 from a fitted run, side by side RGB | depth | part segmentation: 'orbit' "
         "circles a held pose at the rig's distance and height; 'poses' plays the held-out frames (or another "
         "subject's params folder, retargeted to this subject's shape) from one camera; 'bones' grows and shrinks "
-        "the legs (bone-length edit).",
+        "the legs (bone-length edit). For an autoencoder run (narf-fit --dataset thuman), --input encodes a person "
+        "(a render_128 color_XXXXXXXX.png with its pose files beside it, or a SURREAL <clip>_info.mat[:FRAME]) and "
+        "'orbit' circles that person, 'poses' plays the set's held-out poses on the person's skeleton, "
+        "'interpolate' (two --input) morphs z_s and z_a from the first person to the second; frames are "
+        "input | RGB | depth | segmentation.",
         formatter_class=HelpFormatter,
     )
     parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")
-    parser.add_argument("--kind", choices=KINDS, default="orbit", help="what to render")
+    parser.add_argument(
+        "--kind", choices=sorted(set(KINDS) | set(AUTOENCODER_KINDS)), default="orbit", help="what to render"
+    )
+    parser.add_argument(
+        "--input",
+        dest="inputs",
+        action="append",
+        default=[],
+        help="autoencoder runs: the person to encode (repeat for --kind interpolate)",
+    )
     parser.add_argument("--out", type=Path, default=None, help="output .mp4 (default: RUN/videos/<kind>.mp4)")
     parser.add_argument("--frames", type=int, default=60, help="number of video frames")
     parser.add_argument("--fps", type=int, default=24, help="frames per second")
@@ -37,13 +53,24 @@ def main(argv: list[str] | None = None) -> int:
     if args.frames < 1 or args.fps < 1:
         raise ValueError("--frames and --fps must be positive")
     out = args.out or args.run / "videos" / f"{args.kind}.mp4"
+    if not args.run.is_dir():
+        raise FileNotFoundError(f"{args.run}: no such run folder")
+    device = str(auto_device(args.device))
+    if load_checkpoint(args.run).get("kind") == "autoencoder":
+        path = render_autoencoder_video(
+            args.run, args.kind, args.inputs, out, args.frames, args.fps, device, not args.quiet
+        )
+        print(f"narf-render-video: wrote {path}")
+        return 0
+    if args.inputs or args.kind not in KINDS:
+        raise ValueError(f"{args.run}: a per-subject fit; --input and --kind interpolate are for autoencoder runs")
     path = render_video(
         args.run,
         args.kind,
         out,
         args.frames,
         args.fps,
-        str(auto_device(args.device)),
+        device,
         args.params_dir,
         args.camera,
         args.scale,
