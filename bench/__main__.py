@@ -6,7 +6,12 @@ import argparse
 import importlib
 import os
 
-BENCHMARKS = {"synth": "bench.bench_synth", "models": "bench.bench_models", "calib": "bench.bench_calib"}
+BENCHMARKS = {
+    "synth": "bench.bench_synth",
+    "models": "bench.bench_models",
+    "calib": "bench.bench_calib",
+    "autoencoder": "bench.bench_autoencoder",
+}
 
 
 def main() -> None:

@@ -47,7 +47,8 @@ def load_checkpoint(run_dir: Path, map_location="cpu") -> dict:
     if not path.is_file():
         raise CheckpointError(f"{path}: no checkpoint (is this a run folder written by narf-fit --out?)")
     try:
-        state = torch.load(path, map_location=map_location, weights_only=False)
+        # weights_only: tensors and plain Python values only, so a crafted checkpoint cannot run code
+        state = torch.load(path, map_location=map_location, weights_only=True)
     except Exception as err:  # torch raises many kinds on truncated or foreign files
         raise CheckpointError(f"{path}: corrupt or unreadable checkpoint ({type(err).__name__}: {err})") from err
     if not isinstance(state, dict) or state.get("format") != FORMAT_VERSION:

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import scipy.sparse
 
+from pipelines.datasets.safe_pickle import ChumpyStub, RestrictedUnpickler
+
 REQUIRED_KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
 #: Module renames so that pickles written under numpy 2 / new scipy load under numpy 1.x / older scipy too.
 _LEGACY_MODULES = {
@@ -88,27 +90,8 @@ def validate_smpl_dict(model: dict, source: str) -> None:
         raise SmplFileError(f"{source}: 'shapedirs' has shape {np.shape(model['shapedirs'])}, expected (6890,3,>=10)")
 
 
-class _ChumpyStub:
-    """Stands in for chumpy objects while unpickling: keeps the wrapped array ``x``."""
-
-    def __init__(self, *args, **kwargs):
-        pass
-
-    def __setstate__(self, state):
-        self.__dict__.update(state if isinstance(state, dict) else {"x": state})
-
-
-class _ChumpyFreeUnpickler(pickle.Unpickler):
-    def find_class(self, module, name):
-        if module.startswith("chumpy"):
-            return _ChumpyStub
-        if module.startswith("scipy.sparse.") and name.endswith("_matrix"):
-            return getattr(scipy.sparse, name)
-        return super().find_class(module, name)
-
-
 def _unwrap(value):
-    if isinstance(value, _ChumpyStub):
+    if isinstance(value, ChumpyStub):
         if "x" not in value.__dict__:
             raise SmplFileError(f"a chumpy object without an array 'x' (has {sorted(value.__dict__)})")
         return np.asarray(value.__dict__["x"])
@@ -122,7 +105,7 @@ def load_smpl_dict(path: Path) -> dict:
         raise SmplFileError(f"{path}: no such SMPL model file")
     try:
         with open(path, "rb") as handle:
-            raw = _ChumpyFreeUnpickler(handle, encoding="latin1").load()
+            raw = RestrictedUnpickler(handle, chumpy=True, encoding="latin1").load()
     except (pickle.UnpicklingError, EOFError, ModuleNotFoundError, AttributeError) as err:
         raise SmplFileError(f"{path}: not a readable SMPL pickle ({err})") from err
     if not isinstance(raw, dict):

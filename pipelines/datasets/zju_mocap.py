@@ -9,6 +9,7 @@ labels bilinearly, which invents intermediate labels on edges).
 
 from __future__ import annotations
 
+import pickle
 import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -16,6 +17,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipelines.datasets.safe_pickle import load_npy_object
 from pipelines.datasets.smpl_files import atomic_write_bytes
 
 
@@ -118,9 +120,9 @@ def _read_npy_dict(path: Path) -> dict:
     if not path.is_file():
         raise CaptureError(f"{path}: missing")
     try:
-        value = np.load(path, allow_pickle=True)
+        value = load_npy_object(path)  # a pickled dict by format, read without running code (safe_pickle)
         return value.item() if value.dtype == object and value.shape == () else {"__array__": value}
-    except (OSError, ValueError) as err:
+    except (OSError, ValueError, EOFError, pickle.UnpicklingError) as err:
         raise CaptureError(f"{path}: unreadable ({err})") from err
 
 
