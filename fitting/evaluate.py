@@ -3,7 +3,9 @@ report table. The loop over a capture's splits is ``pipelines.evaluation.evaluat
 
 from __future__ import annotations
 
+import json
 import platform
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -171,3 +173,13 @@ def markdown_table(report: dict) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def write_report(out_dir: Path, report: dict, markdown: str) -> None:
+    """``metrics.json`` (atomically: a temporary file, then a rename) and ``metrics.md`` into ``out_dir``."""
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir / "metrics.json.tmp"
+    tmp.write_text(json.dumps(report, indent=1))
+    tmp.replace(out_dir / "metrics.json")
+    (out_dir / "metrics.md").write_text(markdown)

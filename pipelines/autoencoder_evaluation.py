@@ -25,7 +25,7 @@ from tqdm import tqdm
 from fitting.autoencoder import build_encoder, encode
 from fitting.checkpoint import load_checkpoint
 from fitting.config import FitConfig, load_config
-from fitting.evaluate import average_metrics, library_versions, render_view, spread, ssim
+from fitting.evaluate import average_metrics, library_versions, render_view, spread, ssim, write_report
 from fitting.plots import grid, save_png, to_numpy
 from fitting.trainer import make_field
 from narf.metrics import mask_l2, psnr_of
@@ -264,9 +264,5 @@ def evaluate_autoencoder_run(
             "versions": library_versions(),
         }
     )
-    out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = metrics_path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(report, indent=1))
-    tmp.replace(metrics_path)
-    (out_dir / "metrics.md").write_text(markdown_autoencoder(report))
+    write_report(out_dir, report, markdown_autoencoder(report))
     return report

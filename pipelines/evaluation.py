@@ -16,6 +16,7 @@ from fitting.evaluate import (
     nb_crop_region,
     render_view,
     spread,
+    write_report,
 )
 from fitting.plots import grid, save_png, to_numpy
 from pipelines.fit_session import load_run, poses_for_frames
@@ -75,9 +76,5 @@ def evaluate_run(
             "versions": library_versions(),
         }
     )
-    out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = metrics_path.with_suffix(".json.tmp")
-    tmp.write_text(json.dumps(report, indent=1))
-    tmp.replace(metrics_path)
-    (out_dir / "metrics.md").write_text(markdown_table(report))
+    write_report(out_dir, report, markdown_table(report))
     return report

@@ -151,6 +151,7 @@ def prepare_thuman(
         meshes.append((params, scan))
     partial = Path(out).parent / f".{Path(out).name}.partial"
     shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
     prepare_folders(partial)
     body = BodyModel(smpl_path, dtype=torch.float64)
     per_mesh = {"train": renders_per_mesh, "same_view": 1, "novel_view": 1}

@@ -10,8 +10,6 @@ z-up mocap frame, the world orientation is R_x(pi/2) R_z(zrot) R(pose[0:3]) and 
 
 from __future__ import annotations
 
-import json
-import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -24,10 +22,10 @@ from pipelines.body.model import BodyModel
 from pipelines.body.surreal import surreal_world_pose
 from pipelines.datasets.surreal import HEIGHT, SURREAL_K, WIDTH, surreal_cam_from_world
 from pipelines.synthetic.people import person_colours, random_person, random_poses, raycast
+from pipelines.synthetic.staging import is_finished, publish, start_staging
 from pipelines.synthetic.surreal_files import write_surreal_clip
 
 SURREAL_VERSION = 1
-MARKER = "synthetic.json"
 _R_X90 = cv2.Rodrigues(np.array([np.pi / 2, 0.0, 0.0]))[0]
 
 
@@ -123,14 +121,8 @@ def _render_clip(body: BodyModel, config: SurrealSynthConfig, rng: np.random.Gen
 
 
 def is_surreal_complete(out: Path, config: SurrealSynthConfig | None = None) -> bool:
-    marker = Path(out) / MARKER
-    try:
-        written = json.loads(marker.read_text()) if marker.is_file() else None
-    except (OSError, json.JSONDecodeError):
-        return False
-    if written is None or written.get("dataset") != "surreal":
-        return False
-    return config is None or (written.get("config") == asdict(config) and written.get("version") == SURREAL_VERSION)
+    """True when ``out`` holds a finished SURREAL-like set (with these settings, if ``config`` is given)."""
+    return is_finished(out, "surreal", config, SURREAL_VERSION)
 
 
 def generate_surreal(
@@ -141,10 +133,7 @@ def generate_surreal(
     out = Path(out)
     if is_surreal_complete(out, config):
         return out
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not is_surreal_complete(out):
-        raise FileExistsError(f"{out}: exists and holds no finished SURREAL-like set; choose another --out")
-    partial = out.parent / f".{out.name}.partial"
-    shutil.rmtree(partial, ignore_errors=True)
+    partial = start_staging(out, "surreal", "SURREAL-like set")
     body = BodyModel(smpl_path)
     infos = []
     for clip in tqdm(range(config.clips), desc="surreal clips", unit="clip", disable=not progress):
@@ -166,8 +155,4 @@ def generate_surreal(
         )
         infos.append(str(info.relative_to(partial)))
     marker = {"dataset": "surreal", "version": SURREAL_VERSION, "config": asdict(config), "clips": infos}
-    (partial / MARKER).write_text(json.dumps(marker, indent=1))
-    if out.exists():
-        shutil.rmtree(out)
-    partial.rename(out)
-    return out
+    return publish(partial, out, marker)

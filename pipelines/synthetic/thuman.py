@@ -10,8 +10,6 @@ of its list). ``synthetic.json`` is written last, into a staging folder that is 
 
 from __future__ import annotations
 
-import json
-import shutil
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -23,9 +21,9 @@ from tqdm import tqdm
 from pipelines.body.model import BodyModel
 from pipelines.synthetic.narf_render import prepare_folders, render_mesh_splits
 from pipelines.synthetic.people import Person, person_colours, random_person, random_poses
+from pipelines.synthetic.staging import is_finished, publish, start_staging
 
 THUMAN_VERSION = 1
-MARKER = "synthetic.json"
 
 
 @dataclass(frozen=True)
@@ -84,14 +82,7 @@ def write_raw_item(folder: Path, betas, pose, vertices_smpl, faces, colours, rng
 
 def is_thuman_complete(out: Path, config: ThumanSynthConfig | None = None) -> bool:
     """True when ``out`` holds a finished THUman-like set (with these settings, if ``config`` is given)."""
-    marker = Path(out) / MARKER
-    try:
-        written = json.loads(marker.read_text()) if marker.is_file() else None
-    except (OSError, json.JSONDecodeError):
-        return False
-    if written is None or written.get("dataset") != "thuman":
-        return False
-    return config is None or (written.get("config") == asdict(config) and written.get("version") == THUMAN_VERSION)
+    return is_finished(out, "thuman", config, THUMAN_VERSION)
 
 
 def _write_mesh(root: Path, state: dict, m: int, person: Person, pose: np.ndarray, rng, config) -> None:
@@ -118,10 +109,7 @@ def generate_thuman(
     out = Path(out)
     if is_thuman_complete(out, config):
         return out
-    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not is_thuman_complete(out):
-        raise FileExistsError(f"{out}: exists and holds no finished THUman-like set; choose another --out")
-    partial = out.parent / f".{out.name}.partial"
-    shutil.rmtree(partial, ignore_errors=True)
+    partial = start_staging(out, "thuman", "THUman-like set")
     prepare_folders(partial)
     body = BodyModel(smpl_path)
     rng = np.random.default_rng(config.seed)
@@ -146,8 +134,4 @@ def generate_thuman(
         "renders_per_mesh": {"train": config.renders_per_mesh, "same_view": 1, "novel_view": 1},
         "mesh_person": [p for p, _ in plan],
     }
-    (partial / MARKER).write_text(json.dumps(marker, indent=1))
-    if out.exists():
-        shutil.rmtree(out)
-    partial.rename(out)
-    return out
+    return publish(partial, out, marker)

@@ -1,0 +1,44 @@
+"""Finished-or-not for generated sets: each set is written into a hidden ``.<name>.partial`` folder whose
+``synthetic.json`` marker (dataset, version, settings) is written last, then renamed into place, so a folder that
+holds a marker is complete and an interrupted generation never looks finished."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import asdict
+from pathlib import Path
+
+MARKER = "synthetic.json"
+
+
+def is_finished(out: Path, dataset: str, config=None, version: int | None = None) -> bool:
+    """True when ``out`` holds a finished ``dataset`` set (with these settings and version, if given)."""
+    marker = Path(out) / MARKER
+    try:
+        written = json.loads(marker.read_text()) if marker.is_file() else None
+    except (OSError, json.JSONDecodeError):
+        return False
+    if written is None or written.get("dataset") != dataset:
+        return False
+    return config is None or (written.get("config") == asdict(config) and written.get("version") == version)
+
+
+def start_staging(out: Path, dataset: str, description: str) -> Path:
+    """The empty staging folder for ``out``; refuses an ``out`` that holds anything but a finished set."""
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not is_finished(out, dataset):
+        raise FileExistsError(f"{out}: exists and holds no finished {description}; choose another --out")
+    partial = out.parent / f".{out.name}.partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    return partial
+
+
+def publish(partial: Path, out: Path, marker: dict) -> Path:
+    """Write the marker last and move the staging folder into place (replacing an older finished set)."""
+    (partial / MARKER).write_text(json.dumps(marker, indent=1))
+    if Path(out).exists():
+        shutil.rmtree(out)
+    partial.rename(out)
+    return Path(out)
