@@ -40,11 +40,13 @@ def test_info_reads_frame_major_and_reprojects_joints2d(tmp_path):
     clip = check_clip(info_path)
     assert clip.n_frames == N_FRAMES and clip.pose.shape == (N_FRAMES, 72) and clip.shape.shape == (N_FRAMES, 10)
     assert clip.joints2d.shape == (N_FRAMES, 24, 2) and clip.joints3d.shape == (N_FRAMES, 24, 3)
+    # joints3D and zrot are stored as float64 and come back bit-exact; allclose's defaults are a formality
     assert np.allclose(clip.joints3d, joints3d) and (clip.gender == 1).all() and np.allclose(clip.zrot, 0.7)
     # the stored pose is float32: the reader returns it exactly as stored
     assert np.array_equal(clip.pose, raw["pose"].T.astype(np.float64))
     R, t = clip.cam_from_world[:3, :3], clip.cam_from_world[:3, 3]
-    assert np.linalg.det(R) == pytest.approx(-1.0, abs=1e-12)  # Blender's mirrored camera, kept as it is
+    # Blender's mirrored camera, kept as it is; R has entries 0 and +-1, so det is exact
+    assert np.linalg.det(R) == pytest.approx(-1.0, abs=1e-12)
     assert np.allclose(R, [[0, 0, -1], [0, 1, 0], [-1, 0, 0]]) and np.allclose(t, -R @ cam_loc)
     cam = clip.joints3d @ R.T + t
     assert (cam[..., 2] > 0).all()  # in front of the camera
@@ -92,4 +94,5 @@ def test_bad_clips_name_the_file(tmp_path):
 
 def test_cam_from_world_maps_the_camera_location_to_the_origin():
     cam_from_world = surreal_cam_from_world(np.array([8.0, -1.0, 1.2]))
+    # R has entries 0 and +-1: the products are exact
     assert np.allclose(cam_from_world[:3, :3] @ [8.0, -1.0, 1.2] + cam_from_world[:3, 3], 0.0)
