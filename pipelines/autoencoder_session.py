@@ -52,6 +52,13 @@ class ThumanView:
     camera: Camera
 
 
+def view_of_render(render, name: str) -> ThumanView:
+    """A render_128 view with its camera: cam_from_world = pose_to_camera pose_to_world^-1 (any joint; the root)."""
+    cam_from_world = render.pose_to_camera[0] @ np.linalg.inv(render.pose_to_world[0])
+    camera = Camera(name, render.K, np.zeros(5), cam_from_world, 128, 128)
+    return ThumanView(render.image, render.mask, np.zeros(render.mask.shape, bool), camera)
+
+
 def resolve_thuman(config: FitConfig, quiet: bool = False, generate: bool = True) -> Path:
     """The set of ``data.data_root``: the folder itself when it holds ``train/render_128``, else
     ``<root>/synthetic/thuman`` (the stand-in, generated when missing and announced on stderr)."""
@@ -95,10 +102,11 @@ def load_views(dataset: ThumanSet, split: str, meshes: list[int], progress: bool
     def load(index):
         main = read_render(dataset.color_dir(split), index, per_mesh)
         second = read_render(dataset.color_dir(split, view2=True), index, per_mesh)
-        cam_from_world = main.pose_to_camera[0] @ np.linalg.inv(main.pose_to_world[0])
-        camera = Camera(f"{split}/{index}", main.K, np.zeros(5), cam_from_world, 128, 128)
-        view = ThumanView(main.image, main.mask, np.zeros(main.mask.shape, bool), camera)
-        return view, np.uint8(second.image * 255 + 0.5).transpose(2, 0, 1), main.pose_to_world
+        return (
+            view_of_render(main, f"{split}/{index}"),
+            np.uint8(second.image * 255 + 0.5).transpose(2, 0, 1),
+            main.pose_to_world,
+        )
 
     with ThreadPoolExecutor(2) as pool:
         items = list(tqdm(pool.map(load, indices), total=len(indices), desc=f"loading {split}", disable=not progress))

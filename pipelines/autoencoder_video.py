@@ -23,11 +23,11 @@ from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
 from narf.kinematics import rest_offsets_from_world, retarget
 from pipelines.autoencoder_evaluation import AutoencoderRun, load_autoencoder_run, surreal_view
-from pipelines.autoencoder_session import ThumanView, load_views
+from pipelines.autoencoder_session import ThumanView, load_views, view_of_render
 from pipelines.body.model import BodyModel, pose_batch_from_joints
 from pipelines.datasets.surreal import check_clip
 from pipelines.datasets.thuman import read_render
-from pipelines.datasets.zju_mocap import Camera, CaptureError
+from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.synthetic.scene import look_at
 
 AUTOENCODER_KINDS = ("orbit", "poses", "interpolate")
@@ -66,9 +66,7 @@ def read_input(spec: str, body_model: BodyModel) -> EncodedInput:
                 "or a SURREAL <clip>_info.mat[:FRAME]"
             )
         render = read_render(path.parent, int(match[1]), renders_per_mesh=1)
-        cam_from_world = render.pose_to_camera[0] @ np.linalg.inv(render.pose_to_world[0])
-        camera = Camera(path.name, render.K, np.zeros(5), cam_from_world, 128, 128)
-        view = ThumanView(render.image, render.mask, np.zeros(render.mask.shape, bool), camera)
+        view = view_of_render(render, path.name)
         joints = torch.as_tensor(render.pose_to_world[None], dtype=torch.float32)
     image = torch.as_tensor(np.uint8(view.image * 255 + 0.5).transpose(2, 0, 1))[None]
     return EncodedInput(view, joints.float(), image)

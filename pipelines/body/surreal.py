@@ -11,14 +11,15 @@ import torch
 from pipelines.body.model import BodyModel, PosedBody
 from pipelines.datasets.surreal import SurrealClip
 
-_R_X90 = cv2.Rodrigues(np.array([np.pi / 2, 0.0, 0.0]))[0]
+#: R_x(pi/2): SURREAL's turn of the z-up mocap frame into its world (docs/formats.md §5.4).
+R_X90 = cv2.Rodrigues(np.array([np.pi / 2, 0.0, 0.0]))[0]
 
 
 def surreal_world_pose(pose: np.ndarray, zrot: float) -> np.ndarray:
     """(72,) pose whose root is the body's world orientation R_x(pi/2) R_z(zrot) R(pose[0:3])."""
     out = np.asarray(pose, np.float64).copy()
     rz = cv2.Rodrigues(np.array([0.0, 0.0, float(zrot)]))[0]
-    world = _R_X90 @ rz @ cv2.Rodrigues(out[:3].reshape(3, 1))[0]
+    world = R_X90 @ rz @ cv2.Rodrigues(out[:3].reshape(3, 1))[0]
     out[:3] = cv2.Rodrigues(world)[0].ravel()
     return out
 

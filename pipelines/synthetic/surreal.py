@@ -19,14 +19,13 @@ import torch
 from tqdm import tqdm
 
 from pipelines.body.model import BodyModel
-from pipelines.body.surreal import surreal_world_pose
+from pipelines.body.surreal import R_X90, surreal_world_pose
 from pipelines.datasets.surreal import HEIGHT, SURREAL_K, WIDTH, surreal_cam_from_world
 from pipelines.synthetic.people import person_colours, random_person, random_poses, raycast
 from pipelines.synthetic.staging import is_finished, publish, start_staging
 from pipelines.synthetic.surreal_files import write_surreal_clip
 
 SURREAL_VERSION = 1
-_R_X90 = cv2.Rodrigues(np.array([np.pi / 2, 0.0, 0.0]))[0]
 
 
 @dataclass(frozen=True)
@@ -70,7 +69,7 @@ def _clip_poses(config: SurrealSynthConfig, rng: np.random.Generator) -> tuple[n
     poses = smooth_motion(config.frames, rng)
     yaw = rng.uniform(-0.3, 0.3) + np.linspace(0, rng.uniform(-0.5, 0.5), config.frames)
     for t in range(config.frames):  # the mocap root: SMPL y-up turned z-up, then a slow turn about the new up
-        root = cv2.Rodrigues(np.array([0.0, 0.0, yaw[t]]))[0] @ _R_X90
+        root = cv2.Rodrigues(np.array([0.0, 0.0, yaw[t]]))[0] @ R_X90
         poses[t, :3] = cv2.Rodrigues(root)[0].ravel()
     start = np.array([rng.uniform(-0.5, 0.5), rng.uniform(-1.3, -0.7), rng.uniform(-0.4, 0.4)])
     walk = np.outer(np.linspace(0, 1, config.frames), [rng.uniform(-0.6, 0.6), 0.0, rng.uniform(-0.6, 0.6)])
