@@ -151,6 +151,21 @@ def test_generation_refuses_foreign_folder_and_bad_config(tmp_path):
         generate_capture(tmp_path / "x", SynthConfig(layout="weird"))
 
 
+def test_closest_surface_points_match_trimesh(body_model):
+    import trimesh
+
+    from pipelines.synthetic.lbs import closest_surface_points, grid_points
+
+    vertices = body_model.rest_body(torch.zeros(1, 10)).vertices[0].double().numpy()
+    points = grid_points(vertices).reshape(-1, 3)
+    points = points[np.random.default_rng(0).choice(len(points), 1500, replace=False)]
+    _, exact, _ = trimesh.proximity.closest_point(trimesh.Trimesh(vertices, body_model.faces, process=False), points)
+    _, ours, _ = closest_surface_points(vertices, body_model.faces, points)
+    # the same point-triangle projection by two formulae (float64): 1e-6 m is far below a wrong-triangle error,
+    # which is a sizeable fraction of an edge (~1 cm with the nearest vertex alone)
+    np.testing.assert_allclose(ours, exact, atol=1e-6)
+
+
 def test_animatable_nerf_lbs_folder(tmp_path, body_model):
     from pipelines.synthetic.lbs import BOX_PADDING, VOXEL
 
@@ -162,12 +177,31 @@ def test_animatable_nerf_lbs_folder(tmp_path, body_model):
     lbs = root / "lbs"
     assert np.load(lbs / "joints.npy").shape == (24, 3) and np.load(lbs / "parents.npy")[0] == 4294967295
     assert np.load(lbs / "weights.npy").shape == (6890, 24) and np.load(lbs / "faces.npy").shape == (13776, 3)
-    tpose = np.load(lbs / "tvertices.npy")
+    tpose = np.load(lbs / "tvertices.npy").astype(np.float64)
     tbw = np.load(lbs / "tbw.npy")
-    extent = tpose.max(0) - tpose.min(0) + 2 * BOX_PADDING
-    assert tbw.shape[3] == 25 and np.all(np.abs(np.array(tbw.shape[:3]) - (extent / VOXEL + 1)) <= 1)
-    # the voxel nearest to a vertex carries that vertex's weights (when no other vertex is closer)
-    low = tpose.min(0) - BOX_PADDING
+    # the grid samples of upstream's prepare_blend_weights: np.arange(low, high + voxel, voxel) per axis
+    low, high = tpose.min(0) - BOX_PADDING, tpose.max(0) + BOX_PADDING
+    assert tbw.shape == (*[len(np.arange(low[d], high[d] + VOXEL, VOXEL)) for d in range(3)], 25)
+    assert all(low[d] + (tbw.shape[d] - 1) * VOXEL >= high[d] - 1e-9 for d in range(3))
+    # tvertices: frame 0 un-posed by inverse LBS = the shaped template plus frame 0's pose correctives
+    p0 = np.load(root / "new_params" / "0.npy", allow_pickle=True).item()
+    smpl = body_model.smpl
+    rot = torch.as_tensor(np.stack([cv2.Rodrigues(r)[0] for r in p0["poses"].reshape(24, 3)]))
+    correctives = ((rot[1:] - torch.eye(3, dtype=rot.dtype)).reshape(1, -1).float() @ smpl.posedirs).reshape(-1, 3)
+    shaped = smpl.v_template + (smpl.shapedirs @ torch.as_tensor(p0["shapes"][0]).float())
+    # float32 skinning of 24 transforms and its float64 inverse of a float32 vertex file: ~1e-6 m
+    np.testing.assert_allclose(tpose, (shaped + correctives).numpy(), atol=2e-5)
+    # bigpose_vertices: plain LBS (no correctives) of tvertices with the hips turned +-30 deg about z: vertices
+    # skinned to the pelvis alone stay put; those skinned to the left knee alone turn about the left hip
+    big = np.load(lbs / "bigpose_vertices.npy").astype(np.float64)
+    weights = np.load(lbs / "weights.npy")
+    joints = np.load(lbs / "joints.npy").astype(np.float64)
+    pelvis, knee = weights[:, 0] > 1 - 1e-6, weights[:, 4] > 1 - 1e-6
+    assert pelvis.sum() > 10 and knee.sum() > 10
+    np.testing.assert_allclose(big[pelvis], tpose[pelvis], atol=1e-5)  # float32 storage of ~1 m values
+    turn = cv2.Rodrigues(np.array([0.0, 0.0, np.deg2rad(30)]))[0]
+    np.testing.assert_allclose(big[knee], (tpose[knee] - joints[1]) @ turn.T + joints[1], atol=1e-5)
+    # the nearest grid sample to a surface point lies within half a voxel diagonal of the surface
     index = np.round((tpose[0] - low) / VOXEL).astype(int)
     cell = tbw[tuple(index)]
     # the grid is float32: distances ~0.02 m to 1e-9, and 24 float32 weights summing to 1 to ~24 eps32 ~ 3e-6
@@ -179,4 +213,5 @@ def test_animatable_nerf_lbs_folder(tmp_path, body_model):
     # posed grids are in the SMPL frame: R(Rh)^T (v - Th) of new_vertices
     p = np.load(root / "new_params" / "1.npy", allow_pickle=True).item()
     smpl_frame = (np.load(root / "new_vertices" / "1.npy") - p["Th"]) @ cv2.Rodrigues(p["Rh"])[0]
-    assert np.all(np.abs(np.array(frame.shape[:3]) - ((smpl_frame.max(0) - smpl_frame.min(0) + 0.1) / VOXEL + 1)) <= 1)
+    low, high = smpl_frame.min(0) - BOX_PADDING, smpl_frame.max(0) + BOX_PADDING
+    assert frame.shape[:3] == tuple(len(np.arange(low[d], high[d] + VOXEL, VOXEL)) for d in range(3))
