@@ -2,20 +2,24 @@
 
 from __future__ import annotations
 
+import json
+import sys
 from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from fitting.evaluate import render_view
 from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
-from narf.kinematics import SMPL_PARENTS, rigid_from_rotvec_translation
+from narf.kinematics import JOINT_NAMES, PART_JOINTS, SMPL_PARENTS, rigid_from_rotvec_translation
 from pipelines.body.model import BodyModel, pose_batch, posed_from_rest_joints
-from pipelines.datasets.zju_mocap import CaptureError, read_params
-from pipelines.fit_session import load_run
+from pipelines.body.motion import load_motion, place, resample, stage_of
+from pipelines.datasets.smpl_files import atomic_write_bytes
+from pipelines.fit_session import LoadedRun, load_run, poses_for_frames
 from pipelines.synthetic.scene import look_at
 
 KINDS = ("orbit", "poses", "bones")
@@ -57,13 +61,62 @@ def scaled_skeleton(rest: torch.Tensor, joints: tuple[int, ...], scale: float) -
     return out
 
 
-def _params_sequence(capture, params_dir: Path | None, frames: list[int]):
-    if params_dir is None:
-        return [capture.params(f) for f in frames]
-    files = sorted(Path(params_dir).glob("*.npy"), key=lambda p: int(p.stem) if p.stem.isdigit() else 0)
-    if not files:
-        raise CaptureError(f"{params_dir}: no SMPL params files (*.npy)")
-    return [read_params(p) for p in files]
+#: A part more than this many degrees from its orientation in every training pose is out of the trained range.
+OOD_DEGREES = 30.0
+
+
+def part_rotation_gaps(train_world_from_part: torch.Tensor, world_from_part: torch.Tensor) -> np.ndarray:
+    """Per frame and part, the angle (degrees) to the closest orientation of that part over the training poses.
+
+    NARF's pose input xi keeps the global orientation (docs/model.md §1), so orientations are compared in the world.
+
+    Args:
+        train_world_from_part: (N, P, 4, 4). world_from_part: (T, P, 4, 4).
+
+    Returns:
+        (T, P) angles in degrees.
+    """
+    train, frames = train_world_from_part[..., :3, :3].double(), world_from_part[..., :3, :3].double()
+    cosine = (torch.einsum("tpij,npij->tnp", frames, train) - 1) / 2  # trace(R_a^T R_b) = 2 cos + 1
+    return np.degrees(np.arccos(cosine.clamp(-1, 1).amax(dim=1).numpy()))
+
+
+def motion_params(run: LoadedRun, motion_path: Path, fps: float, start: int, n_frames: int, motion_fps=None):
+    """The subject's ZJU parameters performing a motion file at ``fps``, placed on the capture's stage, and a
+    report of the frames whose parts leave the trained range (``docs/design.md`` *Driving the avatar*)."""
+    capture, body = run.capture, run.body_model
+    frames = list(run.protocol.train_frames)
+    frames = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, min(100, len(frames))).astype(int))]
+    train_pose, train_bodies, shapes = poses_for_frames(capture, body, frames)
+    rest_pelvis = body.rest_joints(shapes[:1].to(body.dtype))[0, 0].double().numpy()
+    motion = resample(load_motion(motion_path, rest_pelvis, motion_fps), fps, start, n_frames)
+    roots = [capture.params(f) for f in frames]
+    root_world = np.stack([(Rotation.from_rotvec(p.rh) * Rotation.from_rotvec(p.poses[:3])).as_rotvec() for p in roots])
+    stage = stage_of(
+        up_vector(capture.cameras),
+        train_bodies.vertices.double().numpy(),
+        train_bodies.world_from_joint[:, 0, :3, 3].double().numpy(),
+        root_world,
+    )
+    params = place(motion, stage, body, shapes[0].double().numpy())
+    stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
+    with torch.no_grad():
+        gaps = part_rotation_gaps(train_pose.world_from_part, body.pose_zju(*stack).world_from_part)
+    names = [JOINT_NAMES[j] for j in PART_JOINTS]
+    outside = [
+        {"frame": k, "parts": {names[i]: round(float(g), 1) for i, g in enumerate(row) if g > OOD_DEGREES}}
+        for k, row in enumerate(gaps)
+        if (row > OOD_DEGREES).any()
+    ]
+    report = {
+        "motion": motion.source,
+        "fps": fps,
+        "start": start,
+        "frames": len(params),
+        "threshold_degrees": OOD_DEGREES,
+        "out_of_range": outside,
+    }
+    return params, report
 
 
 def render_video(
@@ -73,12 +126,19 @@ def render_video(
     n_frames: int = 60,
     fps: int = 24,
     device: str = "cpu",
-    params_dir: Path | None = None,
+    motion: Path | None = None,
     camera_index: int | None = None,
     scale: float = 1.3,
     progress: bool = True,
+    start: int = 0,
+    motion_fps: float | None = None,
 ) -> Path:
-    """Render ``kind`` (orbit | poses | bones) of a fitted run to an H.264 mp4 of RGB | depth | segmentation."""
+    """Render ``kind`` (orbit | poses | bones) of a fitted run to an H.264 mp4 of RGB | depth | segmentation.
+
+    With ``motion`` (an AMASS .npz, a ZJU params folder or a SURREAL _info.mat) ``poses`` plays that motion at
+    ``fps`` from source frame ``start`` (``motion_params``); its report goes to ``out`` with the suffix ``.json``,
+    and the frames outside the trained range are named on stderr.
+    """
     if kind not in KINDS:
         raise ValueError(f"unknown video kind '{kind}'; choose from {', '.join(KINDS)}")
     run = load_run(run_dir, device)
@@ -91,9 +151,11 @@ def render_video(
     base = capture.params(held)
     shapes = torch.as_tensor(base.shapes)[None]
     frames_out = []
-    if kind == "poses":
-        sequence = list(protocol.novel_frames or protocol.train_frames)[:n_frames]
-        params = _params_sequence(capture, params_dir, sequence)[:n_frames]
+    if kind == "poses" and motion is not None:
+        params, report = motion_params(run, Path(motion), fps, start, n_frames, motion_fps)
+        _report_motion(report, Path(out).with_suffix(".json"))
+    elif kind == "poses":
+        params = [capture.params(f) for f in list(protocol.novel_frames or protocol.train_frames)[:n_frames]]
     else:
         params = [base] * n_frames
     cameras = (
@@ -114,6 +176,30 @@ def render_video(
                 pose = pose_batch(body_model.pose_zju(*args, shapes))
         frames_out.append(video_frame(to_numpy(render_view(field, cam, pose.to(device), config))))
     return write_mp4(out, frames_out, fps)
+
+
+def _report_motion(report: dict, path: Path) -> None:
+    atomic_write_bytes(path, json.dumps(report, indent=1).encode())
+    outside = [entry["frame"] for entry in report["out_of_range"]]
+    if outside:
+        worst = max((g, name) for entry in report["out_of_range"] for name, g in entry["parts"].items())
+        print(
+            f"narf-render-video: {len(outside)} of {report['frames']} frames leave the trained pose range (a part "
+            f"> {report['threshold_degrees']:.0f} deg from every training pose; worst {worst[1]} {worst[0]} deg): "
+            f"frames {_ranges(outside)}; details in {path}",
+            file=sys.stderr,
+        )
+
+
+def _ranges(values: list[int]) -> str:
+    """[1, 2, 3, 7] -> '1-3, 7'."""
+    groups: list[list[int]] = []
+    for value in values:
+        if groups and value == groups[-1][1] + 1:
+            groups[-1][1] = value
+        else:
+            groups.append([value, value])
+    return ", ".join(str(a) if a == b else f"{a}-{b}" for a, b in groups)
 
 
 def _pelvis(body_model: BodyModel, params) -> np.ndarray:

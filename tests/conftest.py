@@ -61,3 +61,18 @@ def data_root_64(tmp_path_factory):
         progress=False,
     )
     return root
+
+
+@pytest.fixture(scope="session")
+def tiny_run(data_root_64, tmp_path_factory):
+    """A 2-step tiny NARF_D fit of the 64^2 capture (weights barely trained: for plumbing, not quality)."""
+    import torch
+
+    from fitting.config import load_config
+    from fitting.trainer import prepare_run_dir
+    from pipelines.fit_session import start_trainer
+
+    config = load_config("tiny", [f"data.data_root={data_root_64}", "data.ratio=1.0", "train.steps=2"])
+    run = prepare_run_dir(tmp_path_factory.mktemp("tiny_run") / "run", config, False)
+    start_trainer(config, run, torch.device("cpu"), progress=False).fit()
+    return run

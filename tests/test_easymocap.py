@@ -11,7 +11,8 @@ from pipelines.datasets.zju_mocap import Camera, CaptureError
 def _mat(key, value):
     value = np.atleast_2d(value)
     data = ", ".join(f"{v:.6f}" for v in value.reshape(-1))
-    return f"{key}: !!opencv-matrix\r\n  rows: {value.shape[0]}\r\n  cols: {value.shape[1]}\r\n  dt: d\r\n  data: [{data}]\r\n"
+    lines = [f"{key}: !!opencv-matrix", f"  rows: {value.shape[0]}", f"  cols: {value.shape[1]}", "  dt: d"]
+    return "\r\n".join([*lines, f"  data: [{data}]", ""])
 
 
 def _camera(i):

@@ -20,7 +20,7 @@ def main(argv: list[str] | None = None) -> int:
         prog="narf-render-video",
         description="Render an H.264 mp4 from a fitted run, side by side RGB | depth | part segmentation: 'orbit' "
         "circles a held pose at the rig's distance and height; 'poses' plays the held-out frames (or another "
-        "subject's params folder, retargeted to this subject's shape) from one camera; 'bones' grows and shrinks "
+        "motion capture given with --motion) from one camera; 'bones' grows and shrinks "
         "the legs (bone-length edit). For an autoencoder run (narf-fit --dataset thuman), --input encodes a person "
         "(a render_128 color_XXXXXXXX.png with its pose files beside it, or a SURREAL <clip>_info.mat[:FRAME]) and "
         "'orbit' circles that person, 'poses' plays the set's held-out poses on the person's skeleton, "
@@ -40,12 +40,28 @@ def main(argv: list[str] | None = None) -> int:
         help="autoencoder runs: the person to encode (repeat for --kind interpolate)",
     )
     parser.add_argument("--out", type=Path, default=None, help="output .mp4 (default: RUN/videos/<kind>.mp4)")
-    parser.add_argument("--frames", type=int, default=60, help="number of video frames")
-    parser.add_argument("--fps", type=int, default=24, help="frames per second")
+    parser.add_argument("--frames", type=int, default=60, help="number of video frames (at most)")
+    parser.add_argument(
+        "--fps", type=int, default=24, help="frames per second; a --motion is resampled to it (slerp) from its own rate"
+    )
     parser.add_argument(
         "--camera", type=int, default=None, help="camera index for poses/bones (default: first test view)"
     )
-    parser.add_argument("--params-dir", type=Path, default=None, help="poses: a folder of ZJU params/*.npy to play")
+    parser.add_argument(
+        "--motion",
+        "--params-dir",
+        dest="motion",
+        type=Path,
+        default=None,
+        help="poses: a motion to play with this subject's shape: an AMASS .npz (SMPL+H or SMPL-X), a ZJU-MoCap "
+        "params/ or new_params/ folder, or a SURREAL <clip>_info.mat; it is stood on the capture's floor at the "
+        "centre of the training poses, facing where they face; RUN/videos/<name>.json lists the frames whose parts "
+        "leave the trained range",
+    )
+    parser.add_argument("--start", type=int, default=0, help="--motion: first source frame")
+    parser.add_argument(
+        "--motion-fps", type=float, default=None, help="--motion: its frame rate when the file has none (ZJU: 30)"
+    )
     parser.add_argument("--scale", type=float, default=1.3, help="bones: largest leg-length factor")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -62,6 +78,8 @@ def main(argv: list[str] | None = None) -> int:
         )
         print(f"narf-render-video: wrote {path}")
         return 0
+    if args.motion is not None and args.kind != "poses":
+        raise ValueError("--motion plays with --kind poses")
     if args.inputs or args.kind not in KINDS:
         raise ValueError(f"{args.run}: a per-subject fit; --input and --kind interpolate are for autoencoder runs")
     path = render_video(
@@ -71,10 +89,12 @@ def main(argv: list[str] | None = None) -> int:
         args.frames,
         args.fps,
         device,
-        args.params_dir,
+        args.motion,
         args.camera,
         args.scale,
         not args.quiet,
+        args.start,
+        args.motion_fps,
     )
     print(f"narf-render-video: wrote {path}")
     return 0
