@@ -165,6 +165,14 @@ def markdown_table(report: dict) -> str:
             m = report["splits"][split][protocol]
             cells.append(f"{m['mask_l2']:.1f}/{m['psnr']:.2f}/{m['ssim']:.4f}" if m else "-")
         lines.append(f"| {'full image' if protocol == 'full' else 'NB crop'} | " + " | ".join(cells) + " |")
+    for split in splits:
+        if mesh := report["splits"][split].get("mesh"):
+            lines += [
+                "",
+                f"Surface ({_SHORT[split]}, {len(mesh['frames'])} frames, marching cubes at {mesh['resolution']} "
+                f"samples, level {mesh['level']:g}): distance to the true surface mean {mesh['mean_mm']:.1f} mm, "
+                f"95th percentile {mesh['p95_mm']:.1f} mm; normal consistency {mesh['normal_consistency']:.3f}",
+            ]
     versions = ", ".join(f"{k} {v}" for k, v in report["versions"].items())
     lines += [
         "",

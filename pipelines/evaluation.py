@@ -29,8 +29,15 @@ def evaluate_run(
     device: str = "cpu",
     progress: bool = True,
     grids: int = 4,
+    mesh: bool = False,
+    mesh_resolution: int = 256,
+    mesh_level: float | None = None,
 ) -> dict:
-    """Evaluate ``splits`` of the run's protocol; update ``run_dir/eval/metrics.json`` and ``metrics.md``."""
+    """Evaluate ``splits`` of the run's protocol; update ``run_dir/eval/metrics.json`` and ``metrics.md``.
+
+    With ``mesh``, also the surface of each split frame that has a true surface (``surfaces/<frame>.ply``):
+    ``pipelines.mesh_export.mesh_accuracy``, meshes in ``eval/meshes/<split>/``.
+    """
     run_dir = Path(run_dir)
     run = load_run(run_dir, device)
     config, field, capture, protocol, body_model = run.config, run.field, run.capture, run.protocol, run.body_model
@@ -64,6 +71,13 @@ def evaluate_run(
             "nb_crop": average_metrics(records, "nb_crop"),
             "per_view": records,
         }
+        if mesh:
+            from fitting.mesh import DEFAULT_LEVEL
+            from pipelines.mesh_export import mesh_accuracy
+
+            report["splits"][split]["mesh"] = mesh_accuracy(
+                run, frames, out_dir / "meshes" / split, mesh_resolution, mesh_level or DEFAULT_LEVEL, device, progress
+            )
     report.update(
         {
             "run": str(run_dir),

@@ -81,15 +81,17 @@ def part_rotation_gaps(train_world_from_part: torch.Tensor, world_from_part: tor
     return np.degrees(np.arccos(cosine.clamp(-1, 1).amax(dim=1).numpy()))
 
 
-def motion_params(run: LoadedRun, motion_path: Path, fps: float, start: int, n_frames: int, motion_fps=None):
-    """The subject's ZJU parameters performing a motion file at ``fps``, placed on the capture's stage, and a
-    report of the frames whose parts leave the trained range (``docs/design.md`` *Driving the avatar*)."""
+def motion_params(run: LoadedRun, motion_path: Path, fps, start: int, n_frames, motion_fps=None):
+    """The subject's ZJU parameters performing a motion file at ``fps`` (None: the motion's own rate) from source
+    frame ``start`` for at most ``n_frames`` (None: to the end), placed on the capture's stage, and a report of the
+    frames whose parts leave the trained range (``docs/design.md`` *Driving the avatar*)."""
     capture, body = run.capture, run.body_model
     frames = list(run.protocol.train_frames)
     frames = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, min(100, len(frames))).astype(int))]
     train_pose, train_bodies, shapes = poses_for_frames(capture, body, frames)
     rest_pelvis = body.rest_joints(shapes[:1].to(body.dtype))[0, 0].double().numpy()
-    motion = resample(load_motion(motion_path, rest_pelvis, motion_fps), fps, start, n_frames)
+    source = load_motion(motion_path, rest_pelvis, motion_fps)
+    motion = resample(source, fps or source.fps, start, n_frames)
     roots = [capture.params(f) for f in frames]
     root_world = np.stack([(Rotation.from_rotvec(p.rh) * Rotation.from_rotvec(p.poses[:3])).as_rotvec() for p in roots])
     stage = stage_of(
@@ -110,7 +112,7 @@ def motion_params(run: LoadedRun, motion_path: Path, fps: float, start: int, n_f
     ]
     report = {
         "motion": motion.source,
-        "fps": fps,
+        "fps": motion.fps,
         "start": start,
         "frames": len(params),
         "threshold_degrees": OOD_DEGREES,

@@ -14,6 +14,7 @@ GLUE = (
     "pipelines.autoencoder_evaluation",
     "pipelines.video",
     "pipelines.autoencoder_video",
+    "pipelines.mesh_export",
 )
 #: pipelines sub-package -> the parts of pipelines/ it must not import (see pipelines/__init__.py)
 PIPELINES_FORBIDDEN = {

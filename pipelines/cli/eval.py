@@ -40,6 +40,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--surreal", default=None, help="cross_dataset: SURREAL folder (default: the stand-in)")
     parser.add_argument("--limit", type=int, default=None, help="evaluate at most N views per split, evenly spread")
     parser.add_argument("--grids", type=int, default=4, help="image grids to write per split")
+    parser.add_argument(
+        "--mesh",
+        action="store_true",
+        help="also export the surface of each evaluated frame that has a true one (CAPTURE/surfaces/<frame>.ply, "
+        "written by narf-synth) and report the symmetric surface distance (mean, 95th percentile, mm) and normal "
+        "consistency; meshes in RUN/eval/meshes/<split>/",
+    )
+    parser.add_argument("--mesh-resolution", type=int, default=256, help="--mesh: grid samples along the longest side")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
@@ -47,6 +55,8 @@ def main(argv: list[str] | None = None) -> int:
         raise FileNotFoundError(f"{args.run}: no such run folder")
     device = str(auto_device(args.device))
     if load_checkpoint(args.run).get("kind") == "autoencoder":
+        if args.mesh:
+            raise ValueError(f"{args.run}: --mesh is for per-subject fits (an autoencoder run has no true surfaces)")
         if args.split not in (*AUTOENCODER_SPLITS, "all"):
             raise ValueError(
                 f"{args.run}: an autoencoder run; choose --split from {', '.join(AUTOENCODER_SPLITS)}, all"
@@ -61,7 +71,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.split not in ALL_SPLITS:
         raise ValueError(f"{args.run}: a per-subject fit; '{args.split}' is an autoencoder split")
     splits = list(EVAL_SPLITS) if args.split == "all" else [args.split]
-    report = evaluate_run(args.run, splits, args.limit, device, not args.quiet, args.grids)
+    report = evaluate_run(
+        args.run, splits, args.limit, device, not args.quiet, args.grids, args.mesh, args.mesh_resolution
+    )
     print(markdown_table(report))
     print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
     return 0

@@ -22,11 +22,13 @@ import trimesh
 from tqdm import tqdm
 
 from pipelines.body.model import BodyModel
+from pipelines.datasets.capture import make_protocol
 from pipelines.datasets.easymocap import write_easymocap_cameras
 from pipelines.datasets.zju_mocap import Camera, SmplParams, write_annots, write_params
 from pipelines.synthetic.scene import albedo, ring_cameras, shade, studio_background, taichi_motion, vertex_regions
 
-GENERATOR_VERSION = 3  # 2: tilted, closer ChArUco board poses; 3: supersampled shots, per-camera close-ups
+GENERATOR_VERSION = 4  # 2: tilted, closer ChArUco board poses; 3: supersampled shots, per-camera close-ups;
+# 4: true surfaces of the held-out evaluation frames (surfaces/)
 MARKER = "synthetic.json"
 #: Subjects the synthetic generator can stand in for.
 SYNTHETIC_SUBJECTS = ("taichi",)
@@ -237,6 +239,23 @@ def _write_sequence(root: Path, layout: str, params: list[SmplParams], old: np.n
         np.save(root / "new_vertices" / f"{f + base}.npy", new[f].astype(np.float32))
 
 
+def surface_frames(n_frames: int, n_cameras: int) -> list[int]:
+    """The held-out frames whose true surface the generator writes: the novel-pose evaluation frames of both
+    protocols (docs/formats.md §4.2)."""
+    frames = set()
+    for name in ("narf", "neuralbody"):
+        frames |= {f for f, _ in make_protocol(name, n_frames, n_cameras).split("novel_pose")}
+    return sorted(frames)
+
+
+def write_true_surfaces(root: Path, faces: np.ndarray, vertices: np.ndarray, n_cameras: int) -> None:
+    """``surfaces/<frame>.ply``: the rendered body of each held-out evaluation frame, world metres."""
+    (root / "surfaces").mkdir(exist_ok=True)
+    for frame in surface_frames(len(vertices), n_cameras):
+        mesh = trimesh.Trimesh(vertices[frame].astype(np.float64), faces, process=False)
+        mesh.export(root / "surfaces" / f"{frame}.ply")
+
+
 def generate_capture(
     out: str | Path, config: SynthConfig = SynthConfig(), smpl_path: str | Path | None = None, progress: bool = True
 ) -> Path:
@@ -282,6 +301,7 @@ def generate_capture(
         "labels": vertex_regions(rest, body.skinning_weights.numpy()),
     }
     _render_frames(state, new, config, progress)
+    write_true_surfaces(partial, body.faces, new, config.cameras)
     if config.lbs:
         from pipelines.synthetic.lbs import write_lbs
 

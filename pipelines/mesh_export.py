@@ -1,0 +1,134 @@
+"""Meshes out of a fitted run (``narf-export-mesh``) and their accuracy against true surfaces (``narf-eval --mesh``).
+
+Meshes are in the capture's world (metres), with vertex colours and a per-vertex part index (the NARF part order
+of ``narf.kinematics.PART_JOINTS``): a ``part`` vertex property in PLY, a ``_PART`` vertex attribute in glTF
+binary, and a ``<stem>_parts.txt`` file beside an OBJ (which has no place for it). See docs/design.md *Meshes out*.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+import trimesh
+
+from fitting.mesh import DEFAULT_LEVEL, ExtractedMesh, extract_mesh, surface_metrics
+from pipelines.body.model import pose_batch
+from pipelines.datasets.smpl_files import atomic_write_bytes
+from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.fit_session import LoadedRun, load_run, poses_for_frames
+from pipelines.video import motion_params
+
+MESH_SUFFIXES = (".ply", ".obj", ".glb")
+
+
+def to_trimesh(mesh: ExtractedMesh) -> trimesh.Trimesh:
+    out = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False)
+    rgba = np.concatenate([mesh.colours, np.ones((len(mesh.colours), 1))], axis=1)
+    out.visual.vertex_colors = (rgba * 255 + 0.5).astype(np.uint8)
+    return out
+
+
+def write_mesh(path: Path, mesh: ExtractedMesh) -> list[Path]:
+    """Write a mesh (format from the suffix) atomically; returns the files written."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in MESH_SUFFIXES:
+        raise ValueError(f"{path}: unknown mesh format '{suffix}'; use {', '.join(MESH_SUFFIXES)}")
+    out = to_trimesh(mesh)
+    written = [path]
+    if suffix == ".ply":
+        out.vertex_attributes["part"] = mesh.parts.astype(np.uint8)
+        data = out.export(file_type="ply", include_attributes=True)
+    elif suffix == ".glb":
+        out.vertex_attributes["_PART"] = mesh.parts.astype(np.float32)  # glTF custom attributes are float
+        data = out.export(file_type="glb")
+    else:
+        data = out.export(file_type="obj", include_color=True).encode()
+        sidecar = path.with_name(f"{path.stem}_parts.txt")
+        atomic_write_bytes(sidecar, ("\n".join(str(int(p)) for p in mesh.parts) + "\n").encode())
+        written.append(sidecar)
+    atomic_write_bytes(path, data)
+    return written[::-1]
+
+
+def _capture_pose(run: LoadedRun, frame: int, device: str):
+    pose, _, _ = poses_for_frames(run.capture, run.body_model, [frame])
+    return pose.to(device)
+
+
+def export_run_meshes(
+    run_dir: Path,
+    out: Path,
+    frame: int | None = None,
+    motion: Path | None = None,
+    window: tuple[int, int] | None = None,
+    resolution: int = 256,
+    level: float = DEFAULT_LEVEL,
+    device: str = "cpu",
+    progress: bool = True,
+) -> list[Path]:
+    """Export the fitted body at a capture frame, or at frames ``window = (A, B)`` (B excluded) of a motion file
+    placed on the capture's stage as for videos (one file per frame: ``<stem>_<frame>.<ext>``)."""
+    out = Path(out)
+    if out.suffix.lower() not in MESH_SUFFIXES:
+        raise ValueError(f"{out}: unknown mesh format '{out.suffix}'; use {', '.join(MESH_SUFFIXES)}")
+    run = load_run(Path(run_dir), device)
+    if run.config.model.name == "cnn":
+        raise ValueError(f"{run_dir}: the CNN baseline renders images, not a density field: no mesh to export")
+    if motion is None:
+        if frame is None or not 0 <= frame < run.capture.n_frames:
+            raise CaptureError(f"{run.capture.root}: frame {frame} out of range (0..{run.capture.n_frames - 1})")
+        return write_mesh(out, _extract(run, _capture_pose(run, frame, device), resolution, level, progress))
+    start, stop = window or (0, None)
+    params, _ = motion_params(run, Path(motion), None, start, None if stop is None else stop - start)
+    written = []
+    for k, p in enumerate(params):
+        with torch.no_grad():
+            body = run.body_model.pose_zju(*(torch.as_tensor(v)[None] for v in (p.poses, p.rh, p.th, p.shapes)))
+        mesh = _extract(run, pose_batch(body).to(device), resolution, level, progress)
+        written += write_mesh(out.with_name(f"{out.stem}_{start + k:05d}{out.suffix}"), mesh)
+    return written
+
+
+def _extract(run: LoadedRun, pose, resolution: int, level: float, progress: bool) -> ExtractedMesh:
+    return extract_mesh(run.field, pose, resolution, level, progress=progress)
+
+
+def true_surface(root: Path, frame: int) -> trimesh.Trimesh | None:
+    """The capture's true surface of a frame (``surfaces/<frame>.ply``, written by the synthetic generator)."""
+    path = Path(root) / "surfaces" / f"{frame}.ply"
+    if not path.is_file():
+        return None
+    try:
+        return trimesh.load(path, file_type="ply", process=False, force="mesh")
+    except (ValueError, OSError, KeyError) as err:
+        raise CaptureError(f"{path}: unreadable PLY mesh ({err})") from err
+
+
+def mesh_accuracy(
+    run: LoadedRun, frames: list[int], out_dir: Path, resolution: int, level: float, device: str, progress: bool
+) -> dict:
+    """Surface distance and normal consistency of the exported mesh against the true surface, per frame and
+    averaged, over the ``frames`` that have a true surface; the meshes go to ``out_dir/<frame>.ply``."""
+    truths = {f: true_surface(run.capture.root, f) for f in frames}
+    frames = [f for f in frames if truths[f] is not None]
+    if not frames:
+        raise CaptureError(
+            f"{run.capture.root}: no true surfaces (surfaces/<frame>.ply) for the split's frames; --mesh needs a "
+            "capture that ships them, as the synthetic captures do"
+        )
+    records = []
+    for frame in frames:
+        mesh = _extract(run, _capture_pose(run, frame, device), resolution, level, progress)
+        write_mesh(Path(out_dir) / f"{frame}.ply", mesh)
+        records.append({"frame": frame, **surface_metrics(to_trimesh(mesh), truths[frame])})
+    keys = ("mean_mm", "p95_mm", "normal_consistency")
+    return {
+        "frames": frames,
+        "resolution": resolution,
+        "level": level,
+        **{k: float(np.mean([r[k] for r in records])) for k in keys},
+        "per_frame": records,
+    }

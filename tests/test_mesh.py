@@ -1,0 +1,96 @@
+"""Meshes out: marching cubes over the posed boxes, colours and parts, surface metrics, files, and the CLIs."""
+
+import json
+
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from fitting.mesh import extract_mesh, surface_metrics
+from narf.fields.base import Field, FieldOutput
+from narf.fields.common import PoseBatch
+from pipelines.cli import eval as cli_eval
+from pipelines.cli import export_mesh as cli_export
+from pipelines.cli.common import run_cli
+from pipelines.mesh_export import write_mesh
+
+RADIUS, RAMP, PEAK = 0.5, 0.01, 200.0
+
+
+class Ball(Field):
+    """One part: density PEAK * sigmoid((RADIUS - |x|) / RAMP) (level PEAK / 2 lies exactly at RADIUS), colour
+    (d + 1) / 2 of the viewing direction d."""
+
+    def __init__(self):
+        super().__init__(n_parts=1)
+        self.anchor = torch.nn.Parameter(torch.zeros(1))
+
+    def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a):
+        sigma = PEAK * torch.sigmoid((RADIUS - points.norm(dim=-1)) / RAMP)
+        rgb = ((dirs[:, None] + 1) / 2).expand(*points.shape[:2], 3)
+        return FieldOutput(sigma + 0 * self.anchor, rgb)
+
+
+def _pose():
+    return PoseBatch(
+        torch.eye(4)[None, None], torch.ones(1), torch.zeros(1, 0), torch.zeros(1, 1, 6), torch.zeros(1, 1, 3)
+    )
+
+
+def test_marching_cubes_of_an_analytic_ball():
+    field = Ball()
+    field.set_boxes(torch.zeros(1, 3), torch.full((1, 3), 0.8))
+    mesh = extract_mesh(field, _pose(), resolution=48, level=PEAK / 2)
+    spacing = 1.6 / 47
+    radii = np.linalg.norm(mesh.vertices, axis=1)
+    # marching cubes interpolates linearly inside a voxel across the ramp: within half a voxel of the sphere
+    assert np.abs(radii - RADIUS).max() < spacing / 2
+    assert mesh.faces.shape[1] == 3 and len(mesh.vertices) > 500 and set(np.unique(mesh.parts)) == {0}
+    normals = trimesh.Trimesh(mesh.vertices, mesh.faces, process=False).face_normals
+    assert (np.einsum("fd,fd->f", normals, mesh.vertices[mesh.faces].mean(1)) > 0).all()  # wound outwards
+    # colour seen from outside along the normal: d = -x/|x|, rgb = (1 - x/|x|) / 2. Vertex normals average the
+    # few triangles around a vertex, whose corners sit up to half a voxel off the sphere: up to ~10 deg of tilt,
+    # i.e. sin(10 deg) / 2 = 0.09 in a colour channel, and a few degrees on average (0.03 ~ 3.4 deg); a normal of
+    # the wrong sign would be off by |x_i| / |x| ~ 0.5 on average
+    error = np.abs(mesh.colours - (1 - mesh.vertices / radii[:, None]) / 2)
+    assert error.max() < 0.1 and error.mean() < 0.03
+    with pytest.raises(ValueError, match="never reaches the level"):
+        extract_mesh(field, _pose(), resolution=16, level=PEAK * 2)
+
+
+def test_surface_metrics_of_concentric_spheres():
+    inner = trimesh.creation.icosphere(subdivisions=4, radius=1.0)
+    outer = trimesh.creation.icosphere(subdivisions=4, radius=1.01)
+    metrics = surface_metrics(inner, outer, n_samples=5000)
+    # scaled copies: each face of one faces a parallel face 0.01 x (its distance to the centre, 0.999-1) away
+    assert metrics["mean_mm"] == pytest.approx(10.0, abs=0.1) and metrics["p95_mm"] == pytest.approx(10.0, abs=0.1)
+    assert metrics["normal_consistency"] > 0.999
+    shifted = inner.copy()
+    shifted.apply_translation([0.02, 0, 0])
+    skew = surface_metrics(inner, shifted, n_samples=5000)
+    # a 20 mm shift: 20 |cos| on average over the sphere (10 mm), at most 20 mm
+    assert 8 < skew["mean_mm"] < 12 and skew["p95_mm"] < 20.5
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".glb"])
+def test_mesh_files_keep_colours_and_parts(tmp_path, suffix):
+    from fitting.mesh import ExtractedMesh
+
+    sphere = trimesh.creation.icosphere(subdivisions=2)
+    n = len(sphere.vertices)
+    mesh = ExtractedMesh(sphere.vertices, sphere.faces, np.tile([1.0, 0.5, 0.0], (n, 1)), np.arange(n) % 19)
+    written = write_mesh(tmp_path / f"body{suffix}", mesh)
+    back = trimesh.load(tmp_path / f"body{suffix}", process=False, force="mesh")
+    np.testing.assert_allclose(back.vertices, sphere.vertices, atol=1e-6)  # float32 in the file
+    np.testing.assert_array_equal(back.visual.vertex_colors[0], [255, 128, 0, 255])
+    if suffix == ".ply":
+        parts = back.metadata["_ply_raw"]["vertex"]["data"]["part"]
+    elif suffix == ".glb":
+        parts = back.vertex_attributes["_PART"].ravel()
+    else:
+        assert written[0].name == "body_parts.txt"
+        parts = np.loadtxt(written[0], dtype=int)
+    np.testing.assert_array_equal(parts, np.arange(n) % 19)
+    with pytest.raises(ValueError, match="unknown mesh format"):
+        write_mesh(tmp_path / "body.stl", mesh)
