@@ -184,10 +184,10 @@ def markdown_table(report: dict) -> str:
 
 
 def write_report(out_dir: Path, report: dict, markdown: str) -> None:
-    """``metrics.json`` (atomically: a temporary file, then a rename) and ``metrics.md`` into ``out_dir``."""
+    """``metrics.json`` and ``metrics.md`` into ``out_dir``, each atomically (a temporary file, then a rename)."""
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir / "metrics.json.tmp"
-    tmp.write_text(json.dumps(report, indent=1))
-    tmp.replace(out_dir / "metrics.json")
-    (out_dir / "metrics.md").write_text(markdown)
+    for name, text in (("metrics.json", json.dumps(report, indent=1)), ("metrics.md", markdown)):
+        tmp = out_dir / f".{name}.tmp"
+        tmp.write_text(text)
+        tmp.replace(out_dir / name)

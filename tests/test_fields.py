@@ -293,3 +293,17 @@ def test_render_image_with_chunks_that_miss_every_box():
     assert out["rgb"].shape == (32, 32, 3) and out["mask"][:2].max() == 0
     rigid = _field("rt_nerf", width=8)
     assert "segmentation" not in render_image(rigid, K, cam_from_world, 8, 8, _random_pose(n_parts=1), 4, 4)
+
+
+@pytest.mark.parametrize("name", ["narf_d", "narf_h"])
+def test_sparse_fast_path_with_every_sample_outside_the_boxes(name):
+    """A batch that misses every box (mesh extraction queries such grid chunks): the same as the dense reference,
+    zero density, and no empty-list failure."""
+    fast, dense = _field(name, width=16), _field(name, width=16)
+    dense.load_state_dict(fast.state_dict())
+    dense.fast = False
+    points, dirs = _points(4, 6, seed=1)
+    far = points + 100.0
+    pose = _random_pose().select(torch.zeros(4, dtype=torch.long))
+    a, b = fast(far, dirs, pose), dense(far, dirs, pose)
+    assert a.sigma.abs().max() == 0 and torch.equal(a.sigma, b.sigma)

@@ -94,3 +94,57 @@ def test_mesh_files_keep_colours_and_parts(tmp_path, suffix):
     np.testing.assert_array_equal(parts, np.arange(n) % 19)
     with pytest.raises(ValueError, match="unknown mesh format"):
         write_mesh(tmp_path / "body.stl", mesh)
+
+
+def _half_peak(run):
+    """Half the peak density of a barely trained run at frame 0 (its level is arbitrary; the plumbing is tested)."""
+    from fitting.mesh import density_grid
+    from pipelines.fit_session import load_run
+    from pipelines.mesh_export import _capture_pose
+
+    loaded = load_run(run)
+    volume, _, _ = density_grid(loaded.field, _capture_pose(loaded, 0, "cpu"), 16)
+    return float(volume.max()) / 2
+
+
+def test_export_mesh_cli_and_eval_mesh(tiny_run, data_root_64, tmp_path, capsys):
+    level = f"{_half_peak(tiny_run):.6g}"
+    args = ["--run", str(tiny_run), "--resolution", "24", "--level", level, "--quiet"]
+    assert run_cli("narf-export-mesh", cli_export.main, [*args, "--frame", "3", "--out", str(tmp_path / "f3.glb")]) == 0
+    mesh = trimesh.load(tmp_path / "f3.glb", force="mesh")
+    assert len(mesh.faces) > 0 and "_PART" in mesh.vertex_attributes
+    zju = data_root_64 / "synthetic" / "taichi" / "new_params"
+    motion = [*args, "--motion", str(zju), "--frames", "2:4", "--out", str(tmp_path / "seq.ply")]
+    assert run_cli("narf-export-mesh", cli_export.main, motion) == 0
+    assert sorted(p.name for p in tmp_path.glob("seq_*.ply")) == ["seq_00002.ply", "seq_00003.ply"]
+    for bad, message in (
+        (["--frame", "99", "--out", str(tmp_path / "x.ply")], "frame 99 out of range"),
+        (["--frame", "0", "--out", str(tmp_path / "x.stl")], "unknown mesh format"),
+        (["--frame", "0", "--level", "1e9", "--out", str(tmp_path / "x.ply")], "never reaches the level"),
+    ):
+        assert (
+            run_cli(
+                "narf-export-mesh", cli_export.main, ["--run", str(tiny_run), "--resolution", "16", "--quiet", *bad]
+            )
+            == 2
+        )
+        assert message in capsys.readouterr().err
+    assert not (tmp_path / "x.ply").exists()
+    ev = [
+        "--run",
+        str(tiny_run),
+        "--split",
+        "novel_pose",
+        "--limit",
+        "1",
+        "--quiet",
+        "--mesh",
+        "--mesh-resolution",
+        "24",
+    ]
+    assert run_cli("narf-eval", cli_eval.main, [*ev, "--mesh-level", level]) == 0
+    report = json.loads((tiny_run / "eval" / "metrics.json").read_text())
+    surface = report["splits"]["novel_pose"]["mesh"]
+    assert surface["frames"] == [9] and surface["mean_mm"] > 0 and 0 <= surface["normal_consistency"] <= 1
+    assert (tiny_run / "eval" / "meshes" / "novel_pose" / "9.ply").is_file()
+    assert "distance to the true surface" in (tiny_run / "eval" / "metrics.md").read_text()

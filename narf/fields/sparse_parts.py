@@ -56,7 +56,7 @@ def sparse_masked_inputs(
     features, logits = [], []
     for k, chunk in enumerate(chunks):
         features.append(chunk @ _block(w_density, k, 60).T)
-        if selector is not None and counts[k]:
+        if selector is not None:  # an empty chunk gives an empty block (every sample may miss every box)
             hidden = chunk @ selector.local.effective_weight()[k].T + selector.local.bias[k]
             logits.append(hidden)
     features = torch.cat(features)

@@ -44,9 +44,17 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int | None], argv: lis
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130
-    except KNOWN_ERRORS as err:
+    except (*KNOWN_ERRORS, OSError) as err:
         if os.environ.get("NARF_DEBUG"):
             raise
-        message = err.args[0] if isinstance(err, KeyError) and err.args else err
-        print(f"{prog}: error: {message}", file=sys.stderr)
+        print(f"{prog}: error: {_message(err)}", file=sys.stderr)
         return 2
+
+
+def _message(err: Exception) -> str:
+    """One line: a KeyError's key text, an OSError's file and reason (``[Errno 28] ...: 'path'`` otherwise)."""
+    if isinstance(err, KeyError) and err.args:
+        return str(err.args[0])
+    if isinstance(err, OSError) and err.strerror and err.filename:
+        return f"{err.filename}: {err.strerror}"
+    return str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__

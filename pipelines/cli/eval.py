@@ -48,6 +48,9 @@ def main(argv: list[str] | None = None) -> int:
         "consistency; meshes in RUN/eval/meshes/<split>/",
     )
     parser.add_argument("--mesh-resolution", type=int, default=256, help="--mesh: grid samples along the longest side")
+    parser.add_argument(
+        "--mesh-level", type=float, default=None, help="--mesh: density iso-level (default: as narf-export-mesh)"
+    )
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
@@ -72,7 +75,15 @@ def main(argv: list[str] | None = None) -> int:
         raise ValueError(f"{args.run}: a per-subject fit; '{args.split}' is an autoencoder split")
     splits = list(EVAL_SPLITS) if args.split == "all" else [args.split]
     report = evaluate_run(
-        args.run, splits, args.limit, device, not args.quiet, args.grids, args.mesh, args.mesh_resolution
+        args.run,
+        splits,
+        args.limit,
+        device,
+        not args.quiet,
+        args.grids,
+        args.mesh,
+        args.mesh_resolution,
+        args.mesh_level,
     )
     print(markdown_table(report))
     print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")

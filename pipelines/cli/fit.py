@@ -80,6 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.subject:
         overrides.insert(0, f"data.subject={args.subject}")
     if args.data_root:
+        if not Path(args.data_root).is_dir():
+            raise FileNotFoundError(f"{args.data_root}: no such data root folder")
         overrides.insert(0, f"data.data_root={args.data_root}")
     if args.model:
         overrides.insert(0, f"model.name={args.model}")
@@ -116,7 +118,15 @@ def main(argv: list[str] | None = None) -> int:
         f"{trainer.fit_data.description}, device {device}, torch {torch.__version__}",
         file=sys.stderr,
     )
-    result = trainer.fit(args.max_minutes)
+    try:
+        result = trainer.fit(args.max_minutes)
+    except KeyboardInterrupt:  # the trainer has saved a checkpoint on its way out
+        print(
+            f"narf-fit: interrupted at step {trainer.step}; checkpoint saved, continue with "
+            f"narf-fit --out {run_dir} --resume",
+            file=sys.stderr,
+        )
+        return 130
     state = "finished" if result.finished else "stopped (resume with --resume)"
     print(f"narf-fit: {state} at step {result.step}, training PSNR {result.psnr:.2f} dB; run folder {run_dir}")
     return 0

@@ -185,6 +185,25 @@ def _orthonormalise(rotation: np.ndarray) -> np.ndarray:
     return fixed
 
 
+def _check_camera(path: Path, c: int, cams: dict) -> None:
+    """Shapes, finiteness, an invertible K and a rotation close to orthonormal (|det| within 1e-3 of 1)."""
+    sizes = {"K": 9, "D": (4, 5, 8), "R": 9, "T": 3}
+    for key, size in sizes.items():
+        try:
+            value = np.asarray(cams[key][c], dtype=np.float64)
+        except (TypeError, ValueError) as err:
+            raise CaptureError(f"{path}: cams['{key}'][{c}] is not numeric ({err})") from err
+        if value.size not in (size if isinstance(size, tuple) else (size,)):
+            raise CaptureError(f"{path}: cams['{key}'][{c}] has shape {value.shape}")
+        if not np.isfinite(value).all():
+            raise CaptureError(f"{path}: cams['{key}'][{c}] contains NaN or infinite values")
+    K, R = np.asarray(cams["K"][c], np.float64).reshape(3, 3), np.asarray(cams["R"][c], np.float64).reshape(3, 3)
+    if abs(np.linalg.det(K)) < 1e-9:
+        raise CaptureError(f"{path}: cams['K'][{c}] is singular")
+    if abs(abs(np.linalg.det(R)) - 1) > 1e-3:
+        raise CaptureError(f"{path}: cams['R'][{c}] is not a rotation (det {np.linalg.det(R):.4g})")
+
+
 def read_annots(
     path: Path, image_size: tuple[int, int] | None = None, check_folders: bool = True
 ) -> tuple[list[Camera], list[list[str]]]:
@@ -225,6 +244,7 @@ def read_annots(
             width, height = probe.shape[1], probe.shape[0]
         else:
             width, height = image_size
+        _check_camera(path, c, cams)
         cam_from_world = np.eye(4)
         cam_from_world[:3, :3] = _orthonormalise(np.asarray(cams["R"][c], dtype=np.float64).reshape(3, 3))
         cam_from_world[:3, 3] = np.asarray(cams["T"][c], dtype=np.float64).reshape(3) / 1000.0
