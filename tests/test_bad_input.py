@@ -232,7 +232,10 @@ def test_eval_failure_keeps_the_previous_report(tiny_run, tmp_path, capsys):
     before = metrics.read_bytes()
     expect_error(capsys, "narf-eval", ["--run", tiny_run, "--split", "cross_dataset"], "autoencoder split")
     expect_error(
-        capsys, "narf-eval", ["--run", tiny_run, "--limit", "1", "--mesh", "--mesh-level", "1e12"], "never reaches"
+        capsys,
+        "narf-eval",
+        ["--run", tiny_run, "--limit", "1", "--mesh", "--mesh-resolution", "16", "--mesh-level", "1e12"],
+        "never reaches",
     )
     assert metrics.read_bytes() == before
 

@@ -71,6 +71,8 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or args.run / "videos" / f"{args.kind}.mp4"
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
+    if out.is_dir():  # checked before rendering, not after
+        raise IsADirectoryError(f"{out}: is a folder; give a .mp4 file name")
     device = str(auto_device(args.device))
     if load_checkpoint(args.run).get("kind") == "autoencoder":
         path = render_autoencoder_video(
