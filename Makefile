@@ -20,7 +20,7 @@ $(STAMP): pyproject.toml constraints.txt
 # The main job on the embedded default: synthetic capture (reused when present) -> rig calibration from its
 # ChArUco shots (written to its calibration/ folder and compared with the true cameras; the fit keeps the
 # capture's own annots.npy) -> fit (CPU default, time budget DEMO_MINUTES) -> evaluation on the novel-pose
-# split (both protocols) -> orbit video.
+# split (both protocols, and the exported surface against the true one) -> orbit video.
 DEMO_MINUTES ?= 8
 DEMO_RUN     ?= runs/demo
 demo: $(STAMP)
@@ -28,10 +28,10 @@ demo: $(STAMP)
 	$(VENV)/bin/narf-calibrate $${NARF_DATA:-data}/synthetic/taichi
 	rm -rf $(DEMO_RUN)
 	$(VENV)/bin/narf-fit --subject taichi --out $(DEMO_RUN) --max-minutes $(DEMO_MINUTES)
-	$(VENV)/bin/narf-eval --run $(DEMO_RUN) --split novel_pose --limit 34
+	$(VENV)/bin/narf-eval --run $(DEMO_RUN) --split novel_pose --limit 34 --mesh
 	$(VENV)/bin/narf-render-video --run $(DEMO_RUN) --kind orbit --frames 48
 	@echo
-	@echo "Results: $${NARF_DATA:-data}/synthetic/taichi/calibration/report.json, $(DEMO_RUN)/eval/metrics.md, $(DEMO_RUN)/eval/grids/, $(DEMO_RUN)/videos/orbit.mp4, $(DEMO_RUN)/curve.png"
+	@echo "Results: $${NARF_DATA:-data}/synthetic/taichi/calibration/report.json, $(DEMO_RUN)/eval/metrics.md, $(DEMO_RUN)/eval/grids/, $(DEMO_RUN)/eval/meshes/, $(DEMO_RUN)/videos/orbit.mp4, $(DEMO_RUN)/curve.png"
 
 # Lint and formatting are checked first: a tree that ruff would change or flag fails `make test` (and CI).
 lint: $(STAMP)

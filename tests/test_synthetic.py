@@ -154,7 +154,8 @@ def test_generation_refuses_foreign_folder_and_bad_config(tmp_path):
 def test_closest_surface_points_match_trimesh(body_model):
     import trimesh
 
-    from pipelines.synthetic.lbs import closest_surface_points, grid_points
+    from fitting.mesh import closest_surface_points
+    from pipelines.synthetic.lbs import grid_points
 
     vertices = body_model.rest_body(torch.zeros(1, 10)).vertices[0].double().numpy()
     points = grid_points(vertices).reshape(-1, 3)

@@ -19,6 +19,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from smplx.lbs import batch_rigid_transform, batch_rodrigues
 
+from fitting.mesh import closest_surface_points
 from narf.kinematics import rigid_from_rotvec_translation
 from pipelines.body.model import BodyModel
 from pipelines.datasets.zju_mocap import SmplParams
@@ -40,29 +41,6 @@ def weight_grid(vertices: np.ndarray, weights: np.ndarray) -> np.ndarray:
     distance, nearest = cKDTree(vertices).query(points.reshape(-1, 3))
     grid = np.concatenate([weights[nearest], distance[:, None]], axis=1).astype(np.float32)
     return grid.reshape(*points.shape[:3], 25)
-
-
-def closest_surface_points(
-    vertices: np.ndarray, faces: np.ndarray, points: np.ndarray, k: int = 3
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Closest points on a triangle mesh: (N, 3) points -> closest (N, 3), distance (N,), triangle (N,).
-
-    The candidates of a point are the triangles around its ``k`` nearest vertices: on a body mesh the closest
-    triangle has a corner among the 3 nearest vertices (``tests/test_synthetic.py`` checks the result against
-    ``trimesh.proximity.closest_point``, which searches every triangle and takes ~5x longer on a body grid).
-    """
-    _, nearest = cKDTree(vertices).query(points, k=k)
-    adjacency = trimesh.Trimesh(vertices, faces, process=False).vertex_faces  # (V, max degree), -1 padded
-    candidates = adjacency[nearest].reshape(len(points), -1)  # (N, k * degree)
-    valid = candidates >= 0
-    safe = np.where(valid, candidates, 0)
-    triangles = vertices[faces[safe.reshape(-1)]]
-    repeated = np.repeat(points, safe.shape[1], axis=0)
-    closest = trimesh.triangles.closest_point(triangles, repeated).reshape(*safe.shape, 3)
-    distance = np.where(valid, np.linalg.norm(closest - points[:, None], axis=-1), np.inf)
-    best = distance.argmin(axis=1)
-    rows = np.arange(len(points))
-    return closest[rows, best], distance[rows, best], safe[rows, best]
 
 
 def surface_weight_grid(vertices: np.ndarray, faces: np.ndarray, weights: np.ndarray) -> np.ndarray:
