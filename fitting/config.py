@@ -73,6 +73,7 @@ class TrainConfig:
     log_every: int = 50  #: write a log line every n steps
     seed: int = 0  #: seed of initialisation and ray sampling
     deterministic: bool = True  #: deterministic kernels, so a resumed fit ends where an uninterrupted one would
+    world_size: int = 1  #: processes of the fit (set from torchrun; recorded, not a setting)
 
 
 @dataclass

@@ -28,6 +28,10 @@ class RayBatch:
     mask: torch.Tensor
     mask_weight: torch.Tensor
 
+    def take(self, index) -> RayBatch:
+        """The rays ``index`` (a slice or an index tensor) of the batch."""
+        return RayBatch(*(getattr(self, name)[index] for name in self.__dataclass_fields__))
+
 
 class TrainingSet:
     """Training images kept as uint8 on ``device``, with their cameras, poses and sampling pools.

@@ -17,6 +17,7 @@ from tqdm import tqdm
 from fitting.checkpoint import save_checkpoint
 from fitting.config import FitConfig
 from fitting.data import FitData
+from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
 from fitting.plots import write_curve, write_validation
 from narf.fields import build_field, build_model
 from narf.metrics import psnr
@@ -45,10 +46,23 @@ def make_field(config: FitConfig):
     return build_field(m.name, **kwargs)
 
 
-def ray_loss(config: FitConfig, field, batch, poses, generator, n_coarse: int, n_fine: int, latent=None):
+def ray_loss(
+    config: FitConfig,
+    field,
+    batch,
+    poses,
+    generator,
+    n_coarse: int,
+    n_fine: int,
+    latent=None,
+    uniforms=None,
+    normalisers: tuple[float, torch.Tensor] | None = None,
+):
     """L = mean 1/3 |C - C_gt|^2 + lambda_mask mean (M - M_gt)^2 (band skipped). Returns loss, colour MSE.
 
-    ``latent``: optional (F, 2 * latent_dim) autoencoder codes, one per frame of ``poses``."""
+    ``latent``: optional (F, 2 * latent_dim) autoencoder codes, one per frame of ``poses``. ``uniforms``: the rays'
+    sample draws (``render_rays``). ``normalisers``: (3 R, sum of mask weights) of the global batch when ``batch``
+    is one process's share of it; both terms are then that share's contribution to the global means."""
     per_ray = poses.select(batch.frames)
     near, far, hit = ray_box_intersect(
         batch.origins, batch.dirs, per_ray.world_from_part, per_ray.reach, field.box_centres, field.box_half_extents
@@ -65,9 +79,11 @@ def ray_loss(config: FitConfig, field, batch, poses, generator, n_coarse: int, n
         n_fine,
         background=background,
         generator=generator,
+        uniforms=uniforms,
     )
-    colour = (out.rgb - batch.rgb).pow(2).mean()
-    mask_term = (batch.mask_weight * (out.mask - batch.mask).pow(2)).sum() / batch.mask_weight.sum().clamp_min(1)
+    colour_count, mask_count = normalisers or (out.rgb.numel(), batch.mask_weight.sum().clamp_min(1))
+    colour = (out.rgb - batch.rgb).pow(2).sum() / colour_count
+    mask_term = (batch.mask_weight * (out.mask - batch.mask).pow(2)).sum() / mask_count
     return colour + config.train.mask_weight * mask_term, colour
 
 
@@ -92,8 +108,11 @@ class Trainer:
         data: FitData,
         state: dict | None = None,
         progress: bool = True,
+        processes: Processes = SINGLE,
     ):
-        self.config, self.run_dir, self.device, self.progress = config, Path(run_dir), device, progress
+        self.config, self.run_dir, self.device = config, Path(run_dir), device
+        self.processes, self.progress = processes, progress and processes.is_main
+        config.train.world_size = processes.world_size
         # Adam's first steps move each weight by about lr * sign(gradient), so even rounding-level differences
         # between runs (CPU kernels that sum in thread order, e.g. index_add) grow to 1e-2 within a few steps
         torch.use_deterministic_algorithms(config.train.deterministic, warn_only=True)
@@ -116,6 +135,8 @@ class Trainer:
         self.step, self.elapsed = 0, 0.0
         if state is not None:
             self._restore(state)
+        if processes.is_main:  # the config as run (world_size included); resumed runs rewrite it
+            (self.run_dir / "config.yaml").write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))
 
     def _build_extra_modules(self) -> None:
         """Subclasses add trained modules here (after the seed, before the optimiser)."""
@@ -141,6 +162,8 @@ class Trainer:
         self.step, self.elapsed = state["step"], state.get("elapsed", 0.0)
 
     def checkpoint(self) -> None:
+        if not self.processes.is_main:  # every process holds the same weights; one writes them
+            return
         save_checkpoint(
             self.run_dir,
             {
@@ -157,29 +180,43 @@ class Trainer:
         )
 
     def train_step(self) -> tuple[float, float]:
-        t = self.config.train
+        """One step on the global batch; each process renders its share (``fitting.distributed``)."""
+        t, r = self.config.train, self.config.render
         batch = self.data.sample(
             t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction, self.generator
         )
+        n = batch.origins.shape[0]
+        uniforms = [torch.rand(n, k, generator=self.generator).to(self.device) for k in (r.train_coarse, r.train_fine)]
+        share = self.processes.share(n)
         loss, colour = ray_loss(
             self.config,
             self.field,
-            batch,
+            batch.take(share),
             self.data.poses,
             self.generator,
-            self.config.render.train_coarse,
-            self.config.render.train_fine,
+            r.train_coarse,
+            r.train_fine,
+            uniforms=[u[share] for u in uniforms],
+            normalisers=(3 * n, batch.mask_weight.sum().clamp_min(1)),
         )
         return self.optimise(loss, colour)
 
     def optimise(self, loss: torch.Tensor, colour: torch.Tensor) -> tuple[float, float]:
-        """One optimiser and schedule step on ``loss``; returns (loss, PSNR of the colour MSE)."""
+        """One optimiser and schedule step on ``loss`` (gradients summed over processes); returns (loss, PSNR of
+        the colour MSE), summed over processes."""
         self.optimiser.zero_grad(set_to_none=True)
         loss.backward()
+        sum_gradients(self._trained_parameters(), self.processes)
         self.optimiser.step()
         self.scheduler.step()
         self.step += 1
-        return float(loss.detach()), float(psnr(colour.detach()))
+        values = torch.stack([loss.detach(), colour.detach()])
+        if self.processes.distributed:
+            torch.distributed.all_reduce(values)
+        return float(values[0]), float(psnr(values[1]))
+
+    def _trained_parameters(self) -> list[torch.nn.Parameter]:
+        return [p for group in self.optimiser.param_groups for p in group["params"]]
 
     def fit(self, max_minutes: float | None = None) -> FitResult:
         """Train until ``train.steps`` or the time budget; checkpoints periodically and at the end."""
@@ -192,13 +229,14 @@ class Trainer:
         finished = self.step >= t.steps
         try:
             while self.step < t.steps:
-                if max_minutes is not None and (time.perf_counter() - start) / 60 >= max_minutes:
+                out_of_time = max_minutes is not None and (time.perf_counter() - start) / 60 >= max_minutes
+                if any_process(out_of_time, self.processes, self.device):
                     break
                 loss, score = self.train_step()
                 window_rays += self.rays_per_step
                 self.elapsed = elapsed0 + time.perf_counter() - start
                 bar.update()
-                if self.step % t.log_every == 0 or self.step == t.steps:
+                if self.processes.is_main and (self.step % t.log_every == 0 or self.step == t.steps):
                     rate = window_rays / max(time.perf_counter() - window_start, 1e-9)
                     window_start, window_rays = time.perf_counter(), 0
                     bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{score:.2f}", rays_s=f"{rate:,.0f}")
@@ -212,11 +250,12 @@ class Trainer:
                                     "rays_per_s": rate,
                                     "lr": self.scheduler.get_last_lr()[0],
                                     "elapsed_s": self.elapsed,
+                                    "world_size": self.processes.world_size,
                                 }
                             )
                             + "\n"
                         )
-                if t.validate_every and self.step % t.validate_every == 0:
+                if self.processes.is_main and t.validate_every and self.step % t.validate_every == 0:
                     self.validate()
                 if (time.perf_counter() - last_save) / 60 >= t.checkpoint_minutes:
                     self.checkpoint()
@@ -225,7 +264,8 @@ class Trainer:
         finally:
             bar.close()
             self.checkpoint()
-            write_curve(log_path, self.run_dir / "curve.png")
+            if self.processes.is_main:
+                write_curve(log_path, self.run_dir / "curve.png")
         return FitResult(self.run_dir, self.step, loss, score, finished)
 
     def validate(self) -> Path | None:
@@ -248,15 +288,17 @@ class Trainer:
         return path
 
 
-def prepare_run_dir(out: Path, config: FitConfig, resume: bool) -> Path:
-    """Create the run folder (refusing a file or a foreign non-empty folder) and write config.yaml."""
+def prepare_run_dir(out: Path, config: FitConfig, resume: bool, write: bool = True) -> Path:
+    """Create the run folder (refusing a file or a folder that holds a fit, unless resuming) and write config.yaml
+    (the Trainer rewrites it with the run's world size). ``write=False`` (data-parallel ranks other than 0) only
+    checks."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out}: output path exists and is a file")
     if not resume and out.is_dir() and (out / "checkpoint.pt").exists():
         raise FileExistsError(f"{out}: holds a fit already; pass --resume to continue it or choose another --out")
     out.mkdir(parents=True, exist_ok=True)
-    if not resume:
+    if not resume and write:
         (out / "log.jsonl").unlink(missing_ok=True)
         (out / "config.yaml").write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))
     return out

@@ -69,6 +69,7 @@ def render_rays(
     background: float = 0.0,
     randomized: bool = True,
     generator: torch.Generator | None = None,
+    uniforms: tuple[torch.Tensor, torch.Tensor] | None = None,
 ) -> RenderOutput:
     """Coarse pass without gradient, importance samples, then one final pass over all sorted samples with
     gradient through the same network. Rays that miss every box are not evaluated (C = bg, M = 0).
@@ -77,6 +78,9 @@ def render_rays(
         field_fn: see module docstring. origins, dirs: (R, 3). near, far: (R,). hit: (R,) bool.
         n_coarse, n_fine: samples per ray. background: 0 (black) or 1 (white).
         randomized: jittered strata and random inverse-CDF draws (training); False is deterministic.
+        uniforms: optional ((R, n_coarse), (R, n_fine)) draws in [0, 1) for every ray, used instead of the
+            generator, so that a ray's samples do not depend on which other rays share its batch (data-parallel
+            fits render disjoint shares of one global batch).
     """
     check_shape("origins", origins, (-1, 3))
     n_rays = origins.shape[0]
@@ -89,15 +93,19 @@ def render_rays(
         return RenderOutput(rgb, mask, depth, None)
     o, d, t_near, t_far = origins[ids], dirs[ids], near[ids], far[ids]
 
-    def rand(n):
-        return torch.rand(ids.numel(), n, dtype=dtype, device=device, generator=generator) if randomized else None
+    def rand(which: int, n: int):
+        if not randomized:
+            return None
+        if uniforms is not None:
+            return uniforms[which][ids]
+        return torch.rand(ids.numel(), n, dtype=dtype, device=device, generator=generator)
 
     with torch.no_grad():
-        coarse = stratified_depths(t_near, t_far, n_coarse, rand(n_coarse))
+        coarse = stratified_depths(t_near, t_far, n_coarse, rand(0, n_coarse))
         out = field_fn(o[:, None] + coarse[..., None] * d[:, None], ids)
         coarse_weights = weights_from_density(out.sigma, coarse, t_far)
         edges = torch.cat([coarse, t_far[:, None]], dim=-1)
-        fine = importance_depths(edges, coarse_weights, n_fine, rand(n_fine)) if n_fine else coarse[:, :0]
+        fine = importance_depths(edges, coarse_weights, n_fine, rand(1, n_fine)) if n_fine else coarse[:, :0]
         depths = torch.sort(torch.cat([coarse, fine], dim=-1), dim=-1).values
     out = field_fn(o[:, None] + depths[..., None] * d[:, None], ids)
     weights = weights_from_density(out.sigma, depths, t_far)

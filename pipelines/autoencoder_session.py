@@ -147,12 +147,20 @@ def build_autoencoder_data(config: FitConfig, device, progress: bool = True) -> 
     )
 
 
-def start_autoencoder(config: FitConfig | None, run_dir: Path, device, resume: bool = False, progress: bool = True):
-    """An AutoencoderTrainer on the config's THUman set; with ``resume`` everything comes from the checkpoint."""
+def start_autoencoder(
+    config: FitConfig | None,
+    run_dir: Path,
+    device,
+    resume: bool = False,
+    progress: bool = True,
+    resume_overrides: list[str] | None = None,
+):
+    """An AutoencoderTrainer on the config's THUman set; with ``resume`` everything comes from the checkpoint
+    (``resume_overrides``: ``key=value`` changes such as a longer ``train.steps``)."""
     state = load_checkpoint(run_dir, map_location=device) if resume else None
     if state is not None:
         if state.get("kind") != "autoencoder":
             raise CaptureError(f"{run_dir}: holds a per-subject fit, not an autoencoder (resume it without --dataset)")
-        config = load_config(base=state["config"])
+        config = load_config(base=state["config"], overrides=resume_overrides)
     data = build_autoencoder_data(config, device, progress)
     return AutoencoderTrainer(config, run_dir, device, data, state=state, progress=progress)

@@ -15,6 +15,7 @@ from tqdm import tqdm
 from fitting.checkpoint import load_checkpoint
 from fitting.config import FitConfig, load_config
 from fitting.data import FitData, TrainingSet
+from fitting.distributed import SINGLE, Processes
 from fitting.trainer import Trainer, make_field
 from pipelines.body.model import BodyModel, pose_batch
 from pipelines.datasets.capture import ZjuCapture
@@ -123,20 +124,30 @@ def build_fit_data(config: FitConfig, device, progress: bool = True) -> FitData:
 
 
 def start_trainer(
-    config: FitConfig | None, run_dir: Path, device, resume: bool = False, progress: bool = True
+    config: FitConfig | None,
+    run_dir: Path,
+    device,
+    resume: bool = False,
+    progress: bool = True,
+    processes: Processes = SINGLE,
+    resume_overrides: list[str] | None = None,
 ) -> Trainer:
-    """A Trainer on the config's capture; with ``resume`` the config, weights and RNG come from the checkpoint."""
+    """A Trainer on the config's capture; with ``resume`` the config, weights and RNG come from the checkpoint
+    (``resume_overrides``: ``key=value`` changes such as a longer ``train.steps``). ``processes``: this process's
+    place in a data-parallel fit (``fitting.distributed``)."""
     state = load_checkpoint(run_dir, map_location=device) if resume else None
     if state is not None:
-        config = load_config(base=state["config"])
+        config = load_config(base=state["config"], overrides=resume_overrides)
     if config is None:
         raise ValueError("start_trainer needs a config unless it resumes a checkpoint")
-    data = build_fit_data(config, device, progress)
+    data = build_fit_data(config, device, progress and processes.is_main)
     if config.model.name == "cnn":
         from fitting.cnn_trainer import CnnTrainer
 
+        if processes.distributed:
+            raise ValueError("data-parallel fitting (torchrun) covers the NeRF-type models; fit the CNN as one process")
         return CnnTrainer(config, run_dir, device, data, state=state, progress=progress)
-    return Trainer(config, run_dir, device, data, state=state, progress=progress)
+    return Trainer(config, run_dir, device, data, state=state, progress=progress, processes=processes)
 
 
 @dataclass

@@ -10,6 +10,9 @@ from pathlib import Path
 
 from pipelines.cli.common import HelpFormatter, run_cli
 
+#: Settings that ``--resume`` may change (``--set``): how long to go on and how often to write.
+RESUMABLE = {"train.steps", "train.checkpoint_minutes", "train.validate_every", "train.log_every"}
+
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
@@ -52,7 +55,11 @@ def build_parser() -> argparse.ArgumentParser:
         help="override a config value, e.g. --set train.steps=5000 (repeatable)",
     )
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
-    parser.add_argument("--resume", action="store_true", help="continue the checkpoint in --out")
+    parser.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the checkpoint in --out (--set may raise train.steps or change how often it writes)",
+    )
     parser.add_argument("--max-minutes", type=float, default=None, help="stop (and checkpoint) after this long")
     parser.add_argument(
         "--smpl-dir",
@@ -69,6 +76,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from fitting.checkpoint import load_checkpoint
     from fitting.config import load_config
+    from fitting.distributed import barrier, from_environment, shutdown
     from fitting.trainer import auto_device, prepare_run_dir
     from pipelines.autoencoder_session import start_autoencoder
     from pipelines.fit_session import start_trainer
@@ -76,6 +84,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.smpl_dir:
         os.environ["NARF_SMPL_DIR"] = args.smpl_dir
     device = auto_device(args.device)
+    processes = from_environment(device)
+    if processes.distributed and device.type == "cuda":
+        device = torch.device("cuda", processes.local_rank)
     overrides = list(args.overrides)
     if args.subject:
         overrides.insert(0, f"data.subject={args.subject}")
@@ -92,6 +103,12 @@ def main(argv: list[str] | None = None) -> int:
     if args.resume:
         if args.out is None:
             raise ValueError("--resume needs --out (the run folder to continue)")
+        changed = sorted({o.split("=", 1)[0].strip() for o in args.overrides} - RESUMABLE)
+        if changed or args.subject or args.data_root or args.model or args.dataset or args.config:
+            raise ValueError(
+                f"--resume continues the run as it was configured; only --set {', '.join(sorted(RESUMABLE))} may "
+                f"change (got {', '.join(changed) or 'a preset, model, subject, dataset or data root'})"
+            )
         config = None
     else:
         gpu = device.type == "cuda"
@@ -104,20 +121,29 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or Path("runs") / f"{name or Path(config.data.subject).name}-{config.model.name}"
     if args.resume and not (Path(out) / "checkpoint.pt").exists():
         raise FileNotFoundError(f"{out}: no checkpoint to resume")
-    run_dir = prepare_run_dir(out, config, args.resume)
+    run_dir = prepare_run_dir(out, config, args.resume, write=processes.is_main)
+    barrier(processes)
     kind = load_checkpoint(run_dir).get("kind") if args.resume else config.data.dataset
-    start = start_autoencoder if kind in ("autoencoder", "thuman") else start_trainer
-    trainer = start(config, run_dir, device, resume=args.resume, progress=not args.quiet)
+    if kind in ("autoencoder", "thuman"):
+        if processes.distributed:
+            raise ValueError(
+                "data-parallel fitting (torchrun) covers per-subject fits; train the autoencoder as one process"
+            )
+        trainer = start_autoencoder(config, run_dir, device, args.resume, not args.quiet, args.overrides)
+    else:
+        trainer = start_trainer(config, run_dir, device, args.resume, not args.quiet, processes, args.overrides)
     size = (
         f"{trainer.config.model.image_size}^2"
         if trainer.config.model.name == "cnn"
         else f"width {trainer.config.model.width}"
     )
-    print(
-        f"narf-fit: {trainer.config.model.name} ({size}) on "
-        f"{trainer.fit_data.description}, device {device}, torch {torch.__version__}",
-        file=sys.stderr,
-    )
+    scale = f", {processes.world_size} processes" if processes.distributed else ""
+    if processes.is_main:
+        print(
+            f"narf-fit: {trainer.config.model.name} ({size}) on "
+            f"{trainer.fit_data.description}, device {device}{scale}, torch {torch.__version__}",
+            file=sys.stderr,
+        )
     try:
         result = trainer.fit(args.max_minutes)
     except KeyboardInterrupt:  # the trainer has saved a checkpoint on its way out
@@ -128,9 +154,15 @@ def main(argv: list[str] | None = None) -> int:
         )
         return 130
     state = "finished" if result.finished else "stopped (resume with --resume)"
-    print(f"narf-fit: {state} at step {result.step}, training PSNR {result.psnr:.2f} dB; run folder {run_dir}")
+    if processes.is_main:
+        print(f"narf-fit: {state} at step {result.step}, training PSNR {result.psnr:.2f} dB; run folder {run_dir}")
+    shutdown(processes)
     return 0
 
 
 def entrypoint() -> None:
     sys.exit(run_cli("narf-fit", main))
+
+
+if __name__ == "__main__":  # torchrun -m pipelines.cli.fit ...
+    entrypoint()
