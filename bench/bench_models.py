@@ -60,6 +60,34 @@ def _scene():
     return pose, centres, half, origins[hit], dirs[hit], near[hit], far[hit], int(hit.sum())
 
 
+def matmul_gflops(size: int = 2048, repeats: int = 5) -> float:
+    """The machine's fp32 matrix-multiply rate (GFLOP/s, 2 n^3 per product, best of ``repeats``), so that figures
+    from different machines can be compared (the share of it a training step reaches is a column)."""
+    import torch
+
+    torch.set_num_threads(2)
+    a, b = torch.randn(size, size), torch.randn(size, size)
+    a @ b  # warm-up
+    best = min(_timed(lambda: a @ b) for _ in range(repeats))
+    return 2 * size**3 / best / 1e9
+
+
+def _timed(fn) -> float:
+    start = time.perf_counter()
+    fn()
+    return time.perf_counter() - start
+
+
+def train_flops_per_ray(field, n_coarse: int, n_fine: int) -> float:
+    """Nominal FLOPs of one training ray: a forward pass over the coarse samples (no gradient), then forward and
+    backward (about twice the forward) over all samples; per-sample FLOPs from the field's complete cost
+    (docs/model.md), i.e. of the dense formulation: a sparse fast path does less work than this counts."""
+    from narf.fields.base import SAMPLES_FOR_COST
+
+    per_sample = field.cost().flops_per_ray_complete / SAMPLES_FOR_COST
+    return per_sample * (n_coarse + 3 * (n_coarse + n_fine))
+
+
 def _measure(index: int) -> dict:
     import resource
 
@@ -107,6 +135,9 @@ def _measure(index: int) -> dict:
         rate = n_rays / (sum(times) / len(times))
         result[f"train rays/s {precision}"] = f"{rate:,.0f}"
         result[f"train samples/s {precision}"] = f"{rate * (n_c + n_f):,.0f}"
+        if precision == "fp32":
+            share = rate * train_flops_per_ray(field, n_c, n_f) / (matmul_gflops() * 1e9)
+            result["nominal FLOP/s share of fp32 matmul"] = f"{100 * share:.1f} %"
     heavy = kwargs.get("width", 64) * (19 if name == "narf_p" else 1) * (r_c + r_f)
     chunk_rays = max(32, min(4096, (4096 * 64 * 32) // heavy))  # bounded activation memory per chunk
     budget = min(RENDER_RAY_BUDGET if heavy <= 64 * 64 else 4 * chunk_rays, n_hit)
@@ -147,7 +178,7 @@ def _measure(index: int) -> dict:
 
 
 def run() -> list[dict]:
-    rows = []
+    rows = [{"model": f"(machine: fp32 matmul {matmul_gflops():.0f} GFLOP/s on 2 threads, 2048^2)"}]
     for index in range(len(CONFIGS)):
         code = f"import json, bench.bench_models as b; print(json.dumps(b._measure({index})))"
         command = [sys.executable, "-c", code]
