@@ -80,20 +80,18 @@ def export_run_meshes(
     if motion is None:
         if frame is None or not 0 <= frame < run.capture.n_frames:
             raise CaptureError(f"{run.capture.root}: frame {frame} out of range (0..{run.capture.n_frames - 1})")
-        return write_mesh(out, _extract(run, _capture_pose(run, frame, device), resolution, level, progress))
+        return write_mesh(
+            out, extract_mesh(run.field, _capture_pose(run, frame, device), resolution, level, progress=progress)
+        )
     start, stop = window or (0, None)
     params, _ = motion_params(run, Path(motion), None, start, None if stop is None else stop - start)
     written = []
     for k, p in enumerate(params):
         with torch.no_grad():
             body = run.body_model.pose_zju(*(torch.as_tensor(v)[None] for v in (p.poses, p.rh, p.th, p.shapes)))
-        mesh = _extract(run, pose_batch(body).to(device), resolution, level, progress)
+        mesh = extract_mesh(run.field, pose_batch(body).to(device), resolution, level, progress=progress)
         written += write_mesh(out.with_name(f"{out.stem}_{start + k:05d}{out.suffix}"), mesh)
     return written
-
-
-def _extract(run: LoadedRun, pose, resolution: int, level: float, progress: bool) -> ExtractedMesh:
-    return extract_mesh(run.field, pose, resolution, level, progress=progress)
 
 
 def true_surface(root: Path, frame: int) -> trimesh.Trimesh | None:
@@ -121,7 +119,7 @@ def mesh_accuracy(
         )
     records = []
     for frame in frames:
-        mesh = _extract(run, _capture_pose(run, frame, device), resolution, level, progress)
+        mesh = extract_mesh(run.field, _capture_pose(run, frame, device), resolution, level, progress=progress)
         write_mesh(Path(out_dir) / f"{frame}.ply", mesh)
         records.append({"frame": frame, **surface_metrics(to_trimesh(mesh), truths[frame])})
     keys = ("mean_mm", "p95_mm", "normal_consistency")

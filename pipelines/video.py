@@ -92,14 +92,9 @@ def motion_params(run: LoadedRun, motion_path: Path, fps, start: int, n_frames, 
     rest_pelvis = body.rest_joints(shapes[:1].to(body.dtype))[0, 0].double().numpy()
     source = load_motion(motion_path, rest_pelvis, motion_fps)
     motion = resample(source, fps or source.fps, start, n_frames)
-    roots = [capture.params(f) for f in frames]
-    root_world = np.stack([(Rotation.from_rotvec(p.rh) * Rotation.from_rotvec(p.poses[:3])).as_rotvec() for p in roots])
-    stage = stage_of(
-        up_vector(capture.cameras),
-        train_bodies.vertices.double().numpy(),
-        train_bodies.world_from_joint[:, 0, :3, 3].double().numpy(),
-        root_world,
-    )
+    pelvis = train_bodies.world_from_joint[:, 0].double().numpy()  # world rotation R(Rh) R(poses[:3]), position
+    root_world = Rotation.from_matrix(pelvis[:, :3, :3]).as_rotvec()
+    stage = stage_of(up_vector(capture.cameras), train_bodies.vertices.double().numpy(), pelvis[:, :3, 3], root_world)
     params = place(motion, stage, body, shapes[0].double().numpy())
     stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
     with torch.no_grad():

@@ -129,17 +129,6 @@ def estimated_up(motion: Motion) -> np.ndarray:
     return up / np.linalg.norm(up)
 
 
-def _rotation_between(a: np.ndarray, b: np.ndarray) -> Rotation:
-    """The smallest rotation taking unit vector a onto unit vector b (a half turn about a normal of a if opposite)."""
-    axis, cosine = np.cross(a, b), float(np.clip(a @ b, -1, 1))
-    if np.linalg.norm(axis) < 1e-9:
-        if cosine > 0:
-            return Rotation.identity()
-        normal = np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0])
-        return Rotation.from_rotvec(np.pi * normal / np.linalg.norm(normal))
-    return Rotation.from_rotvec(axis / np.linalg.norm(axis) * np.arccos(cosine))
-
-
 def _flat(vector: np.ndarray, up: np.ndarray) -> np.ndarray:
     flat = vector - (vector @ up) * up
     norm = np.linalg.norm(flat)
@@ -176,7 +165,8 @@ def stage_of(up: np.ndarray, vertices: np.ndarray, pelvis: np.ndarray, root_rotv
 
 def place(motion: Motion, stage: Stage, body: BodyModel, shapes: np.ndarray) -> list[SmplParams]:
     """ZJU parameters of the subject (``shapes``) performing ``motion`` on ``stage`` (module docstring)."""
-    world_from_motion = _rotation_between(estimated_up(motion), stage.up)
+    # the smallest rotation taking the motion's up onto the stage's (a half turn when they are opposite)
+    world_from_motion = Rotation.align_vectors(stage.up[None], estimated_up(motion)[None])[0]
     roots = Rotation.from_rotvec(motion.rotations[:, 0])
     forward = _flat(world_from_motion.apply(roots[0].apply([0.0, 0.0, 1.0])), stage.up)  # SMPL faces +z
     wanted = _flat(stage.forward, stage.up)
