@@ -53,6 +53,11 @@ class RenderConfig:
     eval_coarse: int = 16  #: coarse samples per ray in evaluation (paper 64)
     eval_fine: int = 16  #: importance samples per ray in evaluation (paper 128)
     chunk: int = 4096  #: rays per rendering chunk (bounds memory)
+    occupancy: bool = False  #: empty-space skipping: narrow each ray to its occupied stretch (docs/model.md §5)
+    occupancy_resolution: int = 32  #: occupancy cells per axis of each part box
+    occupancy_threshold: float = 0.01  #: density below which a cell is empty (per world unit of depth)
+    occupancy_every: int = 16  #: refresh the grid every n training steps
+    occupancy_rounds: int = 8  #: a refresh measures 1/n of the cells, so every cell is measured every n refreshes
 
 
 @dataclass
@@ -192,6 +197,10 @@ def validate_config(config: FitConfig) -> None:
         ("model.latent_dim", config.model.latent_dim >= 0),
         ("model.encoder_channels", config.model.encoder_channels >= 1),
         ("train.encoder_lr", config.train.encoder_lr > 0),
+        ("render.occupancy_resolution", config.render.occupancy_resolution >= 2),
+        ("render.occupancy_threshold", config.render.occupancy_threshold >= 0),
+        ("render.occupancy_every", config.render.occupancy_every >= 1),
+        ("render.occupancy_rounds", config.render.occupancy_rounds >= 1),
     ]
     for key, ok in checks:
         if not ok:
@@ -201,5 +210,7 @@ def validate_config(config: FitConfig) -> None:
         raise ConfigError("model.latent_dim: the thuman dataset trains an autoencoder; set a latent size (paper 256)")
     if autoencoder and config.model.name in IMAGE_MODELS:
         raise ConfigError(f"model.name: '{config.model.name}' has no autoencoder form here; choose a NeRF-type model")
+    if config.render.occupancy and (autoencoder or config.model.name in IMAGE_MODELS):
+        raise ConfigError("render.occupancy: the occupancy grid is for per-subject NeRF-type fits; set it to false")
     if not autoencoder and config.model.latent_dim:
         raise ConfigError("model.latent_dim: only the thuman dataset (an autoencoder) uses latents; set it to 0")

@@ -21,7 +21,7 @@ from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
 from fitting.plots import write_curve, write_validation
 from narf.fields import build_field, build_model
 from narf.metrics import psnr
-from narf.rays import ray_box_intersect
+from narf.occupancy import OccupancyGrid, field_ray_bounds, refresh_cells
 from narf.renderer import bind_field, render_rays
 
 
@@ -43,7 +43,11 @@ def make_field(config: FitConfig):
         kwargs["temperature"] = m.temperature
     if m.name == "p_nerf":
         kwargs["pose_in_color"] = m.pose_in_color
-    return build_field(m.name, **kwargs)
+    field = build_field(m.name, **kwargs)
+    r = config.render
+    if r.occupancy:
+        field.occupancy = OccupancyGrid(field.n_parts, r.occupancy_resolution, r.occupancy_threshold)
+    return field
 
 
 def ray_loss(
@@ -64,9 +68,7 @@ def ray_loss(
     sample draws (``render_rays``). ``normalisers``: (3 R, sum of mask weights) of the global batch when ``batch``
     is one process's share of it; both terms are then that share's contribution to the global means."""
     per_ray = poses.select(batch.frames)
-    near, far, hit = ray_box_intersect(
-        batch.origins, batch.dirs, per_ray.world_from_part, per_ray.reach, field.box_centres, field.box_half_extents
-    )
+    near, far, hit = field_ray_bounds(field, batch.origins, batch.dirs, per_ray)
     background = 1.0 if config.data.white_background else 0.0
     out = render_rays(
         bind_field(field, batch.dirs, poses, batch.frames, latent),
@@ -210,10 +212,32 @@ class Trainer:
         self.optimiser.step()
         self.scheduler.step()
         self.step += 1
+        self.refresh_occupancy()
         values = torch.stack([loss.detach(), colour.detach()])
         if self.processes.distributed:
             torch.distributed.all_reduce(values)
         return float(values[0]), float(psnr(values[1]))
+
+    def refresh_occupancy(self) -> None:
+        """Every ``render.occupancy_every`` steps, measure the next 1/``occupancy_rounds`` of the occupancy cells (a
+        fixed permutation, jitter and frames seeded by the step, so resumed and data-parallel fits agree)."""
+        grid, r = getattr(self.field, "occupancy", None), self.config.render
+        if grid is None or self.step % r.occupancy_every:
+            return
+        seed = self.config.train.seed
+        if getattr(self, "_occupancy_order", None) is None:
+            self._occupancy_order = torch.randperm(grid.density.numel(), generator=torch.Generator().manual_seed(seed))
+        order = self._occupancy_order
+        round_index = (self.step // r.occupancy_every) % r.occupancy_rounds
+        cells = order.chunk(r.occupancy_rounds)[round_index].to(self.device)
+        poses, field = self.data.poses, self.field
+        up = torch.tensor([0.0, 0.0, 1.0], device=self.device)
+
+        def density(points: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
+            return field(points[:, None], up.expand_as(points), poses.select(frames)).sigma[:, 0]
+
+        generator = torch.Generator().manual_seed(seed * 1_000_003 + self.step)
+        refresh_cells(grid, density, poses, field.box_centres, field.box_half_extents, cells, generator)
 
     def _trained_parameters(self) -> list[torch.nn.Parameter]:
         return [p for group in self.optimiser.param_groups for p in group["params"]]

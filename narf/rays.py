@@ -38,25 +38,25 @@ def image_pixels(height: int, width: int, device=None, dtype=torch.float32) -> t
     return torch.stack([u.reshape(-1), v.reshape(-1)], dim=1)
 
 
-def ray_box_intersect(
+def ray_box_slabs(
     origins: torch.Tensor,
     dirs: torch.Tensor,
     world_from_part: torch.Tensor,
     reach: torch.Tensor,
     centres: torch.Tensor,
     half_extents: torch.Tensor,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Slab test against every part box (oriented in the world, body units).
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Slab test against every part box (oriented in the world, body units), per part.
 
-    In box space o' = (R_i^T (o - t_i)/s - c_i) / h_i, d' = (R_i^T d / s) / h_i; per axis t spans
-    (+-1 - o')/d'; t_in = max of the lower ends, t_out = min of the upper ends; hit if t_in < t_out and
-    t_out > 0. near = max(0, min t_in), far = max t_out over hits.
+    In box space o' = (R_i^T (o - t_i)/s - c_i) / h_i, d' = (R_i^T d / s) / h_i, so the box point at depth t is
+    u = o' + t d'; per axis t spans (+-1 - o')/d'; t_in = max of the lower ends, t_out = min of the upper ends; the
+    ray hits box i if t_in < t_out and t_out > 0.
 
     Args:
         origins, dirs: (R, 3) rays. world_from_part: (R, P, 4, 4). reach: (R,). centres, half_extents: (P, 3).
 
     Returns:
-        near (R,), far (R,), hit (R,) bool (near/far are 0 where no box is hit).
+        o' (R, P, 3), d' (R, P, 3), t_in (R, P), t_out (R, P), hits (R, P) bool.
     """
     check_shape("origins", origins, (-1, 3))
     n_rays = origins.shape[0]
@@ -70,7 +70,32 @@ def ray_box_intersect(
     t_a, t_b = (-1 - o_box) / safe, (1 - o_box) / safe
     t_low, t_high = torch.minimum(t_a, t_b), torch.maximum(t_a, t_b)
     t_in, t_out = t_low.amax(dim=-1), t_high.amin(dim=-1)
-    hits = (t_in < t_out) & (t_out > 0)
+    return o_box, d_box, t_in, t_out, (t_in < t_out) & (t_out > 0)
+
+
+def ray_box_intersect(
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    world_from_part: torch.Tensor,
+    reach: torch.Tensor,
+    centres: torch.Tensor,
+    half_extents: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Bounds of the union of the part boxes (:func:`ray_box_slabs`): near = max(0, min t_in), far = max t_out over
+    the boxes hit.
+
+    Args:
+        origins, dirs: (R, 3) rays. world_from_part: (R, P, 4, 4). reach: (R,). centres, half_extents: (P, 3).
+
+    Returns:
+        near (R,), far (R,), hit (R,) bool (near/far are 0 where no box is hit).
+    """
+    _, _, t_in, t_out, hits = ray_box_slabs(origins, dirs, world_from_part, reach, centres, half_extents)
+    return union_bounds(t_in, t_out, hits)
+
+
+def union_bounds(t_in: torch.Tensor, t_out: torch.Tensor, hits: torch.Tensor):
+    """near (R,), far (R,), hit (R,) of per-box intervals (R, P) (see :func:`ray_box_intersect`)."""
     inf = torch.full_like(t_in, float("inf"))
     near = torch.where(hits, t_in, inf).amin(dim=-1).clamp_min(0)
     far = torch.where(hits, t_out, -inf).amax(dim=-1)

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 import torch
 
 from narf.geometry import check_shape
-from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
+from narf.occupancy import field_ray_bounds
+from narf.rays import image_pixels, rays_from_pixels
 from narf.sampling import importance_depths, stratified_depths
 
 
@@ -168,9 +169,7 @@ def render_image(
         o, d = origins[start : start + chunk], dirs[start : start + chunk]
         frames = torch.zeros(o.shape[0], dtype=torch.long, device=device)
         per_ray = pose.select(frames)
-        near, far, hit = ray_box_intersect(
-            o, d, per_ray.world_from_part, per_ray.reach, field.box_centres, field.box_half_extents
-        )
+        near, far, hit = field_ray_bounds(field, o, d, per_ray)
         result = render_rays(
             bind_field(field, d, pose, frames, latent),
             o,

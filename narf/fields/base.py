@@ -47,6 +47,8 @@ class Field(nn.Module):
         self.n_parts, self.latent_dim = n_parts, latent_dim
         self.register_buffer("box_centres", torch.zeros(n_parts, 3))
         self.register_buffer("box_half_extents", torch.ones(n_parts, 3))
+        #: optional narf.occupancy.OccupancyGrid; renderers narrow their ray bounds with it (docs/model.md §5)
+        self.occupancy: nn.Module | None = None
 
     def set_boxes(self, centres: torch.Tensor, half_extents: torch.Tensor) -> None:
         check_shape("centres", centres, (self.n_parts, 3))
