@@ -21,11 +21,13 @@ CONFIGS = [
     ("NARF_D dense reference", "narf_d", {"width": 64, "fast": False}, (16, 16), (16, 16), 1024),
     ("NARF_H cpu-default", "narf_h", {"width": 64}, (16, 16), (16, 16), 1024),
     ("NARF_H paper", "narf_h", {"width": 256}, (48, 48), (64, 128), 256),
-    ("NARF_P cpu-default (32)", "narf_p", {"width": 32}, (16, 16), (16, 16), 256),
+    ("NARF_P cpu-default (32)", "narf_p", {"width": 32}, (16, 16), (16, 16), 1024),
+    ("NARF_P dense reference (32)", "narf_p", {"width": 32, "fast": False}, (16, 16), (16, 16), 256),
     ("NARF_P paper (256)", "narf_p", {"width": 256}, (48, 48), (64, 128), 32),
     ("P-NeRF cpu-default", "p_nerf", {"width": 64}, (16, 16), (16, 16), 1024),
     ("P-NeRF paper", "p_nerf", {"width": 256}, (48, 48), (64, 128), 256),
     ("D-NARF cpu-default", "d_narf", {"width": 64}, (16, 16), (16, 16), 1024),
+    ("D-NARF dense reference", "d_narf", {"width": 64, "fast": False}, (16, 16), (16, 16), 1024),
     ("D-NARF paper", "d_narf", {"width": 256}, (48, 48), (64, 128), 256),
 ]
 RENDER_SIZE = 256

@@ -60,17 +60,18 @@ class AutoencoderTrainer(Trainer):
             t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction, self.generator
         )
         images, batch.frames = torch.unique(batch.frames, return_inverse=True)
-        latent = encode(self.encoder, self.encoder_inputs[images])
-        loss, colour = ray_loss(
-            self.config,
-            self.field,
-            batch,
-            self.data.poses.select(images),
-            self.generator,
-            self.config.render.train_coarse,
-            self.config.render.train_fine,
-            latent=latent,
-        )
+        with self.autocast():
+            latent = encode(self.encoder, self.encoder_inputs[images])
+            loss, colour = ray_loss(
+                self.config,
+                self.field,
+                batch,
+                self.data.poses.select(images),
+                self.generator,
+                self.config.render.train_coarse,
+                self.config.render.train_fine,
+                latent=latent,
+            )
         return self.optimise(loss, colour)
 
     def _validation_latent(self, item: tuple) -> torch.Tensor | None:

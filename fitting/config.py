@@ -77,6 +77,8 @@ class TrainConfig:
     validate_every: int = 1000  #: render a validation image every n steps (0: never)
     log_every: int = 50  #: write a log line every n steps
     seed: int = 0  #: seed of initialisation and ray sampling
+    precision: str = "fp32"  #: fp32 (the reference) or bf16 (autocast of the training step's forward pass)
+    compile: bool = False  #: torch.compile the field's forward pass (dynamic shapes; the eager path is the reference)
     deterministic: bool = True  #: deterministic kernels, so a resumed fit ends where an uninterrupted one would
     world_size: int = 1  #: processes of the fit (set from torchrun; recorded, not a setting)
 
@@ -197,6 +199,7 @@ def validate_config(config: FitConfig) -> None:
         ("model.latent_dim", config.model.latent_dim >= 0),
         ("model.encoder_channels", config.model.encoder_channels >= 1),
         ("train.encoder_lr", config.train.encoder_lr > 0),
+        ("train.precision", config.train.precision in ("fp32", "bf16")),
         ("render.occupancy_resolution", config.render.occupancy_resolution >= 2),
         ("render.occupancy_threshold", config.render.occupancy_threshold >= 0),
         ("render.occupancy_every", config.render.occupancy_every >= 1),

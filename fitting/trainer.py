@@ -126,6 +126,9 @@ class Trainer:
         self.field = make_field(config).to(device)
         if state is None and hasattr(self.field, "set_boxes"):
             self.field.set_boxes(data.boxes[0].to(device), data.boxes[1].to(device))
+        if config.train.compile:
+            # compile the bound forward, not the module, so state_dict keys stay those of the eager field
+            self.field.forward = torch.compile(self.field.forward, dynamic=True)
         self._build_extra_modules()
         self.rays_per_step = config.train.images_per_step * config.train.rays_per_image
         self.optimiser = torch.optim.Adam(
@@ -190,18 +193,24 @@ class Trainer:
         n = batch.origins.shape[0]
         uniforms = [torch.rand(n, k, generator=self.generator).to(self.device) for k in (r.train_coarse, r.train_fine)]
         share = self.processes.share(n)
-        loss, colour = ray_loss(
-            self.config,
-            self.field,
-            batch.take(share),
-            self.data.poses,
-            self.generator,
-            r.train_coarse,
-            r.train_fine,
-            uniforms=[u[share] for u in uniforms],
-            normalisers=(3 * n, batch.mask_weight.sum().clamp_min(1)),
-        )
+        with self.autocast():
+            loss, colour = ray_loss(
+                self.config,
+                self.field,
+                batch.take(share),
+                self.data.poses,
+                self.generator,
+                r.train_coarse,
+                r.train_fine,
+                uniforms=[u[share] for u in uniforms],
+                normalisers=(3 * n, batch.mask_weight.sum().clamp_min(1)),
+            )
         return self.optimise(loss, colour)
+
+    def autocast(self):
+        """bf16 autocast of a training forward pass when ``train.precision`` is bf16 (a no-op for fp32)."""
+        enabled = self.config.train.precision == "bf16"
+        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=enabled)
 
     def optimise(self, loss: torch.Tensor, colour: torch.Tensor) -> tuple[float, float]:
         """One optimiser and schedule step on ``loss`` (gradients summed over processes); returns (loss, PSNR of

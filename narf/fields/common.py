@@ -113,7 +113,7 @@ class RadianceHead(nn.Module):
     @staticmethod
     def _embed(layer, inputs: torch.Tensor) -> torch.Tensor:
         g, r, s, d = inputs.shape
-        return layer(inputs.reshape(g, r * s, d)).reshape(g, r, s, -1)
+        return layer(inputs.reshape(g, r * s, d)).reshape(g, r, s, layer.out_features)
 
     def _embed_sum(self, layers: nn.ModuleDict, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
         total = None

@@ -10,21 +10,38 @@ from narf.encodings import positional_encoding
 from narf.fields.base import Field, FieldOutput, masked_softmax
 from narf.fields.common import RadianceHead
 from narf.fields.selector import PartSelector
+from narf.fields.sparse_parts import segment_softmax, selector_logits
 
 
 class DNarf(Field):
     """p = plain softmax of the NARF_D selector over in-box parts; x' = sum p_i (x_i + t_i^can) with
     t_i^can = (J_i - J_0)/s; d' = sum p_i d_i; xi' = sum p_i xi_i. Density from gamma(x'/1.25) (60) and
-    gamma(zeta) (152); colour from gamma(d') (24) and gamma(xi'/pi) (48)."""
+    gamma(zeta) (152); colour from gamma(d') (24) and gamma(xi'/pi) (48).
 
-    def __init__(self, n_parts: int = 19, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward"):
+    Fast path (``fast``, default): p_i = 0 outside box i, so gamma(u_i) and the selector are evaluated for in-box
+    (sample, part) pairs only and the blends are sums over those pairs; the head runs on the samples inside some
+    box only (elsewhere sigma = 0, so no render uses their colour; the fast path returns rgb 0 there). The dense
+    path (every pair, every sample) is its test reference.
+    """
+
+    def __init__(
+        self,
+        n_parts: int = 19,
+        width: int = 256,
+        latent_dim: int = 0,
+        density_act: str = "leaky_backward",
+        fast: bool = True,
+    ):
         super().__init__(n_parts, latent_dim)
+        self.fast = fast
         self.selector = PartSelector(n_parts)
         self.head = RadianceHead(
             {"x": 60, "zeta": 152}, {"dirs": 24, "pose": 48}, width, latent_dim=latent_dim, density_act=density_act
         )
 
     def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+        if self.fast:
+            return self._forward_in_box(pose, x_local, d_local, u, in_box, z_s, z_a)
         encoded_zeta = self.zeta_encoding(pose)
         probs = masked_softmax(self.selector(positional_encoding(u, 10), encoded_zeta), in_box)  # (R, S, P)
         canonical = torch.einsum("rsp,rspc->rsc", probs, x_local + pose.rest_offsets[:, None])
@@ -37,6 +54,43 @@ class DNarf(Field):
         }
         sigma, rgb = self.head(density, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], probs)
+
+    def _forward_in_box(self, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+        r_count, s_count, p_count = in_box.shape
+        pairs = in_box.nonzero()  # (M, 3): ray, sample, part
+        pairs = pairs[torch.argsort(pairs[:, 2], stable=True)]
+        ray, sample, part = pairs.unbind(-1)
+        flat = ray * s_count + sample
+        encoded = positional_encoding(u[ray, sample, part], 10)  # (M, 60)
+        chunks = torch.split(encoded, torch.bincount(part, minlength=p_count).tolist())
+        logit = selector_logits(self.selector, chunks, ray, part, self.zeta_encoding(pose))
+        probs = segment_softmax(logit, flat, r_count * s_count)  # (M,)
+
+        def blend(values: torch.Tensor) -> torch.Tensor:  # sum_i p_i v_i per sample: (M, d) -> (R S, d)
+            total = values.new_zeros(r_count * s_count, values.shape[-1])
+            return total.index_add(0, flat, probs[:, None] * values)
+
+        canonical = blend(x_local[ray, sample, part] + pose.rest_offsets[ray, part])
+        blended_dirs, blended_xi = blend(d_local[ray, part]), blend(pose.pose_features[ray, part])
+        live = in_box.reshape(-1, p_count).any(dim=-1).nonzero()[:, 0]  # samples inside some box
+        live_rays = live // s_count
+        density = {
+            "x": positional_encoding(canonical[live] / 1.25, 10)[None, None],
+            "zeta": self.zeta_encoding(pose)[live_rays, 0][None, None],
+        }
+        colour = {
+            "dirs": positional_encoding(blended_dirs[live], 4)[None, None],
+            "pose": positional_encoding(blended_xi[live] / math.pi, 4)[None, None],
+        }
+        z_s = None if z_s is None else z_s[0, live_rays, 0][None, None]
+        z_a = None if z_a is None else z_a[0, live_rays, 0][None, None]
+        sigma_live, rgb_live = self.head(density, colour, z_s, z_a)  # (1, 1, L), (1, 1, L, 3)
+        sigma = u.new_zeros(r_count * s_count).index_put((live,), sigma_live[0, 0])
+        rgb = u.new_zeros(r_count * s_count, 3).index_put((live,), rgb_live[0, 0])
+        part_probs = u.new_zeros(r_count * s_count, p_count).index_put((flat, part), probs)
+        return FieldOutput(
+            sigma.reshape(r_count, s_count), rgb.reshape(r_count, s_count, 3), part_probs.reshape(r_count, s_count, -1)
+        )
 
     def _extra_complete_flops(self) -> int:
         return self.selector.extra_flops()

@@ -16,8 +16,12 @@ class NarfP(Field):
     (24); sigma_i = 0 out of box; p_i = softmax_i(sigma_i / tau) over in-box parts; sigma = sum p_i sigma_i,
     c = sum p_i c_i. Segmentation uses the density softmax at tau = 0.01.
 
+    Fast path (``fast``, default): a part's network only matters where its box holds the sample (sigma_i = 0 and
+    p_i = 0 elsewhere), so each part's network runs only on its in-box samples, packed per part (padded to the
+    largest count) into one batched pass; the dense path (every network on every sample) is its test reference.
+
     Args:
-        n_parts: P. width: H per part (paper 32/64/128/256). temperature: tau (10).
+        n_parts: P. width: H per part (paper 32/64/128/256). temperature: tau (10). fast: in-box evaluation only.
     """
 
     def __init__(
@@ -27,8 +31,10 @@ class NarfP(Field):
         latent_dim: int = 0,
         density_act: str = "leaky_backward",
         temperature: float = 10.0,
+        fast: bool = True,
     ):
         super().__init__(n_parts, latent_dim)
+        self.fast = fast
         if temperature <= 0:
             raise ValueError(f"temperature must be positive, got {temperature}")
         self.temperature = temperature
@@ -42,6 +48,19 @@ class NarfP(Field):
         )
 
     def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+        if self.fast:
+            sigma_parts, rgb_parts = self._in_box_heads(pose, d_local, u, in_box, z_s, z_a)
+        else:
+            sigma_parts, rgb_parts = self._all_heads(pose, d_local, u, z_s, z_a)
+        sigma_parts = torch.where(in_box, sigma_parts, torch.zeros_like(sigma_parts))
+        probs = masked_softmax(sigma_parts / self.temperature, in_box)
+        sigma = (probs * sigma_parts).sum(-1)
+        rgb = torch.einsum("rsp,rspc->rsc", probs, rgb_parts)
+        segmentation = masked_softmax(sigma_parts.detach() / 0.01, in_box)
+        return FieldOutput(sigma, rgb, segmentation)
+
+    def _all_heads(self, pose, d_local, u, z_s, z_a) -> tuple[torch.Tensor, torch.Tensor]:
+        """Every part's network on every sample (the reference): sigma_i (R, S, P), c_i (R, S, P, 3)."""
         p = self.n_parts
         density = {
             "u": positional_encoding(u, 10).permute(2, 0, 1, 3),
@@ -52,10 +71,33 @@ class NarfP(Field):
             "dirs": positional_encoding(d_local, 4).permute(1, 0, 2)[:, :, None],
         }
         sigma_parts, rgb_parts = self.head(density, colour, z_s, z_a)  # (P, R, S), (P, R, S, 3)
-        sigma_parts = sigma_parts.permute(1, 2, 0)
-        sigma_parts = torch.where(in_box, sigma_parts, torch.zeros_like(sigma_parts))
-        probs = masked_softmax(sigma_parts / self.temperature, in_box)
-        sigma = (probs * sigma_parts).sum(-1)
-        rgb = torch.einsum("rsp,prsc->rsc", probs, rgb_parts)
-        segmentation = masked_softmax(sigma_parts.detach() / 0.01, in_box)
-        return FieldOutput(sigma, rgb, segmentation)
+        return sigma_parts.permute(1, 2, 0), rgb_parts.permute(1, 2, 0, 3)
+
+    def _in_box_heads(self, pose, d_local, u, in_box, z_s, z_a) -> tuple[torch.Tensor, torch.Tensor]:
+        """Part i's network on the samples inside box i only, zeros elsewhere: (R, S, P), (R, S, P, 3)."""
+        r_count, s_count, p_count = in_box.shape
+        pairs = in_box.nonzero()  # (M, 3): ray, sample, part
+        pairs = pairs[torch.argsort(pairs[:, 2], stable=True)]
+        ray, sample, part = pairs.unbind(-1)
+        counts = torch.bincount(part, minlength=p_count)
+        slot = torch.arange(part.numel(), device=part.device) - (torch.cumsum(counts, 0) - counts)[part]
+        width = max(int(counts.max()) if part.numel() else 0, 1)
+
+        def packed(values: torch.Tensor) -> torch.Tensor:  # (M, d) -> (P, 1, width, d), zero padding
+            out = values.new_zeros(p_count, width, values.shape[-1])
+            return out.index_put((part, slot), values)[:, None]
+
+        density = {
+            "u": packed(positional_encoding(u[ray, sample, part], 10)),
+            "zeta": packed(self.zeta_encoding(pose)[ray, 0]),
+        }
+        colour = {
+            "pose": packed(positional_encoding(pose.pose_features[ray, part] / math.pi, 4)),
+            "dirs": packed(positional_encoding(d_local[ray, part], 4)),
+        }
+        z_s = None if z_s is None else packed(z_s[0, ray, 0])
+        z_a = None if z_a is None else packed(z_a[0, ray, 0])
+        sigma_packed, rgb_packed = self.head(density, colour, z_s, z_a)  # (P, 1, width), (P, 1, width, 3)
+        sigma_parts = u.new_zeros(r_count, s_count, p_count).index_put((ray, sample, part), sigma_packed[part, 0, slot])
+        rgb_parts = u.new_zeros(r_count, s_count, p_count, 3).index_put((ray, sample, part), rgb_packed[part, 0, slot])
+        return sigma_parts, rgb_parts

@@ -20,12 +20,32 @@ def _block(weight: torch.Tensor, part: int, width: int) -> torch.Tensor:
     return weight[0, :, part * width : (part + 1) * width]
 
 
-def _segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: int) -> torch.Tensor:
+def segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: int) -> torch.Tensor:
+    """Softmax of ``logits`` (M,) within each segment (``segments`` (M,) in [0, n_segments))."""
     peak = torch.full((n_segments,), float("-inf"), dtype=logits.dtype, device=logits.device)
     peak = peak.scatter_reduce(0, segments, logits.detach(), reduce="amax")
     exp = torch.exp(logits - peak[segments])
     total = torch.zeros(n_segments, dtype=logits.dtype, device=logits.device).index_add(0, segments, exp)
     return exp / total[segments]
+
+
+def selector_logits(selector, chunks: tuple[torch.Tensor, ...], ray: torch.Tensor, part: torch.Tensor, encoded_zeta):
+    """The part selector's logits o_i (narf.fields.selector) of in-box pairs only.
+
+    Args:
+        selector: a PartSelector. chunks: per part k, the gamma(u_k) (M_k, 60) of its in-box pairs, in part order.
+        ray, part: (M,) of the same pairs, sorted by part. encoded_zeta: (R, 1, 152).
+
+    Returns:
+        (M,) logits.
+    """
+    local = torch.cat(
+        [chunk @ selector.local.effective_weight()[k].T + selector.local.bias[k] for k, chunk in enumerate(chunks)]
+    )
+    r_count, p_count = encoded_zeta.shape[0], len(chunks)
+    bones = selector.bones(encoded_zeta.reshape(1, r_count, -1)).reshape(r_count, p_count, selector.hidden)
+    hidden = torch.relu(local + bones[ray, part])
+    return (hidden * selector.out.effective_weight()[:, 0, :][part]).sum(-1) + selector.out.bias[part, 0, 0]
 
 
 def sparse_masked_inputs(
@@ -53,20 +73,12 @@ def sparse_masked_inputs(
     chunks = torch.split(encoded, counts)
     w_density = head.density_embed["parts"].effective_weight()
     selector = getattr(model, "selector", None)
-    features, logits = [], []
-    for k, chunk in enumerate(chunks):
-        features.append(chunk @ _block(w_density, k, 60).T)
-        if selector is not None:  # an empty chunk gives an empty block (every sample may miss every box)
-            hidden = chunk @ selector.local.effective_weight()[k].T + selector.local.bias[k]
-            logits.append(hidden)
-    features = torch.cat(features)
+    # an empty chunk gives an empty block (every sample may miss every box)
+    features = torch.cat([chunk @ _block(w_density, k, 60).T for k, chunk in enumerate(chunks)])
     if selector is not None:
-        bones = selector.bones(encoded_zeta.reshape(1, r_count, -1)).reshape(r_count, p_count, selector.hidden)
-        hidden = torch.relu(torch.cat(logits) + bones[ray, part])
-        out_w = selector.out.effective_weight()[:, 0, :]  # (P, hidden)
-        logit = (hidden * out_w[part]).sum(-1) + selector.out.bias[part, 0, 0]
+        logit = selector_logits(selector, chunks, ray, part, encoded_zeta)
         if model.selector_kind == "softmax":
-            probs = _segment_softmax(logit, sample, r_count * s_count)
+            probs = segment_softmax(logit, sample, r_count * s_count)
         else:
             probs = torch.sigmoid(logit)
         norm = torch.zeros(r_count * s_count, dtype=u.dtype, device=u.device).index_add(0, sample, probs**2).sqrt()
