@@ -11,6 +11,7 @@ BENCHMARKS = {
     "models": "bench.bench_models",
     "calib": "bench.bench_calib",
     "autoencoder": "bench.bench_autoencoder",
+    "quality": "bench.bench_quality",
 }
 
 

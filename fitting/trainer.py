@@ -227,6 +227,10 @@ class Trainer:
             torch.distributed.all_reduce(values)
         return float(values[0]), float(psnr(values[1]))
 
+    def _occupancy_row(self) -> dict:
+        grid = getattr(self.field, "occupancy", None)
+        return {} if grid is None else {"occupied": round(grid.occupied_fraction(), 4)}
+
     def refresh_occupancy(self) -> None:
         """Every ``render.occupancy_every`` steps, measure the next 1/``occupancy_rounds`` of the occupancy cells (a
         fixed permutation, jitter and frames seeded by the step, so resumed and data-parallel fits agree)."""
@@ -240,10 +244,10 @@ class Trainer:
         round_index = (self.step // r.occupancy_every) % r.occupancy_rounds
         cells = order.chunk(r.occupancy_rounds)[round_index].to(self.device)
         poses, field = self.data.poses, self.field
-        up = torch.tensor([0.0, 0.0, 1.0], device=self.device)
+        up = torch.tensor([[0.0, 0.0, 1.0]], device=self.device)
 
-        def density(points: torch.Tensor, frames: torch.Tensor) -> torch.Tensor:
-            return field(points[:, None], up.expand_as(points), poses.select(frames)).sigma[:, 0]
+        def density(points: torch.Tensor, frame: int) -> torch.Tensor:  # the points as one ray of many samples
+            return field(points[None], up, poses.select(torch.tensor([frame], device=self.device))).sigma[0]
 
         generator = torch.Generator().manual_seed(seed * 1_000_003 + self.step)
         refresh_cells(grid, density, poses, field.box_centres, field.box_half_extents, cells, generator)
@@ -284,6 +288,7 @@ class Trainer:
                                     "lr": self.scheduler.get_last_lr()[0],
                                     "elapsed_s": self.elapsed,
                                     "world_size": self.processes.world_size,
+                                    **self._occupancy_row(),
                                 }
                             )
                             + "\n"

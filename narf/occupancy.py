@@ -27,21 +27,29 @@ class OccupancyGrid(nn.Module):
 
     Args:
         n_parts: P. resolution: N cells per axis. threshold: sigma (per world unit of depth) below which a cell is
-            empty; the default 0.01 lets at most 1 - exp(-0.01) = 1 % opacity through one world unit of skipped space.
+            empty; the default 0.5 loses at most 1 - exp(-0.5 * 0.02) = 1 % opacity over 2 cm, about the spacing of
+            the CPU preset's coarse samples on a body-sized interval (docs/model.md §5).
         decay: factor on a refreshed cell's previous value.
     """
 
-    def __init__(self, n_parts: int, resolution: int = 32, threshold: float = 0.01, decay: float = 0.95):
+    def __init__(self, n_parts: int, resolution: int = 32, threshold: float = 0.5, decay: float = 0.95):
         super().__init__()
         if resolution < 2:
             raise ValueError(f"occupancy resolution must be at least 2, got {resolution}")
         self.resolution, self.threshold, self.decay = resolution, threshold, decay
         self.register_buffer("density", torch.full((n_parts,) + (resolution,) * 3, float("inf")))
+        self._occupied: torch.Tensor | None = None  # cache of occupied(), cleared by update() and loading
 
     def occupied(self) -> torch.Tensor:
         """(P, N, N, N) bool: density above the threshold, dilated by one cell (3^3 max filter)."""
-        above = (self.density > self.threshold).float()[:, None]
-        return F.max_pool3d(above, kernel_size=3, stride=1, padding=1)[:, 0] > 0
+        if self._occupied is None or self._occupied.device != self.density.device:
+            above = (self.density > self.threshold).float()[:, None]
+            self._occupied = F.max_pool3d(above, kernel_size=3, stride=1, padding=1)[:, 0] > 0
+        return self._occupied
+
+    def _load_from_state_dict(self, *args, **kwargs):
+        self._occupied = None
+        super()._load_from_state_dict(*args, **kwargs)
 
     def cells_of(self, u: torch.Tensor) -> torch.Tensor:
         """Cell index (..., 3) long of box coordinates u (..., 3), clamped to the grid."""
@@ -58,6 +66,7 @@ class OccupancyGrid(nn.Module):
         old = self.density[parts, i, j, k]
         old = torch.where(torch.isinf(old), torch.zeros_like(old), old * self.decay)
         self.density[parts, i, j, k] = torch.maximum(old, sigma.to(old.dtype))
+        self._occupied = None
 
     def occupied_fraction(self) -> float:
         return float(self.occupied().float().mean())
@@ -78,7 +87,8 @@ def occupied_bounds(
     midpoints t_k. Segment k is occupied if, for some box i whose interval [t_in_i, t_out_i] it overlaps, the cell
     of that box at the clamped depth clamp(t_k, t_in_i, t_out_i) is occupied (the clamp keeps boxes thinner than a
     segment). near' = max(near, t_first - dt), far' = min(far, t_last + dt); hit' = hit and some segment is occupied.
-    With every cell occupied this returns the union bounds unchanged.
+    With every cell occupied this returns the union bounds unchanged. Only the (ray, box) pairs that hit are
+    marched.
 
     Args:
         occupied: (P, N, N, N) bool (``OccupancyGrid.occupied``). o_box, d_box, t_in, t_out, hits: the per-box slab
@@ -88,31 +98,30 @@ def occupied_bounds(
         near (R,), far (R,), hit (R,) bool.
     """
     near, far, hit = union_bounds(t_in, t_out, hits)
-    ids = hit.nonzero()[:, 0]
-    if ids.numel() == 0:
+    if not hit.any():
         return near, far, hit
-    t_near, t_far = near[ids], far[ids]
-    step = (t_far - t_near) / n_steps
+    step = (far - near) / n_steps  # (R,)
     ks = torch.arange(n_steps, dtype=near.dtype, device=near.device) + 0.5
-    depths = t_near[:, None] + ks * step[:, None]  # (R', K)
-    low, high = t_in[ids, None], t_out[ids, None]  # (R', 1, P)
-    t = depths[..., None]
-    overlaps = hits[ids, None] & (t + step[:, None, None] / 2 >= low) & (t - step[:, None, None] / 2 <= high)
-    t = torch.minimum(torch.maximum(t, low), high)  # (R', K, P)
-    u = o_box[ids, None] + t[..., None] * d_box[ids, None]  # (R', K, P, 3)
+    ray, part = hits.nonzero().unbind(-1)  # (M,) hit pairs
+    depths = near[ray, None] + ks * step[ray, None]  # (M, K)
+    low, high = t_in[ray, part, None], t_out[ray, part, None]
+    half_step = step[ray, None] / 2
+    overlaps = (depths + half_step >= low) & (depths - half_step <= high)
+    t = torch.minimum(torch.maximum(depths, low), high)
+    u = o_box[ray, part, None] + t[..., None] * d_box[ray, part, None]  # (M, K, 3)
     n = occupied.shape[-1]
     cell = ((u + 1) * (n / 2)).floor().long().clamp(0, n - 1)
-    part = torch.arange(occupied.shape[0], device=near.device).expand_as(overlaps)
-    marked = (occupied[part, cell[..., 0], cell[..., 1], cell[..., 2]] & overlaps).any(dim=-1)  # (R', K)
+    marked_pairs = occupied[part[:, None], cell[..., 0], cell[..., 1], cell[..., 2]] & overlaps  # (M, K)
+    marked = torch.zeros(hits.shape[0], n_steps, dtype=near.dtype, device=near.device)
+    marked = marked.index_add(0, ray, marked_pairs.to(near.dtype)) > 0  # (R, K)
     any_marked = marked.any(dim=-1)
     first = marked.float().argmax(dim=-1)
     last = n_steps - 1 - marked.flip(-1).float().argmax(dim=-1)
-    new_near = torch.maximum(t_near, torch.gather(depths, 1, first[:, None])[:, 0] - step)
-    new_far = torch.minimum(t_far, torch.gather(depths, 1, last[:, None])[:, 0] + step)
-    near = near.index_put((ids,), torch.where(any_marked, new_near, t_near))
-    far = far.index_put((ids,), torch.where(any_marked, new_far, t_far))
-    hit = hit.index_put((ids,), any_marked)
-    return near, far, hit
+    new_near = torch.maximum(near, near + (first + 0.5) * step - step)
+    new_far = torch.minimum(far, near + (last + 0.5) * step + step)
+    near = torch.where(any_marked, new_near, torch.zeros_like(near))
+    far = torch.where(any_marked, new_far, torch.zeros_like(far))
+    return near, far, any_marked
 
 
 def refresh_cells(
@@ -123,13 +132,13 @@ def refresh_cells(
     box_half_extents: torch.Tensor,
     cells: torch.Tensor,
     generator: torch.Generator,
-    chunk: int = 65536,
+    chunk: int = 16384,
 ) -> None:
-    """Measure the density at one jittered point of each listed cell, under a random frame of ``poses``, and
-    update the grid.
+    """Measure the density at one jittered point of each listed cell and update the grid; each chunk of cells is
+    placed in the world by one random frame of ``poses`` (so the field evaluates it as one ray of many samples).
 
     Args:
-        grid: the OccupancyGrid. density_fn: (points (M, 3), frames (M,) long) -> sigma (M,).
+        grid: the OccupancyGrid. density_fn: (points (M, 3), frame) -> sigma (M,) under that frame's pose.
         poses: the fit's training poses (F frames). box_centres, box_half_extents: (P, 3).
         cells: (M,) flat indices into (P, N, N, N). generator: CPU generator for the jitter and the frames.
     """
@@ -141,15 +150,15 @@ def refresh_cells(
         index = torch.stack([rest // (n * n), (rest // n) % n, rest % n], dim=-1)
         jitter = torch.rand(flat.numel(), 3, generator=generator).to(device, box_centres.dtype)
         u = (index.to(box_centres.dtype) + jitter) * (2 / n) - 1
-        frames = torch.randint(0, poses.reach.shape[0], (flat.numel(),), generator=generator).to(device)
+        frame = int(torch.randint(0, poses.reach.shape[0], (1,), generator=generator))
         x_local = box_centres[part] + u * box_half_extents[part]
-        world_from_part = poses.world_from_part[frames, part]
+        world_from_part = poses.world_from_part[frame, part]
         points = (
-            torch.einsum("mij,mj->mi", world_from_part[:, :3, :3], x_local * poses.reach[frames, None])
+            torch.einsum("mij,mj->mi", world_from_part[:, :3, :3], x_local * poses.reach[frame])
             + world_from_part[:, :3, 3]
         )
         with torch.no_grad():
-            sigma = density_fn(points, frames)
+            sigma = density_fn(points, frame)
         grid.update(part, index, sigma)
 
 

@@ -41,11 +41,11 @@ def _identity_pose(n=1, n_parts=2):
 def _ball_field(resolution=32):
     field = BallField()
     field.set_boxes(torch.tensor([[0.0, 0.0, 0.0], [0.4, 0.0, 0.0]]), torch.full((2, 3), 0.6))
-    field.occupancy = OccupancyGrid(2, resolution)
+    field.occupancy = OccupancyGrid(2, resolution, threshold=0.01)
     pose = _identity_pose()
 
-    def density(points, frames):
-        return field(points[:, None], torch.tensor([0.0, 0.0, 1.0]).expand_as(points), pose.select(frames)).sigma[:, 0]
+    def density(points, frame):
+        return field(points[None], torch.tensor([[0.0, 0.0, 1.0]]), pose.select(torch.tensor([frame]))).sigma[0]
 
     cells = torch.arange(field.occupancy.density.numel())
     refresh_cells(field.occupancy, density, pose, field.box_centres, field.box_half_extents, cells, torch.Generator())

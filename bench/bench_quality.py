@@ -1,0 +1,92 @@
+"""Time to quality: minutes of fitting until the synthetic taichi capture's ``novel_pose_novel_view`` split reaches
+26 / 28 / 30 dB full-image PSNR and 22 / 24 dB in the Neural Body crop.
+
+Each configuration is fitted with the real commands (``narf-fit --max-minutes``, resumed slice by slice) and
+evaluated after every slice with ``narf-eval --split novel_pose_novel_view --limit VIEWS``; a threshold's time is
+the fitting time of the first evaluation that reaches it (so it is only as fine as the slices). Minutes count
+fitting only. The capture is the default ``narf-synth`` one in the data root, generated there when missing.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+#: (row label, ``--set`` overrides of the CPU preset)
+CONFIGS = [
+    ("NARF_D cpu-default, box bounds", []),
+    ("NARF_D cpu-default + occupancy grid", ["render.occupancy=true"]),
+]
+SLICES = (1, 2, 3, 5, 10)  #: cumulative minutes of fitting at which the split is evaluated
+VIEWS = 17  #: evaluated views (spread over the held-out poses and test cameras)
+FULL_DB, CROP_DB = (26, 28, 30), (22, 24)
+
+
+def _run(args: list[str]) -> None:
+    done = subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True, env=os.environ.copy())
+    if done.returncode != 0:
+        lines = done.stderr.strip().splitlines()
+        raise RuntimeError(lines[-1] if lines else f"{args[0]} failed with code {done.returncode}")
+
+
+def _curve(label: str, overrides: list[str], root: Path, data_dir: Path) -> list[dict]:
+    """Fit slice by slice; returns one record per slice (minutes, steps, PSNRs, median rays/s)."""
+    run = root / label.replace(" ", "_").replace(",", "").replace("+", "plus")
+    if run.exists():  # a fresh fit every time: earlier slices would not be timed on this machine
+        shutil.rmtree(run)
+    data = ["--data-root", str(data_dir)]
+    sets = [item for pair in zip(["--set"] * len(overrides), overrides) for item in pair]
+    records, done = [], 0.0
+    for minutes in SLICES:
+        resume = ["--resume"] if (run / "checkpoint.pt").exists() else [*data, *sets]
+        _run(["pipelines.cli.fit", "--out", str(run), *resume, "--max-minutes", str(minutes - done), "--quiet"])
+        done = minutes
+        _run(["pipelines.cli.eval", "--run", str(run), "--split", "novel_pose_novel_view", "--limit", str(VIEWS)])
+        split = json.loads((run / "eval" / "metrics.json").read_text())["splits"]["novel_pose_novel_view"]
+        log = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+        rates = sorted(row["rays_per_s"] for row in log)
+        records.append(
+            {
+                "minutes": minutes,
+                "steps": log[-1]["step"],
+                "full": split["full"]["psnr"],
+                "crop": split["nb_crop"]["psnr"],
+                "rays/s": rates[len(rates) // 2],
+            }
+        )
+    return records
+
+
+def _first(records: list[dict], key: str, level: float) -> str:
+    reached = [r["minutes"] for r in records if r[key] >= level]
+    return f"{reached[0]} min" if reached else f"> {records[-1]['minutes']} min"
+
+
+def run() -> list[dict]:
+    from pipelines.datasets.subjects import data_root
+    from pipelines.synthetic.capture import SynthConfig, generate_capture, is_complete
+
+    root = Path(os.environ.get("NARF_CACHE", ".cache/bench")) / "quality_runs"
+    data_dir = data_root(None)  # the user's data root ($NARF_DATA or data/), as narf-synth writes it
+    capture = data_dir / "synthetic" / "taichi"
+    if not is_complete(capture):
+        generate_capture(capture, SynthConfig(), progress=False)
+    rows = []
+    for label, overrides in CONFIGS:
+        try:
+            records = _curve(label, overrides, root, data_dir)
+        except RuntimeError as err:
+            rows.append({"model": f"{label}: time to quality", "params": f"failed: {err}"})
+            continue
+        last = records[-1]
+        row = {"model": f"{label}: time to quality", "train rays/s fp32": f"{last['rays/s']:,.0f} (fit median)"}
+        row.update({f"min to {db} dB full": _first(records, "full", db) for db in FULL_DB})
+        row.update({f"min to {db} dB NB crop": _first(records, "crop", db) for db in CROP_DB})
+        curve = ", ".join(f"{r['minutes']}: {r['full']:.2f}/{r['crop']:.2f}" for r in records)
+        row["NN PSNR full/crop by minute"] = curve
+        rows.append(row)
+    return rows
