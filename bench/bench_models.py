@@ -179,8 +179,23 @@ def _measure(index: int) -> dict:
     return result
 
 
+def machine() -> str:
+    """CPU model, logical cores, torch version."""
+    import platform
+
+    import torch
+
+    name = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as handle:
+            name = next(line.split(":", 1)[1].strip() for line in handle if line.startswith("model name"))
+    except (OSError, StopIteration):
+        pass
+    return f"{name}, {os.cpu_count()} logical cores, torch {torch.__version__}"
+
+
 def run() -> list[dict]:
-    rows = [{"model": f"(machine: fp32 matmul {matmul_gflops():.0f} GFLOP/s on 2 threads, 2048^2)"}]
+    rows = [{"model": f"(machine: {machine()}; fp32 matmul {matmul_gflops():.0f} GFLOP/s on 2 threads, 2048^2)"}]
     for index in range(len(CONFIGS)):
         code = f"import json, bench.bench_models as b; print(json.dumps(b._measure({index})))"
         command = [sys.executable, "-c", code]

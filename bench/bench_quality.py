@@ -17,9 +17,11 @@ import sys
 from pathlib import Path
 
 #: (row label, ``--set`` overrides of the CPU preset)
+EIGHT_AND_EIGHT = ["render.train_coarse=8", "render.train_fine=8"]
 CONFIGS = [
-    ("NARF_D cpu-default, box bounds", []),
-    ("NARF_D cpu-default + occupancy grid", ["render.occupancy=true"]),
+    ("NARF_D cpu-default 16+16, box bounds", []),
+    ("NARF_D cpu-default 16+16, occupancy grid", ["render.occupancy=true"]),
+    ("NARF_D cpu-default 8+8, occupancy grid", ["render.occupancy=true", *EIGHT_AND_EIGHT]),
 ]
 SLICES = (1, 2, 3, 5, 10)  #: cumulative minutes of fitting at which the split is evaluated
 VIEWS = 17  #: evaluated views (spread over the held-out poses and test cameras)
@@ -61,6 +63,36 @@ def _curve(label: str, overrides: list[str], root: Path, data_dir: Path) -> list
     return records
 
 
+def render_seconds(run_dir: Path) -> dict[int, float]:
+    """Seconds to render one held-out view of a fitted run (first ``novel_pose_novel_view`` item) at 256^2 and
+    512^2 (the camera's intrinsics scaled), evaluation sample counts, 2 threads; best of two."""
+    import dataclasses
+    import time
+
+    import numpy as np
+    import torch
+
+    from fitting.evaluate import render_view
+    from pipelines.fit_session import load_run, poses_for_frames
+
+    torch.set_num_threads(2)
+    run = load_run(run_dir)
+    frame, cam = run.protocol.split("novel_pose_novel_view")[0]
+    camera = run.capture.load_frame(frame, cam).camera
+    poses, _, _ = poses_for_frames(run.capture, run.body_model, [frame])
+    seconds = {}
+    for size in (256, 512):
+        scale = np.diag([size / camera.width, size / camera.height, 1.0])
+        view = dataclasses.replace(camera, K=scale @ camera.K, width=size, height=size)
+        times = []
+        for _ in range(2):
+            start = time.perf_counter()
+            render_view(run.field, view, poses, run.config)
+            times.append(time.perf_counter() - start)
+        seconds[size] = min(times)
+    return seconds
+
+
 def _first(records: list[dict], key: str, level: float) -> str:
     reached = [r["minutes"] for r in records if r[key] >= level]
     return f"{reached[0]} min" if reached else f"> {records[-1]['minutes']} min"
@@ -86,6 +118,8 @@ def run() -> list[dict]:
         row = {"model": f"{label}: time to quality", "train rays/s fp32": f"{last['rays/s']:,.0f} (fit median)"}
         row.update({f"min to {db} dB full": _first(records, "full", db) for db in FULL_DB})
         row.update({f"min to {db} dB NB crop": _first(records, "crop", db) for db in CROP_DB})
+        run_dir = root / label.replace(" ", "_").replace(",", "").replace("+", "plus")
+        row.update({f"render {size}^2 s (fitted)": f"{t:.2f}" for size, t in render_seconds(run_dir).items()})
         curve = ", ".join(f"{r['minutes']}: {r['full']:.2f}/{r['crop']:.2f}" for r in records)
         row["NN PSNR full/crop by minute"] = curve
         rows.append(row)

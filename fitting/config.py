@@ -54,10 +54,10 @@ class RenderConfig:
     eval_fine: int = 16  #: importance samples per ray in evaluation (paper 128)
     chunk: int = 4096  #: rays per rendering chunk (bounds memory)
     occupancy: bool = False  #: empty-space skipping: narrow each ray to its occupied stretch (docs/model.md §5)
-    occupancy_resolution: int = 32  #: occupancy cells per axis of each part box
+    occupancy_resolution: int = 24  #: occupancy cells per axis of each part box
     occupancy_threshold: float = 0.5  #: density below which a cell is empty (per world unit of depth; 1 % over 2 cm)
     occupancy_every: int = 16  #: refresh the grid every n training steps
-    occupancy_rounds: int = 8  #: a refresh measures 1/n of the cells, so every cell is measured every n refreshes
+    occupancy_rounds: int = 4  #: a refresh measures 1/n of the cells, so every cell is measured every n refreshes
 
 
 @dataclass

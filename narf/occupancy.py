@@ -2,7 +2,8 @@
 
 Every part box holds an N^3 grid over its box coordinates u in [-1, 1]^3 (the coordinates the fields already use):
 cell c of part i stores the largest density sigma seen at a point of that cell, refreshed during fitting from the
-field itself (instant-NGP style: a refreshed cell takes max(decay * old, new), cells start at +inf, i.e. occupied).
+field itself (as instant-NGP does: a refreshed cell takes max(decay * old, new); cells start at +inf, i.e.
+occupied).
 A world point is occupied when some part box containing it has an occupied cell there (sigma above a threshold,
 dilated by one cell so that a surface sampled between cell centres is not lost).
 
@@ -29,10 +30,11 @@ class OccupancyGrid(nn.Module):
         n_parts: P. resolution: N cells per axis. threshold: sigma (per world unit of depth) below which a cell is
             empty; the default 0.5 loses at most 1 - exp(-0.5 * 0.02) = 1 % opacity over 2 cm, about the spacing of
             the CPU preset's coarse samples on a body-sized interval (docs/model.md §5).
-        decay: factor on a refreshed cell's previous value.
+        decay: factor on a refreshed cell's previous value (0.5: a cell whose density has gone falls below the
+            threshold within about 8 refreshes from sigma ~ 100, while a cell re-measured occupied stays so).
     """
 
-    def __init__(self, n_parts: int, resolution: int = 32, threshold: float = 0.5, decay: float = 0.95):
+    def __init__(self, n_parts: int, resolution: int = 24, threshold: float = 0.5, decay: float = 0.5):
         super().__init__()
         if resolution < 2:
             raise ValueError(f"occupancy resolution must be at least 2, got {resolution}")
