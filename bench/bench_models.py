@@ -19,6 +19,7 @@ CONFIGS = [
     ("NARF_D cpu-default", "narf_d", {"width": 64}, (16, 16), (16, 16), 1024),
     ("NARF_D paper", "narf_d", {"width": 256}, (48, 48), (64, 128), 256),
     ("NARF_D dense reference", "narf_d", {"width": 64, "fast": False}, (16, 16), (16, 16), 1024),
+    ("NARF_D cpu-default, torch.compile", "narf_d", {"width": 64, "compile": True}, (16, 16), (16, 16), 1024),
     ("NARF_H cpu-default", "narf_h", {"width": 64}, (16, 16), (16, 16), 1024),
     ("NARF_H paper", "narf_h", {"width": 256}, (48, 48), (64, 128), 256),
     ("NARF_P cpu-default (32)", "narf_p", {"width": 32}, (16, 16), (16, 16), 1024),
@@ -101,8 +102,12 @@ def _measure(index: int) -> dict:
     torch.set_num_threads(2)
     label, name, kwargs, (n_c, n_f), (r_c, r_f), n_rays = CONFIGS[index]
     pose, centres, half, origins, dirs, near, far, n_hit = _scene()
+    kwargs = dict(kwargs)
+    compiled = kwargs.pop("compile", False)
     field = build_field(name, **kwargs)
     field.set_boxes(centres, half)
+    if compiled:  # as train.compile does; the first steps (compilation) are not timed
+        field.forward = torch.compile(field.forward, dynamic=True)
     optimiser = torch.optim.Adam(field.parameters(), lr=1e-3)
     gen = torch.Generator().manual_seed(0)
     result = {
@@ -110,9 +115,10 @@ def _measure(index: int) -> dict:
         "params": f"{sum(p.numel() for p in field.parameters()) / 1e6:.2f}M",
         "samples/ray train": n_c + n_f,
     }
-    for precision in ("fp32", "bf16"):
+    for precision in ("fp32",) if compiled else ("fp32", "bf16"):
         times = []
-        for step in range(4):
+        warm_up = 2 if compiled else 1
+        for step in range(warm_up + 6 if compiled else 4):
             pick = torch.randint(0, origins.shape[0], (n_rays,), generator=gen)
             frames = torch.randint(0, pose.reach.shape[0], (n_rays,), generator=gen)
             start = time.perf_counter()
@@ -132,7 +138,7 @@ def _measure(index: int) -> dict:
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
-            if step:
+            if step >= warm_up:
                 times.append(time.perf_counter() - start)
         rate = n_rays / (sum(times) / len(times))
         result[f"train rays/s {precision}"] = f"{rate:,.0f}"
@@ -140,6 +146,9 @@ def _measure(index: int) -> dict:
         if precision == "fp32":
             share = rate * train_flops_per_ray(field, n_c, n_f) / (matmul_gflops() * 1e9)
             result["nominal FLOP/s share of fp32 matmul"] = f"{100 * share:.1f} %"
+    if compiled:  # rendering would compile the no-gradient graphs again; timed for the eager rows only
+        result["peak RSS MB"] = f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f}"
+        return result
     heavy = kwargs.get("width", 64) * (19 if name == "narf_p" else 1) * (r_c + r_f)
     chunk_rays = max(32, min(4096, (4096 * 64 * 32) // heavy))  # bounded activation memory per chunk
     budget = min(RENDER_RAY_BUDGET if heavy <= 64 * 64 else 4 * chunk_rays, n_hit)

@@ -22,6 +22,7 @@ CONFIGS = [
     ("NARF_D cpu-default 16+16, box bounds", []),
     ("NARF_D cpu-default 16+16, occupancy grid", ["render.occupancy=true"]),
     ("NARF_D cpu-default 8+8, occupancy grid", ["render.occupancy=true", *EIGHT_AND_EIGHT]),
+    ("NARF_D cpu-default 8+8, box bounds", EIGHT_AND_EIGHT),
 ]
 SLICES = (1, 2, 3, 5, 10)  #: cumulative minutes of fitting at which the split is evaluated
 VIEWS = 17  #: evaluated views (spread over the held-out poses and test cameras)
@@ -29,7 +30,10 @@ FULL_DB, CROP_DB = (26, 28, 30), (22, 24)
 
 
 def _run(args: list[str]) -> None:
-    done = subprocess.run([sys.executable, "-m", *args], capture_output=True, text=True, env=os.environ.copy())
+    """Run a console script (``pipelines.cli.<name>``, then its arguments) as a user would."""
+    code = f"from {args[0]} import entrypoint; entrypoint()"
+    command = [sys.executable, "-c", code, *args[1:]]
+    done = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
     if done.returncode != 0:
         lines = done.stderr.strip().splitlines()
         raise RuntimeError(lines[-1] if lines else f"{args[0]} failed with code {done.returncode}")
@@ -98,7 +102,7 @@ def _first(records: list[dict], key: str, level: float) -> str:
     return f"{reached[0]} min" if reached else f"> {records[-1]['minutes']} min"
 
 
-def run() -> list[dict]:
+def run(configs: list[tuple[str, list[str]]] | None = None) -> list[dict]:
     from pipelines.datasets.subjects import data_root
     from pipelines.synthetic.capture import SynthConfig, generate_capture, is_complete
 
@@ -108,7 +112,7 @@ def run() -> list[dict]:
     if not is_complete(capture):
         generate_capture(capture, SynthConfig(), progress=False)
     rows = []
-    for label, overrides in CONFIGS:
+    for label, overrides in configs or CONFIGS:
         try:
             records = _curve(label, overrides, root, data_dir)
         except RuntimeError as err:
