@@ -17,12 +17,12 @@ import sys
 from pathlib import Path
 
 #: (row label, ``--set`` overrides of the CPU preset)
-EIGHT_AND_EIGHT = ["render.train_coarse=8", "render.train_fine=8"]
+SIXTEEN = ["render.train_coarse=16", "render.train_fine=16"]
 CONFIGS = [
-    ("NARF_D cpu-default 16+16, box bounds", []),
-    ("NARF_D cpu-default 16+16, occupancy grid", ["render.occupancy=true"]),
-    ("NARF_D cpu-default 8+8, occupancy grid", ["render.occupancy=true", *EIGHT_AND_EIGHT]),
-    ("NARF_D cpu-default 8+8, box bounds", EIGHT_AND_EIGHT),
+    ("NARF_D cpu preset (8+8, occupancy grid)", []),
+    ("NARF_D 8+8, box bounds", ["render.occupancy=false"]),
+    ("NARF_D 16+16, occupancy grid", SIXTEEN),
+    ("NARF_D 16+16, box bounds (the previous preset)", [*SIXTEEN, "render.occupancy=false"]),
 ]
 SLICES = (1, 2, 3, 5, 10)  #: cumulative minutes of fitting at which the split is evaluated
 VIEWS = 17  #: evaluated views (spread over the held-out poses and test cameras)

@@ -53,7 +53,7 @@ class RenderConfig:
     eval_coarse: int = 16  #: coarse samples per ray in evaluation (paper 64)
     eval_fine: int = 16  #: importance samples per ray in evaluation (paper 128)
     chunk: int = 4096  #: rays per rendering chunk (bounds memory)
-    occupancy: bool = False  #: empty-space skipping: narrow each ray to its occupied stretch (docs/model.md §5)
+    occupancy: bool = False  #: per-subject fits: narrow each ray to its occupied stretch (docs/model.md §5)
     occupancy_resolution: int = 24  #: occupancy cells per axis of each part box
     occupancy_threshold: float = 0.5  #: density below which a cell is empty (per world unit of depth; 1 % over 2 cm)
     occupancy_every: int = 16  #: refresh the grid every n training steps
@@ -213,7 +213,7 @@ def validate_config(config: FitConfig) -> None:
         raise ConfigError("model.latent_dim: the thuman dataset trains an autoencoder; set a latent size (paper 256)")
     if autoencoder and config.model.name in IMAGE_MODELS:
         raise ConfigError(f"model.name: '{config.model.name}' has no autoencoder form here; choose a NeRF-type model")
-    if config.render.occupancy and (autoencoder or config.model.name in IMAGE_MODELS):
-        raise ConfigError("render.occupancy: the occupancy grid is for per-subject NeRF-type fits; set it to false")
+    if config.render.occupancy and autoencoder:  # (image-space models have no rays: the switch does not apply)
+        raise ConfigError("render.occupancy: the occupancy grid is for per-subject fits (densities differ per person)")
     if not autoencoder and config.model.latent_dim:
         raise ConfigError("model.latent_dim: only the thuman dataset (an autoencoder) uses latents; set it to 0")

@@ -312,3 +312,20 @@ def test_sparse_fast_path_with_every_sample_outside_the_boxes(name):
     pose = _random_pose().select(torch.zeros(4, dtype=torch.long))
     a, b = fast(far, dirs, pose), dense(far, dirs, pose)
     assert a.sigma.abs().max() == 0 and torch.equal(a.sigma, b.sigma)
+
+
+@pytest.mark.parametrize("name", ["narf_d", "narf_h", "narf_p", "d_narf"])
+def test_fast_paths_run_under_bf16_autocast(name):
+    """train.precision=bf16 runs every fast path under autocast, where bfloat16 matmul outputs meet float32
+    buffers in the scatters. Values are not compared with float32 here: a random-init field's outputs are sums of
+    ~200 rounded products that cancel, so bfloat16's 8 bits give errors of the order of the outputs themselves; the
+    benchmark measures training speed in bf16 and its fits measure quality."""
+    field = _field(name, width=16)
+    points, dirs = _points(4, 6, seed=2)
+    points[0, 0] = 50.0  # outside every box
+    pose = _random_pose().select(torch.zeros(4, dtype=torch.long))
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        out = field(points, dirs, pose)
+    assert out.sigma.shape == (4, 6) and out.rgb.shape == (4, 6, 3)
+    assert torch.isfinite(out.sigma).all() and (out.sigma >= 0).all() and out.sigma[0, 0] == 0
+    assert ((out.rgb >= 0) & (out.rgb <= 1)).all()

@@ -67,8 +67,8 @@ class DNarf(Field):
         probs = segment_softmax(logit, flat, r_count * s_count)  # (M,)
 
         def blend(values: torch.Tensor) -> torch.Tensor:  # sum_i p_i v_i per sample: (M, d) -> (R S, d)
-            total = values.new_zeros(r_count * s_count, values.shape[-1])
-            return total.index_add(0, flat, probs[:, None] * values)
+            weighted = probs[:, None] * values  # bfloat16 under autocast (the selector's matmuls)
+            return weighted.new_zeros(r_count * s_count, values.shape[-1]).index_add(0, flat, weighted)
 
         canonical = blend(x_local[ray, sample, part] + pose.rest_offsets[ray, part])
         blended_dirs, blended_xi = blend(d_local[ray, part]), blend(pose.pose_features[ray, part])
@@ -85,9 +85,9 @@ class DNarf(Field):
         z_s = None if z_s is None else z_s[0, live_rays, 0][None, None]
         z_a = None if z_a is None else z_a[0, live_rays, 0][None, None]
         sigma_live, rgb_live = self.head(density, colour, z_s, z_a)  # (1, 1, L), (1, 1, L, 3)
-        sigma = u.new_zeros(r_count * s_count).index_put((live,), sigma_live[0, 0])
-        rgb = u.new_zeros(r_count * s_count, 3).index_put((live,), rgb_live[0, 0])
-        part_probs = u.new_zeros(r_count * s_count, p_count).index_put((flat, part), probs)
+        sigma = sigma_live.new_zeros(r_count * s_count).index_put((live,), sigma_live[0, 0])
+        rgb = rgb_live.new_zeros(r_count * s_count, 3).index_put((live,), rgb_live[0, 0])
+        part_probs = probs.new_zeros(r_count * s_count, p_count).index_put((flat, part), probs)
         return FieldOutput(
             sigma.reshape(r_count, s_count), rgb.reshape(r_count, s_count, 3), part_probs.reshape(r_count, s_count, -1)
         )

@@ -98,6 +98,9 @@ class NarfP(Field):
         z_s = None if z_s is None else packed(z_s[0, ray, 0])
         z_a = None if z_a is None else packed(z_a[0, ray, 0])
         sigma_packed, rgb_packed = self.head(density, colour, z_s, z_a)  # (P, 1, width), (P, 1, width, 3)
-        sigma_parts = u.new_zeros(r_count, s_count, p_count).index_put((ray, sample, part), sigma_packed[part, 0, slot])
-        rgb_parts = u.new_zeros(r_count, s_count, p_count, 3).index_put((ray, sample, part), rgb_packed[part, 0, slot])
+        # zeros of the outputs' dtype: under autocast the head returns bfloat16
+        sigma_parts = sigma_packed.new_zeros(r_count, s_count, p_count)
+        sigma_parts = sigma_parts.index_put((ray, sample, part), sigma_packed[part, 0, slot])
+        rgb_parts = rgb_packed.new_zeros(r_count, s_count, p_count, 3)
+        rgb_parts = rgb_parts.index_put((ray, sample, part), rgb_packed[part, 0, slot])
         return sigma_parts, rgb_parts
