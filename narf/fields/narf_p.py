@@ -10,6 +10,9 @@ from narf.encodings import positional_encoding
 from narf.fields.base import Field, FieldOutput, masked_softmax
 from narf.fields.common import RadianceHead
 
+#: the fast path packs when the largest in-box count is at most this share of the samples (else the dense pass)
+PACKED_SHARE = 0.5
+
 
 class NarfP(Field):
     """Per part i: density from gamma(u_i) (60) + gamma(zeta) (152), colour from gamma(xi_i/pi) (48), gamma(d_i)
@@ -48,7 +51,9 @@ class NarfP(Field):
         )
 
     def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
-        if self.fast:
+        # the packed pass costs P x (the largest in-box count): where one box holds most samples (a band of image
+        # rows crossing only the head, say) it saves nothing over the dense pass and only adds the packing
+        if self.fast and in_box.sum(dim=(0, 1)).max() <= PACKED_SHARE * in_box.shape[0] * in_box.shape[1]:
             sigma_parts, rgb_parts = self._in_box_heads(pose, d_local, u, in_box, z_s, z_a)
         else:
             sigma_parts, rgb_parts = self._all_heads(pose, d_local, u, z_s, z_a)
