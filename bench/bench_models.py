@@ -16,19 +16,19 @@ import time
 
 #: (row label, model, constructor kwargs, train (Nc, Nf), render (Nc, Nf), rays per train step)
 CONFIGS = [
-    ("NARF_D cpu-default", "narf_d", {"width": 64}, (16, 16), (16, 16), 1024),
+    ("NARF_D width 64", "narf_d", {"width": 64}, (16, 16), (16, 16), 1024),
     ("NARF_D paper", "narf_d", {"width": 256}, (48, 48), (64, 128), 256),
-    ("NARF_D dense reference", "narf_d", {"width": 64, "fast": False}, (16, 16), (16, 16), 1024),
-    ("NARF_D cpu-default, torch.compile", "narf_d", {"width": 64, "compile": True}, (16, 16), (16, 16), 1024),
-    ("NARF_H cpu-default", "narf_h", {"width": 64}, (16, 16), (16, 16), 1024),
+    ("NARF_D width 64 dense reference", "narf_d", {"width": 64, "fast": False}, (16, 16), (16, 16), 1024),
+    ("NARF_D width 64, torch.compile", "narf_d", {"width": 64, "compile": True}, (16, 16), (16, 16), 1024),
+    ("NARF_H width 64", "narf_h", {"width": 64}, (16, 16), (16, 16), 1024),
     ("NARF_H paper", "narf_h", {"width": 256}, (48, 48), (64, 128), 256),
-    ("NARF_P cpu-default (32)", "narf_p", {"width": 32}, (16, 16), (16, 16), 1024),
-    ("NARF_P dense reference (32)", "narf_p", {"width": 32, "fast": False}, (16, 16), (16, 16), 256),
+    ("NARF_P width 32", "narf_p", {"width": 32}, (16, 16), (16, 16), 1024),
+    ("NARF_P width 32 dense reference", "narf_p", {"width": 32, "fast": False}, (16, 16), (16, 16), 256),
     ("NARF_P paper (256)", "narf_p", {"width": 256}, (48, 48), (64, 128), 32),
-    ("P-NeRF cpu-default", "p_nerf", {"width": 64}, (16, 16), (16, 16), 1024),
+    ("P-NeRF width 64", "p_nerf", {"width": 64}, (16, 16), (16, 16), 1024),
     ("P-NeRF paper", "p_nerf", {"width": 256}, (48, 48), (64, 128), 256),
-    ("D-NARF cpu-default", "d_narf", {"width": 64}, (16, 16), (16, 16), 1024),
-    ("D-NARF dense reference", "d_narf", {"width": 64, "fast": False}, (16, 16), (16, 16), 1024),
+    ("D-NARF width 64", "d_narf", {"width": 64}, (16, 16), (16, 16), 1024),
+    ("D-NARF width 64 dense reference", "d_narf", {"width": 64, "fast": False}, (16, 16), (16, 16), 1024),
     ("D-NARF paper", "d_narf", {"width": 256}, (48, 48), (64, 128), 256),
 ]
 RENDER_SIZE = 256
