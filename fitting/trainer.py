@@ -210,7 +210,7 @@ class Trainer:
     def autocast(self):
         """bf16 autocast of a training forward pass when ``train.precision`` is bf16 (a no-op for fp32)."""
         enabled = self.config.train.precision == "bf16"
-        return torch.autocast(self.device.type, dtype=torch.bfloat16, enabled=enabled)
+        return torch.autocast(torch.device(self.device).type, dtype=torch.bfloat16, enabled=enabled)
 
     def optimise(self, loss: torch.Tensor, colour: torch.Tensor) -> tuple[float, float]:
         """One optimiser and schedule step on ``loss`` (gradients summed over processes); returns (loss, PSNR of

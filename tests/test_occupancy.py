@@ -127,7 +127,7 @@ def test_narrowed_bounds_integrate_closer_to_the_reference():
 
 
 def test_grid_update_decays_and_keeps_maxima():
-    grid = OccupancyGrid(1, 2, threshold=0.5)
+    grid = OccupancyGrid(1, 2, threshold=0.5, decay=0.95)
     every = torch.stack(torch.meshgrid(*[torch.arange(2)] * 3, indexing="ij"), -1).reshape(-1, 3)
     zeros = torch.zeros(8, dtype=torch.long)
     assert grid.occupied().all()  # untouched cells (inf) are occupied
