@@ -39,9 +39,13 @@ def _run(args: list[str]) -> None:
         raise RuntimeError(lines[-1] if lines else f"{args[0]} failed with code {done.returncode}")
 
 
+def _run_dir(root: Path, label: str) -> Path:
+    return root / label.replace(" ", "_").replace(",", "").replace("+", "plus")
+
+
 def _curve(label: str, overrides: list[str], root: Path, data_dir: Path) -> list[dict]:
     """Fit slice by slice; returns one record per slice (minutes, steps, PSNRs, median rays/s)."""
-    run = root / label.replace(" ", "_").replace(",", "").replace("+", "plus")
+    run = _run_dir(root, label)
     if run.exists():  # a fresh fit every time: earlier slices would not be timed on this machine
         shutil.rmtree(run)
     data = ["--data-root", str(data_dir)]
@@ -122,8 +126,8 @@ def run(configs: list[tuple[str, list[str]]] | None = None) -> list[dict]:
         row = {"model": f"{label}: time to quality", "train rays/s fp32": f"{last['rays/s']:,.0f} (fit median)"}
         row.update({f"min to {db} dB full": _first(records, "full", db) for db in FULL_DB})
         row.update({f"min to {db} dB NB crop": _first(records, "crop", db) for db in CROP_DB})
-        run_dir = root / label.replace(" ", "_").replace(",", "").replace("+", "plus")
-        row.update({f"render {size}^2 s (fitted)": f"{t:.2f}" for size, t in render_seconds(run_dir).items()})
+        times = render_seconds(_run_dir(root, label))
+        row.update({f"render {size}^2 s (fitted)": f"{t:.2f}" for size, t in times.items()})
         curve = ", ".join(f"{r['minutes']}: {r['full']:.2f}/{r['crop']:.2f}" for r in records)
         row["NN PSNR full/crop by minute"] = curve
         rows.append(row)

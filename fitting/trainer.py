@@ -238,9 +238,7 @@ class Trainer:
         if grid is None or self.step % r.occupancy_every:
             return
         seed = self.config.train.seed
-        if getattr(self, "_occupancy_order", None) is None:
-            self._occupancy_order = torch.randperm(grid.density.numel(), generator=torch.Generator().manual_seed(seed))
-        order = self._occupancy_order
+        order = torch.randperm(grid.density.numel(), generator=torch.Generator().manual_seed(seed))  # fixed per fit
         round_index = (self.step // r.occupancy_every) % r.occupancy_rounds
         cells = order.chunk(r.occupancy_rounds)[round_index].to(self.device)
         poses, field = self.data.poses, self.field

@@ -23,6 +23,11 @@ from narf.fields.common import PoseBatch
 from narf.rays import ray_box_intersect, ray_box_slabs, union_bounds
 
 
+def cell_index(u: torch.Tensor, resolution: int) -> torch.Tensor:
+    """Cell index (..., 3) long of box coordinates u (..., 3) in an N^3 grid over [-1, 1]^3, clamped to the grid."""
+    return ((u + 1) * (resolution / 2)).floor().long().clamp(0, resolution - 1)
+
+
 class OccupancyGrid(nn.Module):
     """Per-part density maxima over box-coordinate cells.
 
@@ -52,11 +57,6 @@ class OccupancyGrid(nn.Module):
     def _load_from_state_dict(self, *args, **kwargs):
         self._occupied = None
         super()._load_from_state_dict(*args, **kwargs)
-
-    def cells_of(self, u: torch.Tensor) -> torch.Tensor:
-        """Cell index (..., 3) long of box coordinates u (..., 3), clamped to the grid."""
-        n = self.resolution
-        return ((u + 1) * (n / 2)).floor().long().clamp(0, n - 1)
 
     def update(self, parts: torch.Tensor, cells: torch.Tensor, sigma: torch.Tensor) -> None:
         """cell <- max(decay * cell, sigma) for the refreshed cells (each listed once).
@@ -111,8 +111,7 @@ def occupied_bounds(
     overlaps = (depths + half_step >= low) & (depths - half_step <= high)
     t = torch.minimum(torch.maximum(depths, low), high)
     u = o_box[ray, part, None] + t[..., None] * d_box[ray, part, None]  # (M, K, 3)
-    n = occupied.shape[-1]
-    cell = ((u + 1) * (n / 2)).floor().long().clamp(0, n - 1)
+    cell = cell_index(u, occupied.shape[-1])
     marked_pairs = occupied[part[:, None], cell[..., 0], cell[..., 1], cell[..., 2]] & overlaps  # (M, K)
     marked = torch.zeros(hits.shape[0], n_steps, dtype=near.dtype, device=near.device)
     marked = marked.index_add(0, ray, marked_pairs.to(near.dtype)) > 0  # (R, K)

@@ -10,7 +10,7 @@ from narf.encodings import positional_encoding
 from narf.fields.base import Field, FieldOutput, masked_softmax
 from narf.fields.common import RadianceHead
 from narf.fields.selector import PartSelector
-from narf.fields.sparse_parts import segment_softmax, selector_logits
+from narf.fields.sparse_parts import in_box_pairs, segment_softmax, selector_logits
 
 
 class DNarf(Field):
@@ -57,9 +57,7 @@ class DNarf(Field):
 
     def _forward_in_box(self, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
         r_count, s_count, p_count = in_box.shape
-        pairs = in_box.nonzero()  # (M, 3): ray, sample, part
-        pairs = pairs[torch.argsort(pairs[:, 2], stable=True)]
-        ray, sample, part = pairs.unbind(-1)
+        ray, sample, part = in_box_pairs(in_box)
         flat = ray * s_count + sample
         encoded = positional_encoding(u[ray, sample, part], 10)  # (M, 60)
         chunks = torch.split(encoded, torch.bincount(part, minlength=p_count).tolist())

@@ -9,6 +9,7 @@ import torch
 from narf.encodings import positional_encoding
 from narf.fields.base import Field, FieldOutput, masked_softmax
 from narf.fields.common import RadianceHead
+from narf.fields.sparse_parts import in_box_pairs
 
 #: the fast path packs when the largest in-box count is at most this share of the samples (else the dense pass)
 PACKED_SHARE = 0.5
@@ -81,9 +82,7 @@ class NarfP(Field):
     def _in_box_heads(self, pose, d_local, u, in_box, z_s, z_a) -> tuple[torch.Tensor, torch.Tensor]:
         """Part i's network on the samples inside box i only, zeros elsewhere: (R, S, P), (R, S, P, 3)."""
         r_count, s_count, p_count = in_box.shape
-        pairs = in_box.nonzero()  # (M, 3): ray, sample, part
-        pairs = pairs[torch.argsort(pairs[:, 2], stable=True)]
-        ray, sample, part = pairs.unbind(-1)
+        ray, sample, part = in_box_pairs(in_box)
         counts = torch.bincount(part, minlength=p_count)
         slot = torch.arange(part.numel(), device=part.device) - (torch.cumsum(counts, 0) - counts)[part]
         width = max(int(counts.max()) if part.numel() else 0, 1)

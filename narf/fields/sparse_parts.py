@@ -29,6 +29,13 @@ def segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: in
     return exp / total[segments]
 
 
+def in_box_pairs(in_box: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The (ray, sample, part) index triples of in-box pairs, sorted by part (stably), so that each part's pairs are
+    one contiguous block: in_box (R, S, P) bool -> ray, sample, part, each (M,) long."""
+    pairs = in_box.nonzero()
+    return pairs[torch.argsort(pairs[:, 2], stable=True)].unbind(-1)
+
+
 def selector_logits(selector, chunks: tuple[torch.Tensor, ...], ray: torch.Tensor, part: torch.Tensor, encoded_zeta):
     """The part selector's logits o_i (narf.fields.selector) of in-box pairs only.
 
@@ -63,12 +70,9 @@ def sparse_masked_inputs(
     """
     head = model.head
     r_count, s_count, p_count, _ = u.shape
-    pairs = in_box.nonzero()  # (M, 3): ray, sample, part
-    order = torch.argsort(pairs[:, 2], stable=True)
-    pairs = pairs[order]
-    ray, part = pairs[:, 0], pairs[:, 2]
-    sample = pairs[:, 0] * s_count + pairs[:, 1]
-    encoded = positional_encoding(u[pairs[:, 0], pairs[:, 1], pairs[:, 2]], 10)  # (M, 60)
+    ray, in_ray, part = in_box_pairs(in_box)
+    sample = ray * s_count + in_ray
+    encoded = positional_encoding(u[ray, in_ray, part], 10)  # (M, 60)
     counts = torch.bincount(part, minlength=p_count).tolist()
     chunks = torch.split(encoded, counts)
     w_density = head.density_embed["parts"].effective_weight()
