@@ -253,3 +253,7 @@ def test_precision_and_compile_switches(data_root_64, tmp_path):
     assert compiled.state_dict().keys() == eager and hasattr(compiled.forward, "_torchdynamo_orig_callable")
     with pytest.raises(ConfigError, match="train.precision"):
         _config(data_root_64, "train.precision=fp16")
+    with pytest.raises(ConfigError, match="render.occupancy"):  # the grid is per subject, not across people
+        load_config("ae_tiny", ["render.occupancy=true"])
+    with pytest.raises(ConfigError, match="render.occupancy_resolution"):
+        _config(data_root_64, "render.occupancy_resolution=1")
