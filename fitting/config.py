@@ -18,7 +18,7 @@ class ConfigError(ValueError):
 
 @dataclass
 class DataConfig:
-    dataset: str = "zju"  #: zju (one subject, ZJU-MoCap layout) or thuman (autoencoder across people, render_128)
+    dataset: str = "zju"  #: zju (one subject), thuman (autoencoder across people, render_128) or rigid (one object)
     subject: str = "taichi"  #: subject name or folder (ZJU-MoCap layout)
     data_root: str | None = None  #: data root (default: $NARF_DATA or data/)
     protocol: str = "narf"  #: narf (first 90 % frames train) or neuralbody
@@ -174,12 +174,13 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None, b
 
 def validate_config(config: FitConfig) -> None:
     """Value checks with messages naming the key."""
-    from narf.fields import ARTICULATED, IMAGE_MODELS
+    from narf.fields import ARTICULATED, IMAGE_MODELS, RIGID
 
-    if config.model.name not in (*ARTICULATED, *IMAGE_MODELS):
-        raise ConfigError(
-            f"model.name: '{config.model.name}' is not a body model ({', '.join([*ARTICULATED, *IMAGE_MODELS])})"
-        )
+    rigid = config.data.dataset == "rigid"
+    allowed = RIGID if rigid else (*ARTICULATED, *IMAGE_MODELS)
+    if config.model.name not in allowed:
+        kind = "a rigid-object model" if rigid else "a body model"
+        raise ConfigError(f"model.name: '{config.model.name}' is not {kind} ({', '.join(allowed)})")
     checks = [
         ("data.ratio", 0 < config.data.ratio <= 1),
         ("model.width", config.model.width >= 4),
@@ -193,7 +194,7 @@ def validate_config(config: FitConfig) -> None:
         ("render.train_coarse", config.render.train_coarse >= 2),
         ("render.eval_coarse", config.render.eval_coarse >= 2),
         ("data.protocol", config.data.protocol in ("narf", "neuralbody")),
-        ("data.dataset", config.data.dataset in ("zju", "thuman")),
+        ("data.dataset", config.data.dataset in ("zju", "thuman", "rigid")),
         ("data.train_meshes", config.data.train_meshes >= 0),
         ("data.renders_per_mesh", config.data.renders_per_mesh >= 1),
         ("model.latent_dim", config.model.latent_dim >= 0),

@@ -20,7 +20,7 @@ from fitting.config import FitConfig, load_config
 from fitting.data import TrainingSet
 from pipelines.body.model import BodyModel, pose_batch_from_joints
 from pipelines.datasets.subjects import data_root
-from pipelines.datasets.thuman import count_renders, read_render
+from pipelines.datasets.thuman import ThumanView, count_renders, read_render
 from pipelines.datasets.zju_mocap import Camera, CaptureError
 from pipelines.synthetic.thuman import ThumanSynthConfig, generate_thuman, is_thuman_complete
 
@@ -40,16 +40,6 @@ class ThumanSet:
 
     def color_dir(self, split: str, view2: bool = False) -> Path:
         return self.root / (f"{split}_view2" if view2 else split) / "render_128" / "color"
-
-
-@dataclass
-class ThumanView:
-    """One render as a training or evaluation view (the fields ``TrainingSet`` reads)."""
-
-    image: np.ndarray
-    mask: np.ndarray
-    band: np.ndarray
-    camera: Camera
 
 
 def view_of_render(render, name: str) -> ThumanView:

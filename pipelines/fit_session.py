@@ -166,6 +166,8 @@ def load_run(run_dir: Path, device="cpu") -> LoadedRun:
     """Load a run folder written by ``narf-fit --out`` (checkpoint, config, and the capture it was fitted on)."""
     state = load_checkpoint(run_dir, map_location=device)
     config = load_config(base=state["config"])
+    if config.data.dataset != "zju":  # checked before anything is read or generated for a subject
+        raise CaptureError(f"{run_dir}: a {config.data.dataset} run, not a per-subject fit; this command needs one")
     field = make_field(config).to(device)
     field.load_state_dict(state["model"])
     field.eval()

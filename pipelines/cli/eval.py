@@ -16,6 +16,7 @@ def main(argv: list[str] | None = None) -> int:
     from fitting.trainer import auto_device
     from pipelines.autoencoder_evaluation import AUTOENCODER_SPLITS, evaluate_autoencoder_run, markdown_autoencoder
     from pipelines.evaluation import evaluate_run
+    from pipelines.rigid_session import evaluate_rigid_run, markdown_rigid
 
     parser = argparse.ArgumentParser(
         prog="narf-eval",
@@ -26,16 +27,17 @@ def main(argv: list[str] | None = None) -> int:
         "thuman) is evaluated on same_pose_same_view, novel_pose_same_view, same_pose_novel_view, "
         "novel_pose_novel_view (the encoder sees a _view2 render of the same mesh) and cross_dataset (SURREAL: the "
         "code of a clip's first frame reconstructs it and renders the clip's later poses), next to the mean-code "
-        "baseline; grids are encoder input | ground truth | render | depth | segmentation | error.",
+        "baseline; grids are encoder input | ground truth | render | depth | segmentation | error. A rigid-object run "
+        "(narf-fit --dataset rigid) is evaluated on its test images (--split test; supplement Table B).",
         formatter_class=HelpFormatter,
     )
     parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")
     parser.add_argument(
         "--split",
-        default="novel_pose",
-        choices=sorted(set(ALL_SPLITS) | set(AUTOENCODER_SPLITS)),
+        default=None,
+        choices=sorted(set(ALL_SPLITS) | set(AUTOENCODER_SPLITS) | {"test"}),
         help="novel_pose / novel_view are the Neural Body splits; 'all' = the four pose x view splits (autoencoder: "
-        "and cross_dataset)",
+        "and cross_dataset; rigid object: test). Default: novel_pose, test for a rigid-object run",
     )
     parser.add_argument("--surreal", default=None, help="cross_dataset: SURREAL folder (default: the stand-in)")
     parser.add_argument("--limit", type=int, default=None, help="evaluate at most N views per split, evenly spread")
@@ -57,7 +59,16 @@ def main(argv: list[str] | None = None) -> int:
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
     device = str(auto_device(args.device))
-    if load_checkpoint(args.run).get("kind") == "autoencoder":
+    state = load_checkpoint(args.run)
+    if state["config"].get("data", {}).get("dataset") == "rigid":
+        if args.mesh or args.split not in (None, "test", "all"):
+            raise ValueError(f"{args.run}: a rigid-object run; it has one split, test (and no --mesh)")
+        report = evaluate_rigid_run(args.run, args.limit, device, not args.quiet, args.grids)
+        print(markdown_rigid(report))
+        print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
+        return 0
+    args.split = args.split or "novel_pose"
+    if state.get("kind") == "autoencoder":
         if args.mesh:
             raise ValueError(f"{args.run}: --mesh is for per-subject fits (an autoencoder run has no true surfaces)")
         if args.split not in (*AUTOENCODER_SPLITS, "all"):
@@ -72,7 +83,8 @@ def main(argv: list[str] | None = None) -> int:
         print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
         return 0
     if args.split not in ALL_SPLITS:
-        raise ValueError(f"{args.run}: a per-subject fit; '{args.split}' is an autoencoder split")
+        kind = "an autoencoder split" if args.split in AUTOENCODER_SPLITS else "the rigid-object split"
+        raise ValueError(f"{args.run}: a per-subject fit; '{args.split}' is {kind}")
     splits = list(EVAL_SPLITS) if args.split == "all" else [args.split]
     report = evaluate_run(
         args.run,

@@ -19,31 +19,35 @@ def build_parser() -> argparse.ArgumentParser:
         prog="narf-fit",
         description="Fit a NARF avatar (default NARF_D) to a multi-view capture in the ZJU-MoCap layout, or with "
         "--dataset thuman train the NARF autoencoder (image encoder + latent-conditioned field) across the people of "
-        "a THUman render_128 set (--data-root: the set's folder; default: the synthetic stand-in). Writes "
+        "a THUman render_128 set (--data-root: the set's folder; default: the synthetic stand-in), or with --dataset "
+        "rigid fit a rigid-object model (RT-NeRF, RT-NeRF w/o xi, RP-NeRF; supplement Table B). Writes "
         "config.yaml, checkpoint.pt (atomic, every few minutes and at the end), log.jsonl, curve.png and val/ "
         "renders into --out. A killed fit resumes with --resume and ends where an uninterrupted one would.",
         formatter_class=HelpFormatter,
     )
     parser.add_argument(
         "--dataset",
-        choices=("zju", "thuman"),
+        choices=("zju", "thuman", "rigid"),
         default=None,
         help="zju: one subject (default); thuman: the autoencoder across people (presets ae_cpu / ae_paper; "
-        "--model p_nerf and narf_h train at lr 0.001 there, as in the supplement)",
+        "--model p_nerf and narf_h train at lr 0.001 there, as in the supplement); rigid: one rigid object "
+        "(presets rigid_cpu / rigid_paper; --data-root: the set, default the synthetic stand-in)",
     )
     parser.add_argument("--subject", default=None, help="subject name or folder (default from the preset: taichi)")
     parser.add_argument("--data-root", default=None, help="data root (default: $NARF_DATA or data/)")
     parser.add_argument(
         "--config",
         default=None,
-        help="preset name (cpu, paper, tiny, cnn, ae_cpu, ae_paper, ae_tiny) or YAML file; default: cnn for "
-        "--model cnn, ae_paper / ae_cpu for --dataset thuman, else paper with CUDA and cpu without",
+        help="preset name (cpu, paper, tiny, cnn, ae_cpu, ae_paper, ae_tiny, rigid_cpu, rigid_paper, rigid_tiny) or "
+        "YAML file; default: cnn for --model cnn, ae_paper / ae_cpu for --dataset thuman, rigid_paper / rigid_cpu for "
+        "--dataset rigid, else paper with CUDA and cpu without",
     )
     parser.add_argument(
         "--model",
         default=None,
         help="model name (narf_d, narf_d_sigmoid, narf_h, narf_p, p_nerf, "
-        "d_narf, or cnn: the CNN baseline, trained in image space); overrides the preset",
+        "d_narf, or cnn: the CNN baseline, trained in image space; --dataset rigid: rt_nerf, rt_nerf_no_pose, "
+        "rp_nerf); overrides the preset",
     )
     parser.add_argument("--out", type=Path, default=None, help="run folder (default: runs/<subject>-<model>)")
     parser.add_argument(
@@ -80,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     from fitting.trainer import auto_device, prepare_run_dir
     from pipelines.autoencoder_session import start_autoencoder
     from pipelines.fit_session import start_trainer
+    from pipelines.rigid_session import start_rigid
 
     if args.smpl_dir:
         os.environ["NARF_SMPL_DIR"] = args.smpl_dir
@@ -114,22 +119,30 @@ def main(argv: list[str] | None = None) -> int:
         gpu = device.type == "cuda"
         if args.dataset == "thuman":
             default = "ae_paper" if gpu else "ae_cpu"
+        elif args.dataset == "rigid":
+            default = "rigid_paper" if gpu else "rigid_cpu"
         else:
             default = "cnn" if args.model == "cnn" else "paper" if gpu else "cpu"
         config = load_config(args.config or default, overrides)
-    name = "thuman" if config is not None and config.data.dataset == "thuman" else None
+    name = config.data.dataset if config is not None and config.data.dataset in ("thuman", "rigid") else None
     out = args.out or Path("runs") / f"{name or Path(config.data.subject).name}-{config.model.name}"
     if args.resume and not (Path(out) / "checkpoint.pt").exists():
         raise FileNotFoundError(f"{out}: no checkpoint to resume")
     run_dir = prepare_run_dir(out, config, args.resume, write=processes.is_main)
     barrier(processes)
-    kind = load_checkpoint(run_dir).get("kind") if args.resume else config.data.dataset
+    saved = load_checkpoint(run_dir) if args.resume else None
+    kind = saved.get("kind") if saved else config.data.dataset
+    dataset = saved["config"].get("data", {}).get("dataset") if saved else config.data.dataset
     if kind in ("autoencoder", "thuman"):
         if processes.distributed:
             raise ValueError(
                 "data-parallel fitting (torchrun) covers per-subject fits; train the autoencoder as one process"
             )
         trainer = start_autoencoder(config, run_dir, device, args.resume, not args.quiet, args.overrides)
+    elif dataset == "rigid":
+        if processes.distributed:
+            raise ValueError("data-parallel fitting (torchrun) covers bodies; fit a rigid object in one process")
+        trainer = start_rigid(config, run_dir, device, args.resume, not args.quiet, args.overrides)
     else:
         trainer = start_trainer(config, run_dir, device, args.resume, not args.quiet, processes, args.overrides)
     size = (

@@ -11,6 +11,7 @@ from pathlib import Path
 from pipelines.cli.common import HelpFormatter, run_cli
 from pipelines.datasets.subjects import data_root, synthetic_path
 from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
+from pipelines.synthetic.rigid import RigidSynthConfig, generate_rigid, is_rigid_complete
 from pipelines.synthetic.surreal import SurrealSynthConfig, generate_surreal, is_surreal_complete
 from pipelines.synthetic.thuman import ThumanSynthConfig, generate_thuman, is_thuman_complete
 
@@ -23,20 +24,26 @@ def build_parser() -> argparse.ArgumentParser:
         "multi-view capture (images, CIHP and binary masks, SMPL params and vertices, annots.npy, EasyMocap cameras, "
         "ChArUco calibration shots) that ZJU-MoCap loaders read unchanged; thuman: many people in NARF's render_128 "
         "layout (train / same_view / novel_view and the _view2 encoder inputs) plus raw THUman items; surreal: "
-        "SURREAL clips (mp4, _info/_segm/_depth.mat) of unclothed people. A finished set with the same settings is "
-        "reused.",
+        "SURREAL clips (mp4, _info/_segm/_depth.mat) of unclothed people; rigid: a textured vehicle-like object under "
+        "random rigid transforms and cameras (supplement Table B; 480 train / 20 test images at 200^2 in NARF's render "
+        "layout). A finished set with the same settings is reused.",
         formatter_class=HelpFormatter,
     )
-    parser.add_argument("--dataset", choices=("zju", "thuman", "surreal"), default="zju", help="which layout to write")
+    parser.add_argument(
+        "--dataset", choices=("zju", "thuman", "surreal", "rigid"), default="zju", help="which layout to write"
+    )
     parser.add_argument("--subject", default=d.subject, choices=SYNTHETIC_SUBJECTS, help="motion / subject name")
     parser.add_argument(
         "--out",
         type=Path,
         default=None,
-        help="output folder (default: <data-root>/synthetic/<subject>, or synthetic/thuman, synthetic/surreal)",
+        help="output folder (default: <data-root>/synthetic/<subject>, or synthetic/thuman, synthetic/surreal, "
+        "synthetic/rigid)",
     )
     parser.add_argument("--data-root", default=None, help="data root (default: $NARF_DATA or data/)")
-    parser.add_argument("--resolution", type=int, default=d.resolution, help="square image size in pixels")
+    parser.add_argument(
+        "--resolution", type=int, default=None, help="square image size in pixels (zju: 1024, rigid: 200)"
+    )
     parser.add_argument(
         "--frames",
         type=int,
@@ -72,6 +79,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--raw-items", type=int, default=t.raw_items, help="thuman: meshes also written as raw items")
     parser.add_argument("--clips", type=int, default=s.clips, help="surreal: number of clips (one person each)")
+    r = RigidSynthConfig()
+    parser.add_argument("--train-images", type=int, default=r.train, help="rigid: training images")
+    parser.add_argument("--test-images", type=int, default=r.test, help="rigid: test images")
     parser.add_argument("--workers", type=int, default=d.workers, help="render processes")
     parser.add_argument(
         "--lbs",
@@ -93,6 +103,10 @@ def _other_dataset(args) -> int:
             args.people, args.train_poses, args.novel_poses, args.renders_per_mesh, args.raw_items, args.seed
         )
         out, complete, generate = args.out or root / "synthetic" / "thuman", is_thuman_complete, generate_thuman
+    elif args.dataset == "rigid":
+        resolution = args.resolution or RigidSynthConfig().resolution
+        config = RigidSynthConfig(args.train_images, args.test_images, resolution, args.seed)
+        out, complete, generate = args.out or root / "synthetic" / "rigid", is_rigid_complete, generate_rigid
     else:
         config = SurrealSynthConfig(clips=args.clips, frames=args.frames or SurrealSynthConfig().frames, seed=args.seed)
         out, complete, generate = args.out or root / "synthetic" / "surreal", is_surreal_complete, generate_surreal
@@ -101,7 +115,8 @@ def _other_dataset(args) -> int:
         print(f"narf-synth: {out} already holds this {args.dataset} set")
         return 0
     start = time.perf_counter()
-    generate(out, config, smpl_path=args.smpl_dir)
+    extra = {} if args.dataset == "rigid" else {"smpl_path": args.smpl_dir}
+    generate(out, config, **extra)
     size = sum(p.stat().st_size for p in Path(out).rglob("*") if p.is_file()) / 1e6
     print(f"narf-synth: wrote the {args.dataset} set {out} ({size:.0f} MB) in {time.perf_counter() - start:.0f} s")
     return 0
@@ -111,9 +126,10 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.dataset != "zju":
         return _other_dataset(args)
+    d = SynthConfig()
     config = SynthConfig(
         subject=args.subject,
-        resolution=args.resolution,
+        resolution=args.resolution or d.resolution,
         frames=args.frames or SynthConfig().frames,
         cameras=args.cameras,
         seed=args.seed,

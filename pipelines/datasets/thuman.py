@@ -28,6 +28,17 @@ THUMAN_K = np.array([[256.0, 0.0, 63.5], [0.0, 256.0, 63.5], [0.0, 0.0, 1.0]])
 _ITEM_PATTERN = re.compile(r"^results_.+_(?P<gender>[FM])$")
 
 
+@dataclass
+class ThumanView:
+    """One render as a training or evaluation view (the fields ``fitting.data.TrainingSet`` reads): image (H, W, 3)
+    in [0, 1] on black, mask (H, W), band (H, W) bool (no boundary band on renders: all False) and its camera."""
+
+    image: np.ndarray
+    mask: np.ndarray
+    band: np.ndarray
+    camera: object
+
+
 @dataclass(frozen=True)
 class ThumanSmpl:
     """One raw item's SMPL fit: betas (10,), pose (72,) axis-angle, world_from_smpl (4, 4) = [R | t]."""
@@ -154,37 +165,50 @@ class ThumanRender:
     view: int
 
 
-def _load_transforms(path: Path) -> np.ndarray:
+def _load_transforms(path: Path, n_parts: int) -> np.ndarray:
     if not path.is_file():
         raise CaptureError(f"{path}: missing")
-    array = np.load(path, allow_pickle=False)
-    if array.shape != (24, 4, 4):
-        raise CaptureError(f"{path}: shape {array.shape}, expected (24, 4, 4)")
+    try:
+        array = np.load(path, allow_pickle=False)
+    except ValueError as err:
+        raise CaptureError(f"{path}: not a plain .npy array ({err})") from err
+    if array.shape != (n_parts, 4, 4):
+        raise CaptureError(f"{path}: shape {array.shape}, expected ({n_parts}, 4, 4)")
     return array.astype(np.float64)
 
 
-def read_render(color_dir: str | Path, index: int, renders_per_mesh: int) -> ThumanRender:
+def read_render(
+    color_dir: str | Path,
+    index: int,
+    renders_per_mesh: int,
+    size: int = RENDER_SIZE,
+    n_parts: int = 24,
+    K: np.ndarray = THUMAN_K,
+) -> ThumanRender:
     """Read render ``index`` of a ``render_128/color`` folder (BGRA PNG, alpha = mask; module docstring).
 
+    ``size``, ``n_parts`` and ``K``: the same layout for other objects (the rigid-object set, ``docs/formats.md``:
+    ``render_200``, one part, its own intrinsics).
+
     Raises:
-        CaptureError: a file is missing or unreadable, or the image is not 128 x 128 with an alpha channel.
+        CaptureError: a file is missing or unreadable, or the image is not size x size with an alpha channel.
     """
     color_dir = Path(color_dir)
     image_path = color_dir / f"color_{index:08d}.png"
     bgra = cv2.imread(str(image_path), cv2.IMREAD_UNCHANGED) if image_path.is_file() else None
     if bgra is None:
         raise CaptureError(f"{image_path}: missing or not an image")
-    if bgra.shape != (RENDER_SIZE, RENDER_SIZE, 4):
-        raise CaptureError(f"{image_path}: shape {bgra.shape}, expected a 128x128 BGRA image (alpha = mask)")
+    if bgra.shape != (size, size, 4):
+        raise CaptureError(f"{image_path}: shape {bgra.shape}, expected a {size}x{size} BGRA image (alpha = mask)")
     scale = 65535.0 if bgra.dtype == np.uint16 else 255.0
     rgba = cv2.cvtColor(bgra, cv2.COLOR_BGRA2RGBA).astype(np.float32) / scale
     mask = rgba[..., 3]
     return ThumanRender(
         image=rgba[..., :3] * (mask[..., None] > 0),
         mask=mask,
-        pose_to_camera=_load_transforms(color_dir / f"pose_to_camera_{index:08d}.npy"),
-        pose_to_world=_load_transforms(color_dir / f"pose_to_world_{index:08d}.npy"),
-        K=THUMAN_K.copy(),
+        pose_to_camera=_load_transforms(color_dir / f"pose_to_camera_{index:08d}.npy", n_parts),
+        pose_to_world=_load_transforms(color_dir / f"pose_to_world_{index:08d}.npy", n_parts),
+        K=np.array(K, dtype=np.float64),
         mesh=index // renders_per_mesh,
         view=index % renders_per_mesh,
     )

@@ -1,0 +1,128 @@
+"""Glue between a rigid-object set on disk (``pipelines.datasets.rigid``) and the fitting package: find the set
+(``data.data_root`` when it holds one, else the synthetic stand-in, generated on demand), start (or resume) a
+Trainer of a rigid model (RT-NeRF, RT-NeRF w/o xi, RP-NeRF; paper Eqs. 9-11), and evaluate it on the test
+images (supplement Table B: Mask L2 x10^4 / PSNR / SSIM over the full image)."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from fitting.checkpoint import load_checkpoint
+from fitting.config import FitConfig, load_config
+from fitting.data import FitData, TrainingSet
+from fitting.evaluate import average_metrics, frame_metrics, library_versions, render_view, spread, write_report
+from fitting.plots import grid, save_png, to_numpy
+from fitting.trainer import Trainer, make_field
+from pipelines.datasets.rigid import RigidSet, load_rigid_views, open_rigid
+from pipelines.datasets.subjects import data_root
+from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.synthetic.rigid import RigidSynthConfig, generate_rigid, is_rigid_complete
+
+#: The object's box in its own frame, in units of its radius: a cube that holds the bounding sphere.
+BOX_HALF_EXTENT = 1.0
+
+
+def resolve_rigid(config: FitConfig, quiet: bool = False, generate: bool = True) -> Path:
+    """``data.data_root`` when it holds a rigid set (``train/render_*``), else ``<root>/synthetic/rigid`` (the
+    stand-in, generated when missing and announced on stderr)."""
+    explicit = Path(config.data.data_root) if config.data.data_root else None
+    if explicit is not None and any((explicit / "train").glob("render_*")):
+        return explicit
+    out = data_root(config.data.data_root) / "synthetic" / "rigid"
+    if not quiet:
+        state = "using" if is_rigid_complete(out) else "generating"
+        print(f"narf: no rigid-object set given; {state} the synthetic stand-in at {out}", file=sys.stderr)
+    if not is_rigid_complete(out):
+        if not generate:
+            raise CaptureError(f"{out}: synthetic rigid-object set not generated yet (run narf-synth --dataset rigid)")
+        generate_rigid(out, RigidSynthConfig(), progress=not quiet)
+    return out
+
+
+def rigid_boxes() -> tuple[torch.Tensor, torch.Tensor]:
+    """One box, centred on the object origin (docs/model.md §1 with P = 1)."""
+    return torch.zeros(1, 3), torch.full((1, 3), BOX_HALF_EXTENT)
+
+
+def build_rigid_data(config: FitConfig, device, progress: bool = True) -> FitData:
+    """Every training image is its own frame (its own object pose); validation renders the first test image."""
+    rigid = open_rigid(resolve_rigid(config, quiet=not progress))
+    views, poses = load_rigid_views(rigid, "train")
+    training = TrainingSet(views, list(range(len(views))), poses, device)
+
+    def validation():
+        view, pose = load_rigid_views(rigid, "test", [0])
+        return view[0].image, view[0].camera, pose
+
+    return FitData(
+        training, rigid_boxes(), list(range(len(views))), validation, f"{rigid.root}: {len(views)} training images"
+    )
+
+
+def start_rigid(
+    config: FitConfig | None,
+    run_dir: Path,
+    device,
+    resume: bool = False,
+    progress: bool = True,
+    resume_overrides: list[str] | None = None,
+) -> Trainer:
+    """A Trainer of a rigid model; with ``resume`` the config, weights and RNG come from the checkpoint."""
+    state = load_checkpoint(run_dir, map_location=device) if resume else None
+    if state is not None:
+        config = load_config(base=state["config"], overrides=resume_overrides)
+    return Trainer(config, run_dir, device, build_rigid_data(config, device, progress), state=state, progress=progress)
+
+
+def evaluate_rigid_run(run_dir: Path, limit: int | None, device, progress: bool = True, grids: int = 4) -> dict:
+    """Render the test images of a rigid-object run; write ``RUN/eval/metrics.json`` / ``metrics.md`` (split
+    ``test``: full-image Mask L2 x10^4 / PSNR / SSIM) and grids (ground truth | render | depth | error)."""
+    run_dir = Path(run_dir)
+    state = load_checkpoint(run_dir, map_location=device)
+    config = load_config(base=state["config"])
+    field = make_field(config).to(device)
+    field.load_state_dict(state["model"])
+    field.eval()
+    rigid: RigidSet = open_rigid(resolve_rigid(config, quiet=True, generate=False))
+    indices = spread(list(range(rigid.counts["test"])), limit)
+    views, poses = load_rigid_views(rigid, "test", indices)
+    bg = 1.0 if config.data.white_background else 0.0
+    records = []
+    for k, view in enumerate(tqdm(views, desc="eval test", unit="view", disable=not progress)):
+        render = to_numpy(render_view(field, view.camera, poses.select(torch.tensor([k])).to(device), config))
+        empty = np.zeros(view.mask.shape, bool)
+        records.append({"image": indices[k], **frame_metrics(render, view.image, view.mask, empty, bg)})
+        if k < grids:
+            save_png(run_dir / "eval" / "grids" / "test" / f"{indices[k]:05d}.png", grid(view.image, render, False))
+    report = {
+        "run": str(run_dir),
+        "step": state["step"],
+        "model": config.model.name,
+        "width": config.model.width,
+        "dataset": str(rigid.root),
+        "splits": {"test": {"n_views": len(records), "full": average_metrics(records, "full"), "per_view": records}},
+        "versions": library_versions(),
+    }
+    write_report(run_dir / "eval", report, markdown_rigid(report))
+    return report
+
+
+def markdown_rigid(report: dict) -> str:
+    """Table B layout: one row, Mask L2 (x10^4) / PSNR / SSIM on the test images."""
+    m = report["splits"]["test"]["full"]
+    return "\n".join(
+        [
+            f"# {report['model']} (width {report['width']}), step {report['step']}: {report['dataset']}",
+            "",
+            "| model | test images | Mask L2 (x10^4) | PSNR (dB) | SSIM |",
+            "|---|---|---|---|---|",
+            f"| {report['model']} | {report['splits']['test']['n_views']} | {m['mask_l2']:.1f} | {m['psnr']:.2f} | "
+            f"{m['ssim']:.4f} |",
+            "",
+        ]
+    )
