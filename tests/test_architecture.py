@@ -15,6 +15,7 @@ GLUE = (
     "pipelines.video",
     "pipelines.autoencoder_video",
     "pipelines.mesh_export",
+    "pipelines.rigid_session",
 )
 #: pipelines sub-package -> the parts of pipelines/ it must not import (see pipelines/__init__.py)
 PIPELINES_FORBIDDEN = {
@@ -22,6 +23,7 @@ PIPELINES_FORBIDDEN = {
     "body": ("pipelines.calibration", "pipelines.synthetic", "pipelines.cli", *GLUE),
     "calibration": ("pipelines.body", "pipelines.synthetic", "pipelines.cli", *GLUE),
     "synthetic": ("pipelines.cli", *GLUE),
+    "experiments": ("pipelines.cli.experiments",),  # it runs narf-fit (cli.fit); its own CLI sits above it
 }
 GLUE_FORBIDDEN = ("pipelines.cli",)
 

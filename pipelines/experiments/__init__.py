@@ -1,0 +1,1 @@
+"""The NARF supplement's tables as runnable experiments (``narf-experiments``)."""

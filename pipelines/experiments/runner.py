@@ -1,0 +1,209 @@
+"""Run a table of the supplement (``narf-experiments run``): fit every row with the real ``narf-fit`` for a time
+budget, evaluate it with the table's protocol, and write the table (Markdown + JSON) with its cost columns.
+
+Layout under ``OUT/<table>/``: ``<row>/run/`` (the row's run folder), ``<row>/result.json`` (written atomically
+once the row is evaluated: a finished row is never recomputed), ``table.json`` and ``table.md``. A killed row
+resumes from its checkpoint with the rest of its budget (the checkpoint stores the training time spent).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+from fitting.checkpoint import load_checkpoint
+from fitting.config import load_config
+from fitting.trainer import auto_device, make_field
+from pipelines.cli import fit
+from pipelines.experiments.orderings import check_orderings
+from pipelines.experiments.tables import SHORT, Row, Table
+
+#: Presets per dataset: (CPU budget preset, paper preset); the CNN baseline has one preset of its own.
+PRESETS = {"zju": ("cpu", "paper"), "thuman": ("ae_cpu", "ae_paper"), "rigid": ("rigid_cpu", "rigid_paper")}
+#: CPU budget per row in minutes, and views per split evaluated, per table (README, "Experiments").
+CPU_BUDGET = {"table-a": 10.0, "table-b": 5.0, "table-c": 5.0}
+CPU_VIEWS = {"table-a": 20, "table-b": None, "table-c": 6}
+
+
+@dataclass(frozen=True)
+class Settings:
+    """How a table runs: ``preset`` cpu or paper, ``budget_minutes`` of training per row (None: the preset's
+    steps), ``limit`` views per split (None: all), ``data_root`` and ``device`` passed to the commands."""
+
+    preset: str = "cpu"
+    budget_minutes: float | None = None
+    limit: int | None = None
+    data_root: str | None = None
+    device: str = "auto"
+
+
+def write_atomic(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
+def fit_argv(table: Table, row: Row, settings: Settings, run_dir: Path) -> list[str]:
+    """narf-fit arguments of a row (a fresh fit, or ``--resume`` with the rest of its budget)."""
+    budget = [] if settings.budget_minutes is None else ["--max-minutes", f"{settings.budget_minutes:g}"]
+    common = ["--out", str(run_dir), "--device", settings.device, "--quiet"]
+    if (run_dir / "checkpoint.pt").is_file():
+        if settings.budget_minutes is not None:
+            spent = load_checkpoint(run_dir).get("elapsed", 0.0) / 60
+            budget = ["--max-minutes", f"{max(settings.budget_minutes - spent, 0.0):.4f}"]
+        return ["--resume", *common, *budget]
+    cnn = "cnn" in row.fit_args
+    preset = "cnn" if cnn else PRESETS[table.dataset][settings.preset == "paper"]
+    dataset = [] if table.dataset == "zju" else ["--dataset", table.dataset]
+    root = [] if settings.data_root is None else ["--data-root", settings.data_root]
+    return [*dataset, *root, "--config", preset, *row.fit_args, *common, *budget]
+
+
+def _finished(run_dir: Path, settings: Settings) -> bool:
+    if not (run_dir / "checkpoint.pt").is_file():
+        return False
+    state = load_checkpoint(run_dir)
+    if settings.budget_minutes is not None:
+        return state.get("elapsed", 0.0) >= settings.budget_minutes * 60 - 1.0
+    return state["step"] >= state["config"]["train"]["steps"]
+
+
+def run_fit(table: Table, row: Row, settings: Settings, run_dir: Path) -> None:
+    """Fit (or resume) a row until its budget is spent; Ctrl-C stops the table with the checkpoint saved."""
+    while not _finished(run_dir, settings):
+        code = fit.main(fit_argv(table, row, settings, run_dir))
+        if code == 130:
+            raise KeyboardInterrupt
+        if code != 0:
+            raise RuntimeError(f"{run_dir}: narf-fit exited with {code}")
+        if settings.budget_minutes is None:
+            return
+
+
+def evaluate(table: Table, run_dir: Path, settings: Settings) -> dict:
+    """The table's protocol on a fitted row: split -> {mask_l2, psnr, ssim} (full image)."""
+    device = str(auto_device(settings.device))
+    if table.dataset == "rigid":
+        from pipelines.rigid_session import evaluate_rigid_run
+
+        report = evaluate_rigid_run(run_dir, settings.limit, device, progress=False)
+    elif table.dataset == "thuman":
+        from pipelines.autoencoder_evaluation import evaluate_autoencoder_run
+
+        report = evaluate_autoencoder_run(run_dir, list(table.splits), settings.limit, device, progress=False)
+    else:
+        from pipelines.evaluation import evaluate_run
+
+        report = evaluate_run(run_dir, list(table.splits), settings.limit, device, progress=False)
+    return {split: report["splits"][split]["full"] for split in table.splits}
+
+
+def row_costs(run_dir: Path) -> dict:
+    """#params, FLOPs and activation memory per ray of the fitted model (docs/model.md §8), its training steps,
+    seconds and median rays/s from the run's log."""
+    state = load_checkpoint(run_dir)
+    model = make_field(load_config(base=state["config"]))
+    cost = model.cost() if hasattr(model, "cost") else None
+    log_path = run_dir / "log.jsonl"  # absent when the fit ran fewer steps than train.log_every
+    log = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()] if log_path.is_file() else []
+    rates = [row["rays_per_s"] for row in log if "rays_per_s" in row]
+    return {
+        "params": sum(p.numel() for p in model.parameters()),
+        "flops_per_ray": cost.flops_per_ray if cost else None,
+        "memory_per_ray": cost.memory_per_ray if cost else None,
+        "steps": state["step"],
+        "train_seconds": state.get("elapsed", 0.0),
+        "rays_per_s": float(np.median(rates)) if rates else None,
+    }
+
+
+def run_row(table: Table, row: Row, out_dir: Path, settings: Settings, fitter=run_fit, evaluator=evaluate) -> dict:
+    """One row, resumable: the stored result when the row finished before, else fit, evaluate and store."""
+    result_path = out_dir / row.name / "result.json"
+    if result_path.is_file():
+        return json.loads(result_path.read_text())
+    run_dir = out_dir / row.name / "run"
+    start = time.perf_counter()
+    fitter(table, row, settings, run_dir)
+    metrics = evaluator(table, run_dir, settings)
+    result = {
+        "row": row.name,
+        "label": row.label,
+        "fit_args": list(row.fit_args),
+        "preset": settings.preset,
+        "budget_minutes": settings.budget_minutes,
+        "views_per_split": settings.limit,
+        "metrics": metrics,
+        "cost": row_costs(run_dir),
+        "wall_seconds": time.perf_counter() - start,
+    }
+    write_atomic(result_path, json.dumps(result, indent=1))
+    return result
+
+
+def run_table(table: Table, out: Path, settings: Settings, rows: list[str] | None = None, progress=print, **kw) -> dict:
+    """Run (or resume) the rows of a table, then write ``table.json`` and ``table.md`` under ``out/<table>``."""
+    out_dir = Path(out) / table.name
+    chosen = [r for r in table.rows if rows is None or r.name in rows]
+    results = {}
+    for k, row in enumerate(chosen):
+        done = (out_dir / row.name / "result.json").is_file()
+        progress(f"narf-experiments: {table.name} row {k + 1}/{len(chosen)} {row.name}" + (" (done)" if done else ""))
+        results[row.name] = run_row(table, row, out_dir, settings, **kw)
+    summary = {
+        "table": table.name,
+        "title": table.title,
+        "settings": asdict(settings),
+        "rows": results,
+        "orderings": check_orderings(table.name, {n: r["metrics"] for n, r in results.items()}),
+    }
+    write_atomic(out_dir / "table.json", json.dumps(summary, indent=1))
+    write_atomic(out_dir / "table.md", markdown_table(table, summary))
+    return summary
+
+
+def _cell(m: dict) -> str:
+    return f"{m['mask_l2']:.1f}/{m['psnr']:.2f}/{m['ssim']:.4f}"
+
+
+def _si(value: float | None, unit: str = "") -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "K")):
+        if abs(value) >= scale:
+            return f"{value / scale:.2f}{suffix}{unit}"
+    return f"{value:.0f}{unit}"
+
+
+def markdown_table(table: Table, summary: dict) -> str:
+    """Supplement layout: method, cost (#params / FLOPs / memory per ray), training, then a cell per split."""
+    s = summary["settings"]
+    budget = "preset steps" if s["budget_minutes"] is None else f"{s['budget_minutes']:g} min"
+    heads = " | ".join(SHORT[x] for x in table.splits)
+    lines = [
+        f"# {table.title}",
+        "",
+        f"Preset {s['preset']}, training budget {budget} per row, views per split: {s['limit'] or 'all'}. "
+        "Cells: Mask L2 (x10^4) / PSNR (dB) / SSIM, full image.",
+        "",
+        f"| method | #params / FLOPs / memory per ray | steps (rays/s) | {heads} |",
+        "|---|---|---|" + "---|" * len(table.splits),
+    ]
+    for row in summary["rows"].values():
+        c = row["cost"]
+        cost = f"{_si(c['params'])} / {_si(c['flops_per_ray'])} / {_si(c['memory_per_ray'])}"
+        rate = "-" if c["rays_per_s"] is None else f"{c['rays_per_s']:,.0f}"
+        cells = " | ".join(_cell(row["metrics"][x]) for x in table.splits)
+        lines.append(f"| {row['label']} | {cost} | {c['steps']:,} ({rate}) | {cells} |")
+    lines += ["", "Orderings of the supplement:", ""]
+    for o in summary["orderings"]:
+        verdict = {True: "reproduced", False: "not reproduced", None: "not checked"}[o["holds"]]
+        lines.append(f"* {o['claim']}: **{verdict}** ({o['evidence']})")
+    lines += ["", *(f"Note: {n}" for n in table.notes), ""]
+    return "\n".join(lines)
