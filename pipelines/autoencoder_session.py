@@ -5,7 +5,6 @@ autoencoder: find the set (a real one, else the synthetic stand-in, generated on
 from __future__ import annotations
 
 import json
-import sys
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,6 +21,7 @@ from pipelines.body.model import BodyModel, pose_batch_from_joints
 from pipelines.datasets.subjects import data_root
 from pipelines.datasets.thuman import ThumanView, count_renders, read_render
 from pipelines.datasets.zju_mocap import Camera, CaptureError
+from pipelines.synthetic.staging import use_stand_in
 from pipelines.synthetic.thuman import ThumanSynthConfig, generate_thuman, is_thuman_complete
 
 #: The supplement's autoencoder split: the first 3545 of THUman's 3939 meshes train, the rest are novel poses.
@@ -56,14 +56,8 @@ def resolve_thuman(config: FitConfig, quiet: bool = False, generate: bool = True
     if explicit is not None and (explicit / "train" / "render_128").is_dir():
         return explicit
     out = data_root(config.data.data_root) / "synthetic" / "thuman"
-    if not quiet:
-        state = "using" if is_thuman_complete(out) else "generating"
-        print(f"narf: no THUman render_128 set given; {state} the synthetic stand-in at {out}", file=sys.stderr)
-    if not is_thuman_complete(out):
-        if not generate:
-            raise CaptureError(f"{out}: synthetic THUman set not generated yet (run narf-synth --dataset thuman)")
-        generate_thuman(out, ThumanSynthConfig())
-    return out
+    make = lambda: generate_thuman(out, ThumanSynthConfig())  # noqa: E731
+    return use_stand_in(out, "THUman render_128 set", "thuman", is_thuman_complete, make, quiet, generate)
 
 
 def open_thuman(root: Path, config: FitConfig) -> ThumanSet:

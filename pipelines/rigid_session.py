@@ -5,7 +5,6 @@ images (supplement Table B: Mask L2 x10^4 / PSNR / SSIM over the full image)."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +19,8 @@ from fitting.plots import grid, save_png, to_numpy
 from fitting.trainer import Trainer, make_field
 from pipelines.datasets.rigid import RigidSet, load_rigid_views, open_rigid
 from pipelines.datasets.subjects import data_root
-from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.synthetic.rigid import RigidSynthConfig, generate_rigid, is_rigid_complete
+from pipelines.synthetic.staging import use_stand_in
 
 #: The object's box in its own frame, in units of its radius: a cube that holds the bounding sphere.
 BOX_HALF_EXTENT = 1.0
@@ -34,14 +33,8 @@ def resolve_rigid(config: FitConfig, quiet: bool = False, generate: bool = True)
     if explicit is not None and any((explicit / "train").glob("render_*")):
         return explicit
     out = data_root(config.data.data_root) / "synthetic" / "rigid"
-    if not quiet:
-        state = "using" if is_rigid_complete(out) else "generating"
-        print(f"narf: no rigid-object set given; {state} the synthetic stand-in at {out}", file=sys.stderr)
-    if not is_rigid_complete(out):
-        if not generate:
-            raise CaptureError(f"{out}: synthetic rigid-object set not generated yet (run narf-synth --dataset rigid)")
-        generate_rigid(out, RigidSynthConfig(), progress=not quiet)
-    return out
+    make = lambda: generate_rigid(out, RigidSynthConfig(), progress=not quiet)  # noqa: E731
+    return use_stand_in(out, "rigid-object set", "rigid", is_rigid_complete, make, quiet, generate)
 
 
 def rigid_boxes() -> tuple[torch.Tensor, torch.Tensor]:

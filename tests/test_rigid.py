@@ -67,5 +67,5 @@ def test_fit_eval_and_bad_input(rigid_set, tmp_path, capsys):
     (broken / "test" / f"render_{SIZE}" / "K.npy").unlink()
     argv[3], argv[-1] = str(broken), str(tmp_path / "y")
     assert run_cli("narf-fit", fit.main, [*argv, "--quiet"]) == 2
-    assert f"render_{SIZE}/K.npy: missing" in capsys.readouterr().err
+    assert f"render_{SIZE}/K.npy: missing" in capsys.readouterr().err  # one line naming the file
     assert not (tmp_path / "y" / "checkpoint.pt").exists()

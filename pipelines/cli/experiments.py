@@ -60,7 +60,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command == "compare":
         print(compare_markdown(load_summary(args.results)), end="")
         return 0
-    from pipelines.experiments.runner import CPU_BUDGET, CPU_VIEWS, Settings, run_table
+    from pipelines.experiments.runner import CPU_BUDGET, CPU_VIEWS, Settings, prepare_data, run_table
     from pipelines.experiments.tables import TABLES
 
     table = TABLES[args.table]
@@ -81,6 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     limit = args.limit if args.limit is not None else CPU_VIEWS[table.name] if cpu else None
     settings = Settings(args.preset, budget, limit, args.data_root, args.device)
     progress = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
+    prepare_data(table, settings)
     summary = run_table(table, args.out, settings, rows, progress=progress)
     print((args.out / table.name / "table.md").read_text(), end="")
     print(f"narf-experiments: wrote {args.out / table.name / 'table.json'} ({len(summary['rows'])} rows)")

@@ -1,4 +1,4 @@
-"""A rigid-object set in NARF's render layout (``docs/formats.md §7``; written by ``narf-synth --dataset rigid``):
+"""A rigid-object set in NARF's render layout (``docs/formats.md §8``; written by ``narf-synth --dataset rigid``):
 ``<root>/<split>/render_<N>/color/color_%08d.png`` (BGRA, alpha = mask), ``pose_to_world_%08d.npy`` and
 ``pose_to_camera_%08d.npy`` (1, 4, 4) per image, ``<root>/<split>/render_<N>/K.npy`` (3, 3, pixel centres at
 integers), and ``<root>/synthetic.json`` with ``object_radius`` (world units; the rigid models' unit s)."""
@@ -14,7 +14,7 @@ import torch
 
 from narf.fields.common import PoseBatch
 from narf.geometry import se3_log
-from pipelines.datasets.thuman import ThumanView, count_renders, read_render
+from pipelines.datasets.thuman import ThumanView, count_renders, load_array, read_render
 from pipelines.datasets.zju_mocap import Camera, CaptureError
 
 RIGID_SPLITS = ("train", "test")
@@ -42,15 +42,10 @@ def _render_folder(root: Path, split: str) -> Path:
 
 
 def _read_K(path: Path) -> np.ndarray:
-    if not path.is_file():
-        raise CaptureError(f"{path}: missing (the split's 3x3 intrinsics)")
-    try:
-        K = np.load(path, allow_pickle=False)
-    except ValueError as err:
-        raise CaptureError(f"{path}: not a plain .npy array ({err})") from err
-    if K.shape != (3, 3) or not np.isfinite(K).all() or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise CaptureError(f"{path}: expected finite 3x3 intrinsics with positive focal lengths, got shape {K.shape}")
-    return K.astype(np.float64)
+    K = load_array(path, (3, 3))
+    if K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise CaptureError(f"{path}: focal lengths must be positive")
+    return K
 
 
 def open_rigid(root: str | Path) -> RigidSet:

@@ -165,15 +165,22 @@ class ThumanRender:
     view: int
 
 
-def _load_transforms(path: Path, n_parts: int) -> np.ndarray:
+def load_array(path: Path, shape: tuple[int, ...]) -> np.ndarray:
+    """A plain (never pickled) finite ``.npy`` array of ``shape``, as float64.
+
+    Raises:
+        CaptureError: the file is missing, pickled or unreadable, of another shape, or holds NaN / inf.
+    """
     if not path.is_file():
         raise CaptureError(f"{path}: missing")
     try:
         array = np.load(path, allow_pickle=False)
     except ValueError as err:
         raise CaptureError(f"{path}: not a plain .npy array ({err})") from err
-    if array.shape != (n_parts, 4, 4):
-        raise CaptureError(f"{path}: shape {array.shape}, expected ({n_parts}, 4, 4)")
+    if array.shape != shape:
+        raise CaptureError(f"{path}: shape {array.shape}, expected {shape}")
+    if not np.isfinite(array).all():
+        raise CaptureError(f"{path}: holds NaN or inf")
     return array.astype(np.float64)
 
 
@@ -206,8 +213,8 @@ def read_render(
     return ThumanRender(
         image=rgba[..., :3] * (mask[..., None] > 0),
         mask=mask,
-        pose_to_camera=_load_transforms(color_dir / f"pose_to_camera_{index:08d}.npy", n_parts),
-        pose_to_world=_load_transforms(color_dir / f"pose_to_world_{index:08d}.npy", n_parts),
+        pose_to_camera=load_array(color_dir / f"pose_to_camera_{index:08d}.npy", (n_parts, 4, 4)),
+        pose_to_world=load_array(color_dir / f"pose_to_world_{index:08d}.npy", (n_parts, 4, 4)),
         K=np.array(K, dtype=np.float64),
         mesh=index // renders_per_mesh,
         view=index % renders_per_mesh,

@@ -147,6 +147,25 @@ def run_row(table: Table, row: Row, out_dir: Path, settings: Settings, fitter=ru
     return result
 
 
+def prepare_data(table: Table, settings: Settings) -> None:
+    """Find the table's data before the first row (generating the synthetic stand-in, with its progress bar, when
+    it is missing), so that the rows' quiet fits do not wait on it silently."""
+    overrides = [] if settings.data_root is None else [f"data.data_root={settings.data_root}"]
+    config = load_config(PRESETS[table.dataset][0], overrides)
+    if table.dataset == "rigid":
+        from pipelines.rigid_session import resolve_rigid
+
+        resolve_rigid(config)
+    elif table.dataset == "thuman":
+        from pipelines.autoencoder_session import resolve_thuman
+
+        resolve_thuman(config)
+    else:
+        from pipelines.fit_session import resolve_subject
+
+        resolve_subject(config.data.subject, config.data.data_root)
+
+
 def run_table(table: Table, out: Path, settings: Settings, rows: list[str] | None = None, progress=print, **kw) -> dict:
     """Run (or resume) the rows of a table, then write ``table.json`` and ``table.md`` under ``out/<table>``."""
     out_dir = Path(out) / table.name

@@ -3,7 +3,7 @@ uses a bulldozer): a procedural, textured, vehicle-like mesh of several parts (c
 on an arm, four wheels, an exhaust on one side, so that no view is a mirror of another), and per image a random
 rigid transform of the object and a random camera aimed at its centre, 200 x 200, 480 train / 20 test.
 
-Written in NARF's render layout (``docs/formats.md §7``): ``<split>/render_200/color/color_%08d.png`` (BGRA,
+Written in NARF's render layout (``docs/formats.md §8``): ``<split>/render_200/color/color_%08d.png`` (BGRA,
 alpha = mask), ``pose_to_world_%08d.npy`` and ``pose_to_camera_%08d.npy`` (1, 4, 4) (the object frame in the
 world and in the camera), ``<split>/render_200/K.npy`` (3, 3), and ``object.ply`` (the true mesh, object frame).
 ``synthetic.json`` is written last, into a staging folder that is renamed when complete.

@@ -6,8 +6,12 @@ from __future__ import annotations
 
 import json
 import shutil
+import sys
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
+
+from pipelines.datasets.zju_mocap import CaptureError
 
 MARKER = "synthetic.json"
 
@@ -42,3 +46,16 @@ def publish(partial: Path, out: Path, marker: dict) -> Path:
         shutil.rmtree(out)
     partial.rename(out)
     return Path(out)
+
+
+def use_stand_in(out: Path, what: str, dataset: str, complete: Callable, make: Callable, quiet: bool, generate: bool):
+    """The synthetic stand-in ``out`` used in place of a real ``what``: announced in one line on stderr (unless
+    ``quiet``) and made by ``make()`` when ``complete(out)`` is False (``generate=False``: a CaptureError instead)."""
+    if not quiet:
+        state = "using" if complete(out) else "generating"
+        print(f"narf: no {what} given; {state} the synthetic stand-in at {out}", file=sys.stderr)
+    if not complete(out):
+        if not generate:
+            raise CaptureError(f"{out}: synthetic {what} not generated yet (run narf-synth --dataset {dataset})")
+        make()
+    return out
