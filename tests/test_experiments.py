@@ -75,5 +75,7 @@ def test_rows_resume_and_compare(tmp_path, capsys):
     (tmp_path / "bad.json").write_text("{}")
     assert run_cli("narf-experiments", experiments.main, ["compare", str(tmp_path / "bad.json")]) == 2
     assert "not a table written by narf-experiments run" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="budget_minutes=1.0"):  # one table, one budget
+        run_table(TABLE_B, tmp_path / "out", Settings(budget_minutes=2.0, limit=1, data_root=str(data)))
     assert run_cli("narf-experiments", experiments.main, ["run", "table-b", "--rows", "nerf"]) == 2
     assert "table-b has no row nerf" in capsys.readouterr().err

@@ -166,9 +166,27 @@ def prepare_data(table: Table, settings: Settings) -> None:
         resolve_subject(config.data.subject, config.data.data_root)
 
 
+def check_settings(out_dir: Path, settings: Settings) -> None:
+    """Keep one table's rows comparable: the first run records its settings in ``settings.json``; a later run with
+    another preset, budget, view count or data root is refused (the device may change)."""
+    path = out_dir / "settings.json"
+    current = {k: v for k, v in asdict(settings).items() if k != "device"}
+    if path.is_file():
+        stored = json.loads(path.read_text())
+        changed = sorted(k for k in current if stored.get(k) != current[k])
+        if changed:
+            raise ValueError(
+                f"{path}: this table was run with {', '.join(f'{k}={stored.get(k)}' for k in changed)}; rerun with "
+                "the same settings to resume it, or choose another --out"
+            )
+    else:
+        write_atomic(path, json.dumps(current, indent=1))
+
+
 def run_table(table: Table, out: Path, settings: Settings, rows: list[str] | None = None, progress=print, **kw) -> dict:
     """Run (or resume) the rows of a table, then write ``table.json`` and ``table.md`` under ``out/<table>``."""
     out_dir = Path(out) / table.name
+    check_settings(out_dir, settings)
     chosen = [r for r in table.rows if rows is None or r.name in rows]
     results = {}
     for k, row in enumerate(chosen):
