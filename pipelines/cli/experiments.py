@@ -31,9 +31,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="table-a: autoencoders on the THUman-like set (P-NeRF, D-NARF, NARF_P, NARF_H, NARF_D); "
         "table-b: the rigid object (RP-NeRF, RT-NeRF w/o xi, RT-NeRF); table-c: the single subject (CNN, P-NeRF, "
         "D-NARF, NARF_P at widths 32-256, NARF_H, NARF_D, sigmoid, the tau sweep and the mask-loss ablations). "
-        f"CPU budgets per row (minutes): {CPU_BUDGET}; views per split: {CPU_VIEWS} (None: all).",
+        "With --preset cpu each row trains for "
+        + ", ".join(f"{t}: {CPU_BUDGET[t]:g} min ({CPU_VIEWS[t] or 'all'} views per split)" for t in CPU_BUDGET)
+        + ".",
     )
-    run.add_argument("table", choices=("table-a", "table-b", "table-c"))
+    run.add_argument("table", choices=("table-a", "table-b", "table-c"), help="which table of the supplement")
     run.add_argument("--out", type=Path, default=Path("runs/experiments"), help="output folder")
     run.add_argument(
         "--preset",
