@@ -9,7 +9,7 @@ import torch
 
 from narf.geometry import se3_exp
 from pipelines.cli import eval as cli_eval
-from pipelines.cli import fit, render_video
+from pipelines.cli import fit, render_video, synth
 from pipelines.cli.common import run_cli
 from pipelines.datasets.rigid import load_rigid_views, open_rigid, rigid_pose_batch
 from pipelines.synthetic.rigid import RigidSynthConfig, generate_rigid, vehicle
@@ -69,3 +69,13 @@ def test_fit_eval_and_bad_input(rigid_set, tmp_path, capsys):
     assert run_cli("narf-fit", fit.main, [*argv, "--quiet"]) == 2
     assert f"render_{SIZE}/K.npy: missing" in capsys.readouterr().err  # one line naming the file
     assert not (tmp_path / "y" / "checkpoint.pt").exists()
+
+
+def test_narf_synth_writes_and_reuses_the_set(tmp_path, capsys):
+    argv = ["--dataset", "rigid", "--out", str(tmp_path / "r"), "--train-images", "2", "--test-images", "1"]
+    assert run_cli("narf-synth", synth.main, [*argv, "--resolution", "16"]) == 0
+    assert open_rigid(tmp_path / "r").counts == {"train": 2, "test": 1}
+    capsys.readouterr()
+    assert run_cli("narf-synth", synth.main, [*argv, "--resolution", "16"]) == 0
+    assert "already holds this rigid set" in capsys.readouterr().out
+    assert run_cli("narf-synth", synth.main, [*argv, "--resolution", "8"]) == 2  # below 16 px: refused
