@@ -183,11 +183,16 @@ def markdown_table(report: dict) -> str:
     return "\n".join(lines)
 
 
+def write_text_atomic(path: Path, text: str) -> None:
+    """Write ``text`` to ``path`` through a hidden temporary file and a rename, so a reader never sees half of it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text)
+    tmp.replace(path)
+
+
 def write_report(out_dir: Path, report: dict, markdown: str) -> None:
-    """``metrics.json`` and ``metrics.md`` into ``out_dir``, each atomically (a temporary file, then a rename)."""
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    for name, text in (("metrics.json", json.dumps(report, indent=1)), ("metrics.md", markdown)):
-        tmp = out_dir / f".{name}.tmp"
-        tmp.write_text(text)
-        tmp.replace(out_dir / name)
+    """``metrics.json`` and ``metrics.md`` into ``out_dir``, each atomically (``write_text_atomic``)."""
+    write_text_atomic(Path(out_dir) / "metrics.json", json.dumps(report, indent=1))
+    write_text_atomic(Path(out_dir) / "metrics.md", markdown)

@@ -7,6 +7,7 @@ import json
 from pathlib import Path
 
 from pipelines.experiments.orderings import check_orderings, paper_results
+from pipelines.experiments.runner import cell_text
 from pipelines.experiments.tables import SHORT, TABLES
 
 
@@ -42,9 +43,8 @@ def compare_markdown(summary: dict) -> str:
         for split in table.splits:
             ours = row["metrics"][split]
             ref = paper.get(name, {}).get(split)
-            cell = lambda m: f"{m['mask_l2']:.1f}/{m['psnr']:.2f}/{m['ssim']:.4f}"  # noqa: E731
-            ref_text, delta = (cell(ref), _delta(ours, ref)) if ref else ("-", "-")
-            lines.append(f"| {row['label']} | {SHORT[split]} | {cell(ours)} | {ref_text} | {delta} |")
+            ref_text, delta = (cell_text(ref), _delta(ours, ref)) if ref else ("-", "-")
+            lines.append(f"| {row['label']} | {SHORT[split]} | {cell_text(ours)} | {ref_text} | {delta} |")
     ours = check_orderings(table.name, {n: r["metrics"] for n, r in summary["rows"].items()})
     theirs = check_orderings(table.name, paper)
     lines += ["", "| ordering | supplement | this run | evidence (this run) |", "|---|---|---|---|"]

@@ -79,10 +79,8 @@ def narf_h_degrades(r: Results):
 
 
 def mask_loss_helps(r: Results):
-    pairs = [
-        (a, b) for a, b in (("narf_p_32", "p32_no_mask"), ("narf_h", "narf_h_no_mask"), ("narf_d", "narf_d_no_mask"))
-    ]
-    pairs = [(a, b) for a, b in pairs if _need(r, [a, b])]
+    ablations = (("narf_p_32", "p32_no_mask"), ("narf_h", "narf_h_no_mask"), ("narf_d", "narf_d_no_mask"))
+    pairs = [(a, b) for a, b in ablations if _need(r, [a, b])]
     if not pairs:
         return None, "needs a row and its w/o L_mask ablation"
     holds, parts = True, []

@@ -9,7 +9,6 @@ resumes from its checkpoint with the rest of its budget (the checkpoint stores t
 from __future__ import annotations
 
 import json
-import math
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -18,6 +17,7 @@ import numpy as np
 
 from fitting.checkpoint import load_checkpoint
 from fitting.config import load_config
+from fitting.evaluate import write_text_atomic
 from fitting.trainer import auto_device, make_field
 from pipelines.cli import fit
 from pipelines.experiments.orderings import check_orderings
@@ -40,13 +40,6 @@ class Settings:
     limit: int | None = None
     data_root: str | None = None
     device: str = "auto"
-
-
-def write_atomic(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
 
 
 def fit_argv(table: Table, row: Row, settings: Settings, run_dir: Path) -> list[str]:
@@ -143,7 +136,7 @@ def run_row(table: Table, row: Row, out_dir: Path, settings: Settings, fitter=ru
         "cost": row_costs(run_dir),
         "wall_seconds": time.perf_counter() - start,
     }
-    write_atomic(result_path, json.dumps(result, indent=1))
+    write_text_atomic(result_path, json.dumps(result, indent=1))
     return result
 
 
@@ -180,7 +173,7 @@ def check_settings(out_dir: Path, settings: Settings) -> None:
                 "the same settings to resume it, or choose another --out"
             )
     else:
-        write_atomic(path, json.dumps(current, indent=1))
+        write_text_atomic(path, json.dumps(current, indent=1))
 
 
 def run_table(table: Table, out: Path, settings: Settings, rows: list[str] | None = None, progress=print, **kw) -> dict:
@@ -200,22 +193,23 @@ def run_table(table: Table, out: Path, settings: Settings, rows: list[str] | Non
         "rows": results,
         "orderings": check_orderings(table.name, {n: r["metrics"] for n, r in results.items()}),
     }
-    write_atomic(out_dir / "table.json", json.dumps(summary, indent=1))
-    write_atomic(out_dir / "table.md", markdown_table(table, summary))
+    write_text_atomic(out_dir / "table.json", json.dumps(summary, indent=1))
+    write_text_atomic(out_dir / "table.md", markdown_table(table, summary))
     return summary
 
 
-def _cell(m: dict) -> str:
+def cell_text(m: dict) -> str:
+    """One table cell: Mask L2 (x10^4) / PSNR (dB) / SSIM."""
     return f"{m['mask_l2']:.1f}/{m['psnr']:.2f}/{m['ssim']:.4f}"
 
 
-def _si(value: float | None, unit: str = "") -> str:
-    if value is None or (isinstance(value, float) and math.isnan(value)):
+def _si(value: float | None) -> str:
+    if value is None:
         return "-"
     for scale, suffix in ((1e9, "G"), (1e6, "M"), (1e3, "K")):
         if abs(value) >= scale:
-            return f"{value / scale:.2f}{suffix}{unit}"
-    return f"{value:.0f}{unit}"
+            return f"{value / scale:.2f}{suffix}"
+    return f"{value:.0f}"
 
 
 def markdown_table(table: Table, summary: dict) -> str:
@@ -236,7 +230,7 @@ def markdown_table(table: Table, summary: dict) -> str:
         c = row["cost"]
         cost = f"{_si(c['params'])} / {_si(c['flops_per_ray'])} / {_si(c['memory_per_ray'])}"
         rate = "-" if c["rays_per_s"] is None else f"{c['rays_per_s']:,.0f}"
-        cells = " | ".join(_cell(row["metrics"][x]) for x in table.splits)
+        cells = " | ".join(cell_text(row["metrics"][x]) for x in table.splits)
         lines.append(f"| {row['label']} | {cost} | {c['steps']:,} ({rate}) | {cells} |")
     lines += ["", "Orderings of the supplement:", ""]
     for o in summary["orderings"]:

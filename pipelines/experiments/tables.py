@@ -49,7 +49,6 @@ def _model(name: str, *sets: str) -> tuple[str, ...]:
 _D, _H = (1.10e6, 205e6, 382e3), (1.06e6, 197e6, 344e3)
 _P32 = (0.32e6, 59e6, 824e3)
 _NO_MASK = "train.mask_weight=0"
-_TAU = {0.01: "0.01", 0.1: "0.1", 1: "1", 100: "100", 1000: "1000"}
 
 TABLE_B = Table(
     "table-b",
