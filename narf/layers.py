@@ -34,11 +34,16 @@ class GroupedLinear(nn.Module):
     def effective_weight(self) -> torch.Tensor:
         raise NotImplementedError
 
-    def forward(self, inputs: torch.Tensor) -> torch.Tensor:
-        weight = self.effective_weight().transpose(1, 2)
-        if self.bias is None:
+    def forward(self, inputs: torch.Tensor, group_index: torch.Tensor | None = None) -> torch.Tensor:
+        """(G, N, in) -> (G, N, out); with ``group_index`` (G',) long, inputs (G', N, in) go through the layers
+        ``group_index`` (several blocks may share one layer: ragged groups packed in equal blocks)."""
+        weight, bias = self.effective_weight().transpose(1, 2), self.bias
+        if group_index is not None:
+            weight = weight.index_select(0, group_index)
+            bias = None if bias is None else bias.index_select(0, group_index)
+        if bias is None:
             return torch.bmm(inputs, weight)
-        return torch.baddbmm(self.bias, inputs, weight)
+        return torch.baddbmm(bias, inputs, weight)
 
     def flops(self) -> int:
         """2 * in * out / groups with in, out the totals over groups."""
@@ -100,11 +105,12 @@ class Trunk(nn.Module):
         )
         self.last = WNLinear(width, width, groups)
 
-    def forward(self, hidden: torch.Tensor) -> torch.Tensor:
-        hidden = torch.relu(self.first(hidden))
+    def forward(self, hidden: torch.Tensor, group_index: torch.Tensor | None = None) -> torch.Tensor:
+        """(G, N, H) -> (G, N, H); ``group_index`` as in :meth:`GroupedLinear.forward`."""
+        hidden = torch.relu(self.first(hidden, group_index))
         for lin_a, lin_b in self.blocks:
-            hidden = hidden + torch.relu(lin_b(torch.relu(lin_a(hidden))))
-        return torch.relu(self.last(hidden))
+            hidden = hidden + torch.relu(lin_b(torch.relu(lin_a(hidden, group_index)), group_index))
+        return torch.relu(self.last(hidden, group_index))
 
     def extra_flops(self) -> int:
         """+H per ReLU module (8) and per residual add (3)."""

@@ -242,7 +242,9 @@ def test_sparse_fast_path_matches_dense_reference(name, monkeypatch):
     dense = _field(name, width=16, dtype=torch.float64, latent_dim=4)
     dense.load_state_dict(fast.state_dict())
     dense.fast = False
-    fast.set_boxes(torch.zeros(19, 3, dtype=torch.float64), torch.full((19, 3), 0.4, dtype=torch.float64))
+    # boxes of very different sizes: the parts hold very different sample counts (NARF_P packs ragged blocks)
+    half_extents = torch.linspace(0.05, 0.8, 19, dtype=torch.float64)[:, None].expand(19, 3)
+    fast.set_boxes(torch.zeros(19, 3, dtype=torch.float64), half_extents)
     dense.set_boxes(fast.box_centres, fast.box_half_extents)
     points, dirs = _points(8, 12, seed=5, dtype=torch.float64)
     points[0, :3] = 20.0  # samples outside every box
@@ -265,6 +267,14 @@ def test_sparse_fast_path_matches_dense_reference(name, monkeypatch):
             assert (ga is None or ga.abs().max() == 0) and (gb is None or gb.abs().max() == 0)
         else:
             assert torch.allclose(ga, gb, atol=1e-8)
+
+
+def test_narf_p_packed_pass_without_in_box_samples(monkeypatch):
+    monkeypatch.setattr("narf.fields.narf_p.PACKED_SHARE", 1.0)
+    field = _field("narf_p")
+    points, dirs = _points()
+    out = field(points + 50.0, dirs, _random_pose().select(torch.zeros(4, dtype=torch.long)))
+    assert out.sigma.abs().max() == 0 and out.part_probs.abs().max() == 0
 
 
 def test_image_encoder_size_and_shapes():

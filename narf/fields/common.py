@@ -79,7 +79,9 @@ class RadianceHead(nn.Module):
     Colour: h1 = LReLU_0.2(sqrt(H) h/|h| + W_a z_a); h2 = Lin_{H->H/2}(h1);
     h3 = LReLU_0.2(h2 + sum_k W_k Y_k); c = sigmoid(Lin_{H/2->3}(h3)).
 
-    Inputs are (G, R, S, dim) per sample or (G, R, 1, dim) per ray (embedded once, then broadcast).
+    Inputs are (G, R, S, dim) per sample or (G, R, 1, dim) per ray (embedded once, then broadcast). With
+    ``group_index`` (G',) the inputs are G' blocks, block b going through head ``group_index[b]`` (ragged groups
+    packed in equal blocks, NARF_P's fast path).
 
     Args:
         density_dims / color_dims: input block name -> width.
@@ -111,14 +113,14 @@ class RadianceHead(nn.Module):
         self.density_act = density_activation(density_act)
 
     @staticmethod
-    def _embed(layer, inputs: torch.Tensor) -> torch.Tensor:
+    def _embed(layer, inputs: torch.Tensor, group_index: torch.Tensor | None = None) -> torch.Tensor:
         g, r, s, d = inputs.shape
-        return layer(inputs.reshape(g, r * s, d)).reshape(g, r, s, layer.out_features)
+        return layer(inputs.reshape(g, r * s, d), group_index).reshape(g, r, s, layer.out_features)
 
-    def _embed_sum(self, layers: nn.ModuleDict, inputs: dict[str, torch.Tensor]) -> torch.Tensor:
+    def _embed_sum(self, layers: nn.ModuleDict, inputs: dict[str, torch.Tensor], group_index=None) -> torch.Tensor:
         total = None
         for name, value in inputs.items():
-            embedded = self._embed(layers[name], value)
+            embedded = self._embed(layers[name], value, group_index)
             total = embedded if total is None else total + embedded
         return total
 
@@ -128,10 +130,12 @@ class RadianceHead(nn.Module):
         color_inputs: dict[str, torch.Tensor],
         z_s: torch.Tensor | None = None,
         z_a: torch.Tensor | None = None,
+        group_index: torch.Tensor | None = None,
     ):
         """Returns sigma (G, R, S) and rgb (G, R, S, 3). Latents are (G or 1, R, 1, latent_dim)."""
-        embedded = self._embed_sum(self.density_embed, density_inputs)
-        return self.forward_embedded(embedded, self._embed_sum(self.color_embed, color_inputs), {}, z_s, z_a)
+        embedded = self._embed_sum(self.density_embed, density_inputs, group_index)
+        colour = self._embed_sum(self.color_embed, color_inputs, group_index)
+        return self.forward_embedded(embedded, colour, {}, z_s, z_a, group_index)
 
     def forward_embedded(
         self,
@@ -140,25 +144,27 @@ class RadianceHead(nn.Module):
         extra_density: dict[str, torch.Tensor],
         z_s=None,
         z_a=None,
+        group_index: torch.Tensor | None = None,
     ):
         """As ``forward`` from already embedded sums (G, R, S or 1, H) and (G, R, S or 1, H/2); blocks in
         ``extra_density`` are embedded and added here."""
         if extra_density:
-            embedded = embedded + self._embed_sum(self.density_embed, extra_density)
+            embedded = embedded + self._embed_sum(self.density_embed, extra_density, group_index)
+        blocks = embedded.shape[0]
         if self.latent_shape is not None and z_s is not None:
-            embedded = embedded + self._embed(self.latent_shape, z_s.expand(self.groups, -1, -1, -1))
+            embedded = embedded + self._embed(self.latent_shape, z_s.expand(blocks, -1, -1, -1), group_index)
         n_samples = max(embedded.shape[2], color_embedded.shape[2])
         embedded = embedded.expand(-1, -1, n_samples, -1)
         g, r, s, h = embedded.shape
-        hidden = self.trunk(embedded.reshape(g, r * s, h))
-        sigma = self.density_act(self.sigma_out(hidden))[..., 0].reshape(g, r, s)
+        hidden = self.trunk(embedded.reshape(g, r * s, h), group_index)
+        sigma = self.density_act(self.sigma_out(hidden, group_index))[..., 0].reshape(g, r, s)
         h1 = math.sqrt(self.width) * hidden / hidden.norm(dim=-1, keepdim=True).clamp_min(1e-6)
         h1 = h1.reshape(g, r, s, h)
         if self.latent_appearance is not None and z_a is not None:
-            h1 = h1 + self._embed(self.latent_appearance, z_a.expand(self.groups, -1, -1, -1))
-        h2 = self._embed(self.color_hidden, nn.functional.leaky_relu(h1, 0.2))
+            h1 = h1 + self._embed(self.latent_appearance, z_a.expand(blocks, -1, -1, -1), group_index)
+        h2 = self._embed(self.color_hidden, nn.functional.leaky_relu(h1, 0.2), group_index)
         h3 = nn.functional.leaky_relu(h2 + color_embedded, 0.2)
-        rgb = torch.sigmoid(self._embed(self.rgb_out, h3))
+        rgb = torch.sigmoid(self._embed(self.rgb_out, h3, group_index))
         return sigma, rgb
 
     def extra_costs(self) -> tuple[int, int, int]:
