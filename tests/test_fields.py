@@ -121,6 +121,9 @@ def test_part_local_matches_loop():
                 x_local[r, :, p], transform_points(part_from_world, points[r]) / pose.reach[r], atol=1e-5
             )
             assert torch.allclose(d_local[r, p], part_from_world[:3, :3] @ dirs[r], atol=1e-6)
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # the bf16 switch must not round the coordinates
+        x_auto, d_auto = part_local(points, dirs, pose)
+    assert x_auto.dtype == torch.float32 and torch.equal(x_auto, x_local) and torch.equal(d_auto, d_local)
 
 
 @pytest.mark.parametrize("name", ["narf_d", "narf_p", "d_narf", "p_nerf"])
