@@ -37,6 +37,9 @@ from pipelines.datasets.surreal import check_clip, read_frame_maps, right_handed
 from pipelines.datasets.zju_mocap import Camera, CaptureError
 from pipelines.synthetic.surreal import SurrealSynthConfig, generate_surreal, is_surreal_complete
 
+#: the square crop's side over the body's larger side in a SURREAL frame (docs/model.md §4, SURREAL inputs)
+SURREAL_CROP_MARGIN = 1.2
+
 THUMAN_SPLITS = {
     "same_pose_same_view": ("same_view", False),
     "novel_pose_same_view": ("same_view", True),
@@ -149,7 +152,7 @@ def surreal_view(clip, info_path: Path, frame: int, body_model: BodyModel, video
         raise CaptureError(f"{info_path}: frame {frame} has an empty segmentation")
     K, cam_from_world = right_handed_view(clip.K, clip.cam_from_world, width=rgb.shape[1])
     ys, xs = np.nonzero(segm)
-    side = 1.2 * max(ys.max() - ys.min() + 1, xs.max() - xs.min() + 1)
+    side = SURREAL_CROP_MARGIN * max(ys.max() - ys.min() + 1, xs.max() - xs.min() + 1)
     centre = np.array([(xs.min() + xs.max()) / 2, (ys.min() + ys.max()) / 2])
     scale = CROP_SIZE / side
     # pixel centres: u' = (u + 0.5 - x0) s - 0.5, with x0 the crop's left edge
