@@ -66,17 +66,12 @@ def part_local(points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch) -> tup
     """
     rotation = pose.world_from_part[:, :, :3, :3]  # (R, P, 3, 3)
     origin = pose.world_from_part[:, :, :3, 3]  # (R, P, 3)
-    n_rays, n_parts = rotation.shape[:2]
-    scale = pose.reach[:, None, None, None]
     # never under bf16 autocast: gamma_10 of the box coordinates needs them to ~1e-4 (2^9 pi u), bf16 keeps ~4e-3
     with torch.autocast(points.device.type, enabled=False):
-        # x_i = sum_j M_ji x_j + b_i with M = R / s, b = -R^T t / s: one batched (S, 3) x (3, P*3) product per ray
-        # writes (R, S, P, 3) in place (an einsum over the (R, S, P, 3) offsets permutes and copies them twice)
-        local_from_world = (rotation / scale).permute(0, 2, 1, 3).reshape(n_rays, 3, n_parts * 3)
-        offset = -torch.einsum("rpji,rpj->rpi", rotation, origin) / scale[..., 0]
-        x_local = torch.baddbmm(offset.reshape(n_rays, 1, n_parts * 3), points, local_from_world)
+        offset = points[:, :, None, :] - origin[:, None]  # (R, S, P, 3)
+        x_local = torch.einsum("rpji,rspj->rspi", rotation, offset) / pose.reach[:, None, None, None]
         d_local = torch.einsum("rpji,rj->rpi", rotation, dirs)
-    return x_local.reshape(*points.shape[:2], n_parts, 3), d_local
+    return x_local, d_local
 
 
 class RadianceHead(nn.Module):
