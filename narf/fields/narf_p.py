@@ -93,9 +93,8 @@ class NarfP(Field):
         blocks_of_part = (counts + block - 1) // block
         group_index = torch.repeat_interleave(torch.arange(p_count, device=part.device), blocks_of_part)
         slot = torch.arange(part.numel(), device=part.device) - (torch.cumsum(counts, 0) - counts)[part]
-        block_id = (torch.cumsum(blocks_of_part, 0) - blocks_of_part)[part] + torch.div(
-            slot, block, rounding_mode="floor"
-        )
+        first_block = torch.cumsum(blocks_of_part, 0) - blocks_of_part
+        block_id = first_block[part] + slot // block
         position = slot % block
 
         def packed(values: torch.Tensor) -> torch.Tensor:  # (M, d) -> (blocks, 1, b, d), zero padding
