@@ -16,7 +16,7 @@ from pipelines.datasets.thuman import (
     read_render,
     read_smpl_params_txt,
 )
-from pipelines.synthetic.people import raycast
+from pipelines.synthetic.people import SWIMWEAR_SHARE, person_colours, random_person, raycast
 from pipelines.synthetic.surreal import SurrealSynthConfig, generate_surreal
 from pipelines.synthetic.thuman import ThumanSynthConfig, generate_thuman, is_thuman_complete
 
@@ -64,6 +64,21 @@ def test_thuman_joints_project_onto_the_body(thuman_set):
             cam = view.pose_to_camera[0] @ np.linalg.inv(view.pose_to_world[0])
             assert np.allclose(cam @ view.pose_to_world, view.pose_to_camera, atol=1e-9)  # float64, 2 products
     assert np.mean(inside) > 0.9 and len(inside) > 20
+
+
+def test_swimwear_share_and_bare_torso(body_model):
+    rng = np.random.default_rng(3)
+    people = [random_person(rng) for _ in range(400)]
+    share = np.mean([p.bare_torso for p in people])
+    assert abs(share - SWIMWEAR_SHARE) < 5 * np.sqrt(SWIMWEAR_SHARE * (1 - SWIMWEAR_SHARE) / 400)  # 5 binomial std
+    assert not any(random_person(rng, clothed=False).bare_torso for _ in range(20))  # SURREAL-like: no extra draw
+    rest = body_model.rest_body(torch.zeros(1, 10)).vertices[0].numpy()
+    weights = body_model.smpl.lbs_weights.numpy()
+    chest = np.isin(weights.argmax(1), (6, 9))  # spine2 / spine3: under a top unless bare
+    swimmer = next(p for p in people if p.bare_torso)
+    dressed = next(p for p in people if not p.bare_torso and np.abs(p.top - p.skin).min() > 0.05)
+    assert np.array_equal(person_colours(swimmer, rest, weights)[chest], np.tile(swimmer.skin, (chest.sum(), 1)))
+    assert not np.isclose(person_colours(dressed, rest, weights)[chest], swimmer.skin).all(1).any()
 
 
 def test_thuman_raw_item_reproduces_its_scan(thuman_set, body_model):

@@ -2,14 +2,15 @@
 and a ray caster that renders a vertex-coloured mesh through any pinhole camera (the THUman- and SURREAL-like
 stand-ins, ``docs/formats.md §4``).
 
-Clothing is painted on the body's vertices (short or long sleeves and legs, plain or striped tops), like the
-vertex colours of a THUman scan; geometry stays the body's own. Everything is deterministic under the caller's
+Clothing is painted on the body's vertices (short or long sleeves and legs, plain or striped tops, and for a share
+of the people swimwear: a bare torso and trunks), like the vertex colours of a THUman scan; geometry stays the
+body's own. Everything is deterministic under the caller's
 ``numpy.random.Generator``.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -20,6 +21,7 @@ from pipelines.synthetic.scene import LABEL, vertex_regions
 _SKIN_TONES = np.array(
     [[0.95, 0.80, 0.69], [0.87, 0.68, 0.55], [0.72, 0.53, 0.40], [0.55, 0.38, 0.27], [0.36, 0.24, 0.17]]
 )
+SWIMWEAR_SHARE = 0.25  # clothed people drawn in swimwear (bare torso, trunks), so that skin-dominated looks are seen
 _HAIR = np.array([[0.08, 0.06, 0.05], [0.25, 0.15, 0.08], [0.55, 0.38, 0.20], [0.80, 0.70, 0.45], [0.5, 0.5, 0.5]])
 
 
@@ -31,7 +33,7 @@ class Person:
         betas: (10,) SMPL shape. gender: ``female`` or ``male`` (names only; the stand-in body is neutral).
         skin, hair, top, bottom, shoes: (3,) RGB in [0, 1].
         sleeve: 0 sleeveless ... 1 long sleeves. legs: 0 shorts ... 1 long trousers. stripes: striped top.
-        clothed: False paints skin and underwear only (SURREAL's bodies).
+        clothed: False paints skin and underwear only (SURREAL's bodies). bare_torso: no top (swimwear).
     """
 
     betas: np.ndarray
@@ -45,12 +47,17 @@ class Person:
     legs: float
     stripes: bool
     clothed: bool = True
+    bare_torso: bool = False
 
 
 def random_person(rng: np.random.Generator, clothed: bool = True, beta_std: float = 1.0) -> Person:
-    """A person with betas ~ N(0, beta_std^2) (clipped to +-2.5 std), and random colours and garment lengths."""
+    """A person with betas ~ N(0, beta_std^2) (clipped to +-2.5 std), and random colours and garment lengths.
+
+    A clothed person is in swimwear (bare torso, short trunks) with probability ``SWIMWEAR_SHARE``; that draw comes
+    last and only for clothed people, so unclothed (SURREAL-like) people are drawn as before it existed.
+    """
     colour = lambda: np.clip(rng.uniform(0.05, 0.95, 3) ** 1.3, 0, 1)  # noqa: E731 - many saturated, some pale
-    return Person(
+    person = Person(
         betas=np.clip(rng.normal(0, beta_std, 10), -2.5 * beta_std, 2.5 * beta_std),
         gender=("female", "male")[int(rng.integers(2))],
         skin=_SKIN_TONES[rng.integers(len(_SKIN_TONES))] * rng.uniform(0.92, 1.05),
@@ -63,6 +70,9 @@ def random_person(rng: np.random.Generator, clothed: bool = True, beta_std: floa
         stripes=bool(rng.random() < 0.35),
         clothed=clothed,
     )
+    if clothed and rng.random() < SWIMWEAR_SHARE:
+        person = replace(person, sleeve=0.0, legs=0.0, stripes=False, bare_torso=True)
+    return person
 
 
 def person_colours(person: Person, rest_vertices: np.ndarray, skinning_weights: np.ndarray) -> np.ndarray:
@@ -83,7 +93,7 @@ def person_colours(person: Person, rest_vertices: np.ndarray, skinning_weights: 
     covered_arm = arms & (x_abs < shoulder_x + person.sleeve * (hand_x - shoulder_x) * 0.82)
     torso = np.isin(joint, (0, 3, 6, 9, 13, 14)) & (y > hips - 0.05)
     top = torso | covered_arm | (regions == LABEL["upper_clothes"])
-    top &= ~np.isin(regions, (LABEL["face"], LABEL["hair"], LABEL["torso_skin"]))
+    top &= ~np.isin(regions, (LABEL["face"], LABEL["hair"], LABEL["torso_skin"])) & (not person.bare_torso)
     stripes = (np.floor((y + 1.0) / 0.05) % 2 == 0) if person.stripes else np.zeros(len(y), bool)
     out[top] = np.where(stripes[top, None], person.top * 0.55 + 0.4, person.top)
     legs = np.isin(joint, (0, 1, 2, 4, 5, 7, 8)) & ~top

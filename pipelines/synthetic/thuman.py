@@ -23,7 +23,7 @@ from pipelines.synthetic.narf_render import prepare_folders, render_mesh_splits
 from pipelines.synthetic.people import Person, person_colours, random_person, random_poses
 from pipelines.synthetic.staging import is_finished, publish, start_staging
 
-THUMAN_VERSION = 1
+THUMAN_VERSION = 2  # 2: a share of the people in swimwear (people.SWIMWEAR_SHARE)
 
 
 @dataclass(frozen=True)
