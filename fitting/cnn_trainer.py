@@ -2,7 +2,8 @@
 square size, bone maps rasterised per view, colour + mask MSE (the mask loss skips the boundary band).
 
 Shares the loop, checkpoints, log and validation renders of ``fitting.trainer.Trainer``; only the batch and
-the loss differ. "rays/s" in its log counts output pixels."""
+the loss differ. "rays/s" in its log counts output pixels. ``CnnAutoencoderTrainer`` adds the autoencoder's image
+encoder (``fitting.autoencoder``)."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
+from fitting.autoencoder import AutoencoderTrainer, encode
 from fitting.config import FitConfig
 from fitting.data import FitData
 from fitting.trainer import Trainer
@@ -42,15 +44,33 @@ class CnnTrainer(Trainer):
         self.mask_weight = (F.interpolate(bands, size=(size, size), mode="area")[:, 0] == 0).to(torch.float16)
 
     def train_step(self) -> tuple[float, float]:
+        chosen = self._choose_images()
+        return self.optimise(*self.image_loss(chosen))
+
+    def _choose_images(self) -> torch.Tensor:
+        n = self.config.train.images_per_step
+        return torch.randint(0, len(self.data), (n,), generator=self.generator).to(self.device)
+
+    def image_loss(self, chosen: torch.Tensor, latent: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
+        """(loss, colour MSE) of the training images ``chosen`` (B,): colour MSE + lambda_mask masked mask MSE;
+        ``latent`` (B, 2 L): the autoencoder's codes of those images."""
         t, data = self.config.train, self.data
-        chosen = torch.randint(0, len(data), (t.images_per_step,), generator=self.generator).to(self.device)
         joints = data.poses.world_from_joint[data.frame_of_image[chosen]]
         maps, bones = cnn_inputs(
             joints, data.cam_from_world[chosen], data.Ks[chosen], data.height, data.width, self.config.model.image_size
         )
-        rgb, mask = self.field(maps, bones)
+        rgb, mask = self.field(maps, bones, latent)
         colour = (rgb - self.rgb[chosen].float()).pow(2).mean()
         weight = self.mask_weight[chosen].float()
         mask_term = (weight * (mask - self.mask[chosen].float()).pow(2)).sum() / weight.sum().clamp_min(1)
-        loss = colour + t.mask_weight * mask_term
-        return self.optimise(loss, colour)
+        return colour + t.mask_weight * mask_term, colour
+
+
+class CnnAutoencoderTrainer(CnnTrainer, AutoencoderTrainer):
+    """The CNN baseline as an autoencoder (docs/model.md §4): the image encoder's code of each training image's
+    encoder input conditions the CNN; encoder and CNN train together, checkpointed as an autoencoder run."""
+
+    def train_step(self) -> tuple[float, float]:
+        chosen = self._choose_images()
+        latent = encode(self.encoder, self.encoder_inputs[chosen])
+        return self.optimise(*self.image_loss(chosen, latent))

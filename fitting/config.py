@@ -212,8 +212,6 @@ def validate_config(config: FitConfig) -> None:
     autoencoder = config.data.dataset == "thuman"
     if autoencoder and config.model.latent_dim == 0:
         raise ConfigError("model.latent_dim: the thuman dataset trains an autoencoder; set a latent size (paper 256)")
-    if autoencoder and config.model.name in IMAGE_MODELS:
-        raise ConfigError(f"model.name: '{config.model.name}' has no autoencoder form here; choose a NeRF-type model")
     if config.render.occupancy and autoencoder:  # (image-space models have no rays: the switch does not apply)
         raise ConfigError("render.occupancy: the occupancy grid is for per-subject fits (densities differ per person)")
     if not autoencoder and config.model.latent_dim:

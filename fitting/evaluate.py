@@ -41,7 +41,8 @@ def render_view(field, camera, pose, config: FitConfig, latent: torch.Tensor | N
     cam_from_world = torch.as_tensor(camera.cam_from_world, dtype=torch.float32, device=device)
     if isinstance(field, CnnBaseline):
         with torch.no_grad():
-            return render_cnn_image(field, K, cam_from_world, camera.height, camera.width, pose)
+            code = None if latent is None else latent.to(device)
+            return render_cnn_image(field, K, cam_from_world, camera.height, camera.width, pose, code)
     background = 1.0 if config.data.white_background else 0.0
     return render_image(
         field,

@@ -37,7 +37,7 @@ def make_field(config: FitConfig):
     """The model of a config (only the options its constructor takes)."""
     m = config.model
     if m.name == "cnn":
-        return build_model("cnn", image_size=m.image_size)
+        return build_model("cnn", image_size=m.image_size, latent_dim=m.latent_dim)
     kwargs = {"width": m.width, "density_act": m.density_act, "latent_dim": m.latent_dim}
     if m.name == "narf_p":
         kwargs["temperature"] = m.temperature

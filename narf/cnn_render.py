@@ -41,14 +41,21 @@ def cnn_inputs(
 
 
 def render_cnn_image(
-    model, K: torch.Tensor, cam_from_world: torch.Tensor, height: int, width: int, pose: PoseBatch
+    model,
+    K: torch.Tensor,
+    cam_from_world: torch.Tensor,
+    height: int,
+    width: int,
+    pose: PoseBatch,
+    latent: torch.Tensor | None = None,
 ) -> dict[str, torch.Tensor]:
-    """rgb (H, W, 3), mask (H, W) and depth (H, W, zeros) of one camera and a one-frame pose with joints."""
+    """rgb (H, W, 3), mask (H, W) and depth (H, W, zeros) of one camera and a one-frame pose with joints;
+    ``latent`` (1, 2 L): an autoencoder's code."""
     if pose.world_from_joint is None:
         raise ValueError("the CNN baseline needs the pose's world_from_joint (all 24 SMPL joints)")
     size = model.image_size
     maps, bones = cnn_inputs(pose.world_from_joint[:1], cam_from_world[None], K[None], height, width, size)
-    rgb, mask = model(maps, bones)
+    rgb, mask = model(maps, bones, latent)
     rgb = F.interpolate(rgb, size=(height, width), mode="bilinear", align_corners=False)[0].permute(1, 2, 0)
     mask = F.interpolate(mask[:, None], size=(height, width), mode="bilinear", align_corners=False)[0, 0]
     return {"rgb": rgb.clamp(0, 1), "mask": mask.clamp(0, 1), "depth": torch.zeros_like(mask)}

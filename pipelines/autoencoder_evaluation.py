@@ -211,9 +211,9 @@ def markdown_autoencoder(report: dict) -> str:
         cross = report["splits"]["cross_dataset"]
         columns += [("SURREAL recon.", cross["reconstruction"]), ("SURREAL novel pose", cross["novel_pose"])]
     cell = lambda m: f"{m['mask_l2']:.1f}/{m['psnr']:.2f}/{m['ssim']:.4f}" if m else "-"  # noqa: E731
+    size = f"{report['image_size']}^2 bone maps" if report["model"] == "cnn" else f"width {report['width']}"
     lines = [
-        f"# autoencoder {report['model']} (width {report['width']}, latent {report['latent_dim']}), "
-        f"step {report['step']}",
+        f"# autoencoder {report['model']} ({size}, latent {report['latent_dim']}), step {report['step']}",
         "",
         "Cells: Mask L2 (x10^4) / PSNR (dB) / SSIM on 128^2 images. SS/NS/SN/NN = same or novel pose x same or "
         "novel view.",
@@ -262,6 +262,7 @@ def evaluate_autoencoder_run(
             "step": run.step,
             "model": c.model.name,
             "width": c.model.width,
+            "image_size": c.model.image_size,
             "latent_dim": c.model.latent_dim,
             "dataset": str(run.dataset.root),
             "versions": library_versions(),

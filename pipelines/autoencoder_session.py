@@ -1,6 +1,7 @@
 """Glue between a THUman-layout set on disk (NARF's ``render_128`` splits, ``docs/formats.md §6``) and the
 autoencoder: find the set (a real one, else the synthetic stand-in, generated on demand), read renders with their
-``_view2`` encoder inputs and poses, fit the part boxes, and start (or resume) an AutoencoderTrainer."""
+``_view2`` encoder inputs and poses, fit the part boxes, and start (or resume) an AutoencoderTrainer (the CNN
+baseline: a CnnAutoencoderTrainer)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from tqdm import tqdm
 
 from fitting.autoencoder import AutoencoderData, AutoencoderTrainer
 from fitting.checkpoint import load_checkpoint
+from fitting.cnn_trainer import CnnAutoencoderTrainer
 from fitting.config import FitConfig, load_config
 from fitting.data import TrainingSet
 from pipelines.body.model import BodyModel, pose_batch_from_joints
@@ -147,4 +149,5 @@ def start_autoencoder(
             raise CaptureError(f"{run_dir}: holds a per-subject fit, not an autoencoder (resume it without --dataset)")
         config = load_config(base=state["config"], overrides=resume_overrides)
     data = build_autoencoder_data(config, device, progress)
-    return AutoencoderTrainer(config, run_dir, device, data, state=state, progress=progress)
+    trainer = CnnAutoencoderTrainer if config.model.name == "cnn" else AutoencoderTrainer
+    return trainer(config, run_dir, device, data, state=state, progress=progress)

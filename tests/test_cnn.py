@@ -2,7 +2,7 @@ import pytest
 import torch
 
 from narf.bone_maps import N_CHANNELS, bone_maps, bone_pose_vector
-from narf.fields.cnn import POSE_DIM, CnnBaseline
+from narf.fields.cnn import POSE_DIM, CnnBaseline, ConditionalBatchNorm
 from narf.kinematics import SMPL_PARENTS
 
 
@@ -50,3 +50,29 @@ def test_cnn_baseline_size_and_outputs():
     assert model.stem.weight.grad is not None
     with pytest.raises(ValueError, match="maps"):
         model(torch.zeros(1, 45, 128, 128), pose[:1])
+
+
+def test_cnn_autoencoder_conditions_every_norm_on_the_code():
+    torch.manual_seed(0)
+    model = CnnBaseline(image_size=32, latent_dim=4)
+    plain = CnnBaseline(image_size=32)
+    # each conditional norm's affine map takes the 2 L code beside the 228 pose values: 2 C x 8 more weights
+    extra = sum(2 * m.norm.num_features * 8 for m in model.modules() if isinstance(m, ConditionalBatchNorm))
+    assert sum(p.numel() for p in model.parameters()) - sum(p.numel() for p in plain.parameters()) == extra
+    maps = torch.rand(2, N_CHANNELS, 32, 32)
+    pose = torch.randn(2, POSE_DIM)
+    with pytest.raises(ValueError, match="needs a code"):
+        model(maps, pose)
+    with pytest.raises(ValueError, match="latent"):
+        model(maps, pose, torch.zeros(2, 4))
+    codes = torch.randn(2, 8)
+    model.eval()
+    with torch.no_grad():  # zero-initialised affine maps: the code has no effect until trained
+        assert torch.equal(model(maps, pose, codes)[0], model(maps, pose, torch.zeros(2, 8))[0])
+        for m in model.modules():
+            if isinstance(m, ConditionalBatchNorm):
+                m.affine.weight.normal_(0, 0.05)
+        # gamma, beta now move by ~0.05 |z| ~ 0.1 per channel: far above float32 noise in the outputs
+        assert (model(maps, pose, codes)[0] - model(maps, pose, torch.zeros(2, 8))[0]).abs().max() > 1e-3
+    with pytest.raises(ValueError, match="multiple of 32"):
+        CnnBaseline(image_size=48)

@@ -9,7 +9,7 @@ from pipelines.cli import experiments, fit
 from pipelines.cli.common import run_cli
 from pipelines.experiments.orderings import check_orderings, paper_results
 from pipelines.experiments.runner import Settings, fit_argv, run_table
-from pipelines.experiments.tables import TABLE_B, TABLES
+from pipelines.experiments.tables import TABLE_A, TABLE_B, TABLE_C, TABLES
 from pipelines.synthetic.rigid import RigidSynthConfig, generate_rigid
 
 
@@ -34,6 +34,15 @@ def test_resume_gets_the_rest_of_the_budget(tmp_path):
     save_checkpoint(run_dir, {"elapsed": 120.0, "step": 7, "config": {}, "model": {}})
     argv = fit_argv(TABLE_B, TABLE_B.rows[0], Settings(budget_minutes=5.0), run_dir)
     assert argv[0] == "--resume" and argv[argv.index("--max-minutes") + 1] == "3.0000"  # 5 min - 120 s
+
+
+def test_cnn_rows_take_the_cnn_presets(tmp_path):
+    presets = {}
+    for table, preset in ((TABLE_A, "cpu"), (TABLE_A, "paper"), (TABLE_C, "cpu")):
+        row = next(r for r in table.rows if r.name == "cnn")
+        argv = fit_argv(table, row, Settings(preset=preset), tmp_path / "run")
+        presets[table.name, preset] = argv[argv.index("--config") + 1]
+    assert presets == {("table-a", "cpu"): "ae_cnn", ("table-a", "paper"): "ae_cnn_paper", ("table-c", "cpu"): "cnn"}
 
 
 def test_rows_resume_and_compare(tmp_path, capsys):

@@ -158,6 +158,10 @@ def test_config_is_strict():
     with pytest.raises(ConfigError, match="unknown preset 'fast'"):
         load_config("fast")
     assert load_config("cpu", ["model.width=32"]).model.width == 32
+    from fitting.config import CONFIG_DIR
+
+    for preset in sorted(CONFIG_DIR.glob("*.yaml")):  # every shipped preset loads strictly and validates
+        load_config(preset.stem)
 
 
 class TestBadInput:

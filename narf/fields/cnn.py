@@ -3,6 +3,9 @@
 Five residual down blocks (128 -> 4 px, at most 256 channels), then two skip decoders
 (RGB, mask). Every normalisation is a conditional batch norm whose scale and shift come from the bones'
 camera-frame poses (19 x 12 values). Mask = sigmoid(logit - 5). No depth, no segmentation.
+
+As an autoencoder (``latent_dim`` > 0, docs/model.md §4) the code z = [z_s, z_a] of the image encoder joins the
+bone poses as the conditioning vector of every normalisation, so one network renders every person.
 """
 
 from __future__ import annotations
@@ -19,12 +22,12 @@ _LOGIT_BOUND = 15.0
 
 
 class ConditionalBatchNorm(nn.Module):
-    """BatchNorm without affine parameters; gamma, beta = Linear(pose) (gamma around 1)."""
+    """BatchNorm without affine parameters; gamma, beta = Linear(condition) (gamma around 1)."""
 
-    def __init__(self, channels: int, pose_dim: int = POSE_DIM):
+    def __init__(self, channels: int, condition_dim: int = POSE_DIM):
         super().__init__()
         self.norm = nn.BatchNorm2d(channels, affine=False)
-        self.affine = nn.Linear(pose_dim, 2 * channels)
+        self.affine = nn.Linear(condition_dim, 2 * channels)
         nn.init.zeros_(self.affine.weight)
         nn.init.zeros_(self.affine.bias)
 
@@ -36,10 +39,10 @@ class ConditionalBatchNorm(nn.Module):
 class _ResBlock(nn.Module):
     """CBN-ReLU-conv3-CBN-ReLU-conv3 + 1x1 skip; optional 2x average-pool."""
 
-    def __init__(self, c_in: int, c_out: int, down: bool):
+    def __init__(self, c_in: int, c_out: int, down: bool, condition_dim: int):
         super().__init__()
-        self.norm1, self.conv1 = ConditionalBatchNorm(c_in), nn.Conv2d(c_in, c_out, 3, padding=1)
-        self.norm2, self.conv2 = ConditionalBatchNorm(c_out), nn.Conv2d(c_out, c_out, 3, padding=1)
+        self.norm1, self.conv1 = ConditionalBatchNorm(c_in, condition_dim), nn.Conv2d(c_in, c_out, 3, padding=1)
+        self.norm2, self.conv2 = ConditionalBatchNorm(c_out, condition_dim), nn.Conv2d(c_out, c_out, 3, padding=1)
         self.skip = nn.Conv2d(c_in, c_out, 1) if c_in != c_out else nn.Identity()
         self.pool = nn.AvgPool2d(2) if down else nn.Identity()
 
@@ -52,11 +55,11 @@ class _ResBlock(nn.Module):
 class _Decoder(nn.Module):
     """Upsample 4 -> 128 px; each level concatenates the encoder features of its resolution."""
 
-    def __init__(self, out_channels: int):
+    def __init__(self, out_channels: int, condition_dim: int):
         super().__init__()
         widths = _ENCODER[::-1]  # 256 (4 px) ... 32 (128 px)
         self.blocks = nn.ModuleList(
-            _ResBlock(widths[k] + widths[k + 1], widths[k + 1], down=False) for k in range(len(widths) - 1)
+            _ResBlock(widths[k] + widths[k + 1], widths[k + 1], False, condition_dim) for k in range(len(widths) - 1)
         )
         self.out = nn.Conv2d(widths[-1], out_channels, 3, padding=1)
 
@@ -69,18 +72,29 @@ class _Decoder(nn.Module):
 
 
 class CnnBaseline(nn.Module):
-    """Bone maps (B, 46, 128, 128) and bone poses (B, 228) -> RGB (B, 3, 128, 128) in [0, 1], mask (B, 128, 128)."""
+    """Bone maps (B, 46, S, S), bone poses (B, 228) and, as an autoencoder, codes (B, 2 L) -> RGB (B, 3, S, S) in
+    [0, 1] and mask (B, S, S); S = ``image_size`` (paper 128, a multiple of 32)."""
 
-    def __init__(self, image_size: int = 128):
+    def __init__(self, image_size: int = 128, latent_dim: int = 0):
         super().__init__()
-        self.image_size = image_size
+        if image_size % 32:
+            raise ValueError(f"image_size must be a multiple of 32 (five 2x down blocks), got {image_size}")
+        self.image_size, self.latent_dim = image_size, latent_dim
+        condition = POSE_DIM + 2 * latent_dim
         self.stem = nn.Conv2d(N_CHANNELS, _ENCODER[0], 3, padding=1)
-        self.down = nn.ModuleList(_ResBlock(a, b, down=True) for a, b in zip(_ENCODER[:-1], _ENCODER[1:]))
-        self.rgb_decoder, self.mask_decoder = _Decoder(3), _Decoder(1)
+        self.down = nn.ModuleList(_ResBlock(a, b, True, condition) for a, b in zip(_ENCODER[:-1], _ENCODER[1:]))
+        self.rgb_decoder, self.mask_decoder = _Decoder(3, condition), _Decoder(1, condition)
 
-    def forward(self, maps: torch.Tensor, pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def forward(
+        self, maps: torch.Tensor, pose: torch.Tensor, latent: torch.Tensor | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
         check_shape("maps", maps, (-1, N_CHANNELS, self.image_size, self.image_size))
         check_shape("pose", pose, (maps.shape[0], POSE_DIM))
+        if self.latent_dim:
+            if latent is None:
+                raise ValueError("this CNN is an autoencoder's: it needs a code (B, 2 * latent_dim)")
+            check_shape("latent", latent, (maps.shape[0], 2 * self.latent_dim))
+            pose = torch.cat([pose, latent.to(pose.dtype)], dim=-1)
         h = self.stem(maps)
         skips = [h]
         for block in self.down:

@@ -38,9 +38,10 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--config",
         default=None,
-        help="preset name (cpu, paper, tiny, cnn, ae_cpu, ae_paper, ae_tiny, rigid_cpu, rigid_paper, rigid_tiny) or "
-        "YAML file; default: cnn for --model cnn, ae_paper / ae_cpu for --dataset thuman, rigid_paper / rigid_cpu for "
-        "--dataset rigid, else paper with CUDA and cpu without",
+        help="preset name (cpu, paper, tiny, cnn, ae_cpu, ae_paper, ae_tiny, ae_cnn, ae_cnn_paper, rigid_cpu, "
+        "rigid_paper, rigid_tiny) or YAML file; default: cnn for --model cnn, ae_paper / ae_cpu for --dataset thuman "
+        "(ae_cnn_paper / ae_cnn with --model cnn), rigid_paper / rigid_cpu for --dataset rigid, else paper with CUDA "
+        "and cpu without",
     )
     parser.add_argument(
         "--model",
@@ -118,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         gpu = device.type == "cuda"
         if args.dataset == "thuman":
-            default = "ae_paper" if gpu else "ae_cpu"
+            default = ("ae_cnn_paper" if gpu else "ae_cnn") if args.model == "cnn" else "ae_paper" if gpu else "ae_cpu"
         elif args.dataset == "rigid":
             default = "rigid_paper" if gpu else "rigid_cpu"
         else:

@@ -23,7 +23,7 @@ from pipelines.cli import fit
 from pipelines.experiments.orderings import check_orderings
 from pipelines.experiments.tables import SHORT, Row, Table
 
-#: Presets per dataset: (CPU budget preset, paper preset); the CNN baseline has one preset of its own.
+#: Presets per dataset: (CPU budget preset, paper preset); the CNN baseline has its own (cnn; ae_cnn, ae_cnn_paper).
 PRESETS = {"zju": ("cpu", "paper"), "thuman": ("ae_cpu", "ae_paper"), "rigid": ("rigid_cpu", "rigid_paper")}
 #: CPU budget per row in minutes, and views per split evaluated, per table (README, "Experiments").
 CPU_BUDGET = {"table-a": 10.0, "table-b": 5.0, "table-c": 5.0}
@@ -51,8 +51,11 @@ def fit_argv(table: Table, row: Row, settings: Settings, run_dir: Path) -> list[
             spent = load_checkpoint(run_dir).get("elapsed", 0.0) / 60
             budget = ["--max-minutes", f"{max(settings.budget_minutes - spent, 0.0):.4f}"]
         return ["--resume", *common, *budget]
-    cnn = "cnn" in row.fit_args
-    preset = "cnn" if cnn else PRESETS[table.dataset][settings.preset == "paper"]
+    paper = settings.preset == "paper"
+    if "cnn" in row.fit_args:  # the CNN's own presets; as an autoencoder, with the image encoder
+        preset = ("ae_cnn", "ae_cnn_paper")[paper] if table.dataset == "thuman" else "cnn"
+    else:
+        preset = PRESETS[table.dataset][paper]
     dataset = [] if table.dataset == "zju" else ["--dataset", table.dataset]
     root = [] if settings.data_root is None else ["--data-root", settings.data_root]
     return [*dataset, *root, "--config", preset, *row.fit_args, *common, *budget]
