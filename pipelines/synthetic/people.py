@@ -4,8 +4,7 @@ stand-ins, ``docs/formats.md §4``).
 
 Clothing is painted on the body's vertices (short or long sleeves and legs, plain or striped tops, and for a share
 of the people swimwear: a bare torso and trunks), like the vertex colours of a THUman scan; geometry stays the
-body's own. Everything is deterministic under the caller's
-``numpy.random.Generator``.
+body's own. Everything is deterministic under the caller's ``numpy.random.Generator``.
 """
 
 from __future__ import annotations
