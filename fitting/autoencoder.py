@@ -29,9 +29,24 @@ def build_encoder(config) -> ImageEncoder:
     return ImageEncoder(config.model.latent_dim, image_size=128, base_channels=config.model.encoder_channels)
 
 
-def encode(encoder: ImageEncoder, images_u8: torch.Tensor) -> torch.Tensor:
-    """(B, 3, S, S) uint8 -> (B, 2 L) codes."""
-    return encoder(images_u8.float() / 255.0)
+def encode(encoder: ImageEncoder, images_u8: torch.Tensor, gains: torch.Tensor | None = None) -> torch.Tensor:
+    """(B, 3, S, S) uint8 -> (B, 2 L) codes; ``gains`` (B, 3) scale each image's channels first (clamped to 1)."""
+    images = images_u8.float() / 255.0
+    if gains is not None:
+        images = (images * gains[:, :, None, None]).clamp(max=1.0)
+    return encoder(images)
+
+
+def colour_gains(n: int, strength: float, generator: torch.Generator) -> torch.Tensor | None:
+    """(n, 3) channel gains g ~ U(1 - strength, 1 + strength), or None when ``strength`` is 0.
+
+    Colour jitter (docs/model.md §4, beyond the paper): one gain per image and channel multiplies both the encoder's
+    input and the target colours of that image's rays, so that the same mesh is seen in many colourings and the
+    appearance code has to be read from the input rather than recalled for a known person. Black stays black.
+    """
+    if strength == 0:
+        return None
+    return 1.0 + strength * (2.0 * torch.rand(n, 3, generator=generator) - 1.0)
 
 
 class AutoencoderTrainer(Trainer):
@@ -60,8 +75,12 @@ class AutoencoderTrainer(Trainer):
             t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction, self.generator
         )
         images, batch.frames = torch.unique(batch.frames, return_inverse=True)
+        gains = colour_gains(len(images), t.colour_jitter, self.generator)
+        if gains is not None:
+            gains = gains.to(self.device)
+            batch.rgb = (batch.rgb * gains[batch.frames]).clamp(max=1.0)
         with self.autocast():
-            latent = encode(self.encoder, self.encoder_inputs[images])
+            latent = encode(self.encoder, self.encoder_inputs[images], gains)
             loss, colour = ray_loss(
                 self.config,
                 self.field,

@@ -69,6 +69,7 @@ class TrainConfig:
     border_fraction: float = 0.2  #: share on a band around the silhouette; the rest on background in the box
     lr: float = 0.01  #: Adam learning rate (equalized-lr layers assume 0.01)
     encoder_lr: float = 0.001  #: autoencoder: Adam learning rate of the image encoder (plain conv layers)
+    colour_jitter: float = 0.0  #: autoencoder: per-image channel gains in [1-j, 1+j] on input and target (0: off)
     lr_decay: float = 0.99995  #: multiplicative decay per step (upstream)
     lr_min: float = 0.0  #: floor of the decayed learning rate
     adam_eps: float = 1e-12  #: Adam epsilon (upstream)
@@ -200,6 +201,7 @@ def validate_config(config: FitConfig) -> None:
         ("model.latent_dim", config.model.latent_dim >= 0),
         ("model.encoder_channels", config.model.encoder_channels >= 1),
         ("train.encoder_lr", config.train.encoder_lr > 0),
+        ("train.colour_jitter", 0 <= config.train.colour_jitter < 1),
         ("train.precision", config.train.precision in ("fp32", "bf16")),
         ("render.occupancy_resolution", config.render.occupancy_resolution >= 2),
         ("render.occupancy_threshold", config.render.occupancy_threshold >= 0),

@@ -7,11 +7,13 @@ import numpy as np
 import pytest
 import torch
 
+from fitting.autoencoder import colour_gains, encode
 from fitting.checkpoint import load_checkpoint
 from fitting.cnn_trainer import CnnAutoencoderTrainer
 from fitting.config import ConfigError, load_config
 from fitting.trainer import prepare_run_dir
 from narf.fields.cnn import POSE_DIM
+from narf.fields.encoder import ImageEncoder
 from pipelines.autoencoder_evaluation import evaluate_autoencoder_run, surreal_view
 from pipelines.autoencoder_session import start_autoencoder
 from pipelines.body.model import pose_batch, pose_batch_from_joints
@@ -48,8 +50,24 @@ def test_pose_batch_from_joint_frames_matches_the_body_model(body_model64):
     assert torch.allclose(a.rest_offsets, b.rest_offsets, atol=1e-7)
 
 
+def test_colour_jitter_gains_scale_the_encoder_input():
+    gen = torch.Generator().manual_seed(0)
+    gains = colour_gains(400, 0.3, gen)
+    assert gains.shape == (400, 3) and gains.min() >= 0.7 and gains.max() <= 1.3 and gains.std() > 0.1
+    assert colour_gains(4, 0.0, gen) is None
+    encoder = ImageEncoder(8, image_size=128, base_channels=2).eval()
+    dark = torch.randint(0, 100, (2, 3, 128, 128), dtype=torch.uint8, generator=gen)
+    with torch.no_grad():
+        assert torch.equal(encode(encoder, dark, torch.ones(2, 3)), encode(encoder, dark))
+        # doubling values <= 99 stays below 255 and below the clamp, and float scaling by 2 commutes with
+        # rounding (x / 255 * 2 == 2 x / 255 exactly), so the code equals that of the doubled image bit for bit
+        doubled = encode(encoder, dark * 2)
+        assert torch.equal(encode(encoder, dark, torch.full((2, 3), 2.0)), doubled)
+
+
 def test_fit_learns_and_resumes_exactly(sets, tmp_path):
-    config = _config(sets, "train.steps=16")
+    # with colour jitter on, so that its draws are shown to replay from the checkpointed generator too
+    config = _config(sets, "train.steps=16", "train.colour_jitter=0.3")
     straight = start_autoencoder(config, prepare_run_dir(tmp_path / "a", config, False), "cpu", progress=False)
     straight.fit()
     first = start_autoencoder(config, prepare_run_dir(tmp_path / "b", config, False), "cpu", progress=False)
