@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
         "run",
         help="run (or resume) a table",
         formatter_class=HelpFormatter,
-        description="table-a: autoencoders on the THUman-like set (P-NeRF, D-NARF, NARF_P, NARF_H, NARF_D); "
+        description="table-a: autoencoders on the THUman-like set (CNN, P-NeRF, D-NARF, NARF_P, NARF_H, NARF_D); "
         "table-b: the rigid object (RP-NeRF, RT-NeRF w/o xi, RT-NeRF); table-c: the single subject (CNN, P-NeRF, "
         "D-NARF, NARF_P at widths 32-256, NARF_H, NARF_D, sigmoid, the tau sweep and the mask-loss ablations). "
         "With --preset cpu each row trains for "
