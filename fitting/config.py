@@ -218,3 +218,5 @@ def validate_config(config: FitConfig) -> None:
         raise ConfigError("render.occupancy: the occupancy grid is for per-subject fits (densities differ per person)")
     if not autoencoder and config.model.latent_dim:
         raise ConfigError("model.latent_dim: only the thuman dataset (an autoencoder) uses latents; set it to 0")
+    if config.train.colour_jitter and (not autoencoder or config.model.name == "cnn"):
+        raise ConfigError("train.colour_jitter: only the NeRF-type autoencoders (the thuman dataset) use it")

@@ -148,6 +148,8 @@ def test_mixed_up_runs_and_settings_fail_clearly(sets, tmp_path, capsys, data_ro
         load_config("ae_tiny", ["model.latent_dim=0"])
     with pytest.raises(ConfigError, match="only the thuman dataset"):
         load_config("tiny", ["model.latent_dim=8"])
+    with pytest.raises(ConfigError, match="train.colour_jitter: only the NeRF-type autoencoders"):
+        load_config("ae_tiny", ["model.name=cnn", "train.colour_jitter=0.3"])
     subject = ["--config", "tiny", "--data-root", str(data_root_64), "--quiet", "--set", "train.steps=2"]
     assert run_cli("narf-fit", cli_fit.main, [*subject, "--out", str(tmp_path / "subject")]) == 0
     code = run_cli("narf-eval", cli_eval.main, ["--run", str(tmp_path / "subject"), "--split", "cross_dataset"])
