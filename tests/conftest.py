@@ -8,6 +8,16 @@ import pytest
 _CACHE = Path(__file__).resolve().parents[1] / ".cache" / "test"
 os.environ.setdefault("NARF_CACHE", str(_CACHE))
 os.environ.pop("NARF_SMPL_DIR", None)
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # `make test` runs one pytest-xdist worker per core; left alone, each worker's torch and OpenCV would start one
+    # thread per core as well, and the n x n threads spin-wait against each other. One thread per worker, and for
+    # the processes the tests start (OMP_NUM_THREADS is inherited), keeps every core busy without that.
+    import cv2
+    import torch
+
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
 
 
 @pytest.fixture(scope="session")
