@@ -384,6 +384,11 @@ def test_ctrl_c_during_synth_calibrate_and_eval_leaves_nothing_that_looks_finish
 
     capture = tmp_path / "capture"
     shutil.copytree(tiny_capture, capture)
+    # the tiny capture's 3 shots per camera are detected in well under a second and then fail (too few views), so
+    # the interrupt could land after the work: 40 copies of each shot make the detection outlast it
+    for shot in capture.glob("calib/*/*.jpg"):
+        for k in range(40):
+            shutil.copy(shot, shot.with_name(f"{100 + 40 * int(shot.stem) + k:03d}.jpg"))
     done = _interrupt_after([*_cli("calibrate"), str(capture)], lambda err: "detecting boards" in err)
     assert done.returncode == 130 and "Traceback" not in done.stderr
     assert not (capture / "calibration").exists()
