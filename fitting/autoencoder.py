@@ -33,8 +33,14 @@ def encode(encoder: ImageEncoder, images_u8: torch.Tensor, gains: torch.Tensor |
     """(B, 3, S, S) uint8 -> (B, 2 L) codes; ``gains`` (B, 3) scale each image's channels first (clamped to 1)."""
     images = images_u8.float() / 255.0
     if gains is not None:
-        images = (images * gains[:, :, None, None]).clamp(max=1.0)
+        images = scale_colours(images, gains[:, :, None, None])
     return encoder(images)
+
+
+def scale_colours(colours: torch.Tensor, gains: torch.Tensor) -> torch.Tensor:
+    """min(colours * gains, 1): the colour jitter of ``colour_gains``, one formula for encoder input and targets
+    alike; ``gains`` broadcast against ``colours``."""
+    return (colours * gains).clamp(max=1.0)
 
 
 def colour_gains(n: int, strength: float, generator: torch.Generator) -> torch.Tensor | None:
@@ -78,7 +84,7 @@ class AutoencoderTrainer(Trainer):
         gains = colour_gains(len(images), t.colour_jitter, self.generator)
         if gains is not None:
             gains = gains.to(self.device)
-            batch.rgb = (batch.rgb * gains[batch.frames]).clamp(max=1.0)
+            batch.rgb = scale_colours(batch.rgb, gains[batch.frames])
         with self.autocast():
             latent = encode(self.encoder, self.encoder_inputs[images], gains)
             loss, colour = ray_loss(
