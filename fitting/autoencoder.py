@@ -9,9 +9,14 @@ from dataclasses import dataclass
 
 import torch
 
-from fitting.data import FitData
+from fitting.config import FitConfig
+from fitting.data import FitData, RayBatch
 from fitting.trainer import Trainer, ray_loss
 from narf.fields.encoder import ImageEncoder
+from narf.rays import image_pixels, rays_from_pixels
+
+#: Adam step size of ``refine_code`` on the code (the field's training rate, docs/model.md §4)
+REFINE_LR = 0.01
 
 
 @dataclass
@@ -53,6 +58,81 @@ def colour_gains(n: int, strength: float, generator: torch.Generator) -> torch.T
     if strength == 0:
         return None
     return 1.0 + strength * (2.0 * torch.rand(n, 3, generator=generator) - 1.0)
+
+
+def refine_code(
+    config: FitConfig,
+    field,
+    code: torch.Tensor,
+    K: torch.Tensor,
+    cam_from_world: torch.Tensor,
+    pose,
+    image: torch.Tensor,
+    mask: torch.Tensor,
+    steps: int,
+    rays_per_step: int = 2048,
+    seed: int = 0,
+) -> torch.Tensor:
+    """Test-time refinement of an encoded code on its input image (docs/model.md §4, beyond the paper).
+
+    z_0 = the encoder's code; then ``steps`` Adam steps (``REFINE_LR``) on z alone minimise the training loss
+    ``ray_loss`` over ``rays_per_step`` pixels of the input drawn uniformly, at the deterministic samples of a
+    full-image render (``render.eval_coarse`` + ``eval_fine``: the estimator the scored renders use; random strata
+    would shift the optimum by their noise); the field is not changed. The input must
+    come with its camera and pose (a SURREAL frame, a ``render_128`` image), since the loss renders it.
+
+    Args:
+        code: (1, 2 L) encoder code. K (3, 3), cam_from_world (4, 4): the input's camera. pose: its one-frame
+            PoseBatch. image (H, W, 3) in [0, 1], mask (H, W): the input and its silhouette.
+
+    Returns:
+        (1, 2 L) refined code (no gradient); ``code`` itself when ``steps`` is 0.
+    """
+    if steps < 0 or rays_per_step < 1:
+        raise ValueError(f"refine_code: steps must be >= 0 and rays_per_step >= 1, got {steps}, {rays_per_step}")
+    if steps == 0:
+        return code
+    device = code.device
+    height, width = mask.shape
+    origins, dirs = rays_from_pixels(
+        K.float().to(device), cam_from_world.float().to(device), image_pixels(height, width, device)
+    )
+    rgb, silhouette = image.reshape(-1, 3).float().to(device), mask.reshape(-1).float().to(device)
+    generator = torch.Generator(device).manual_seed(seed)
+    latent = code.detach().clone().requires_grad_(True)
+    optimiser = torch.optim.Adam([latent], lr=REFINE_LR)
+    frozen = [p.requires_grad for p in field.parameters()]
+    field.requires_grad_(False)
+    try:
+        for _ in range(steps):
+            rays = torch.randint(0, height * width, (rays_per_step,), device=device, generator=generator)
+            frames = torch.zeros(rays_per_step, dtype=torch.long, device=device)
+            batch = RayBatch(
+                origins[rays],
+                dirs[rays],
+                frames,
+                rgb[rays],
+                silhouette[rays],
+                torch.ones_like(frames, dtype=torch.float32),
+            )
+            loss, _ = ray_loss(
+                config,
+                field,
+                batch,
+                pose,
+                generator,
+                config.render.eval_coarse,
+                config.render.eval_fine,
+                latent=latent,
+                randomized=False,
+            )
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+    finally:
+        for parameter, flag in zip(field.parameters(), frozen):
+            parameter.requires_grad_(flag)
+    return latent.detach()
 
 
 class AutoencoderTrainer(Trainer):

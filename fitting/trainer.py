@@ -61,12 +61,14 @@ def ray_loss(
     latent=None,
     uniforms=None,
     normalisers: tuple[float, torch.Tensor] | None = None,
+    randomized: bool = True,
 ):
     """L = mean 1/3 |C - C_gt|^2 + lambda_mask mean (M - M_gt)^2 (band skipped). Returns loss, colour MSE.
 
     ``latent``: optional (F, 2 * latent_dim) autoencoder codes, one per frame of ``poses``. ``uniforms``: the rays'
     sample draws (``render_rays``). ``normalisers``: (3 R, sum of mask weights) of the global batch when ``batch``
-    is one process's share of it; both terms are then that share's contribution to the global means."""
+    is one process's share of it; both terms are then that share's contribution to the global means.
+    ``randomized`` False: deterministic samples (``render_rays``), as full-image renders take them."""
     per_ray = poses.select(batch.frames)
     near, far, hit = field_ray_bounds(field, batch.origins, batch.dirs, per_ray)
     background = 1.0 if config.data.white_background else 0.0
@@ -80,6 +82,7 @@ def ray_loss(
         n_coarse,
         n_fine,
         background=background,
+        randomized=randomized,
         generator=generator,
         uniforms=uniforms,
     )

@@ -7,7 +7,10 @@ shows what the encoder adds.
 the paper (which shows SURREAL only qualitatively), novel poses: the same code rendered in the poses of later
 frames of the clip through the same camera, compared with those frames. SURREAL frames are made right-handed
 (flipped, with ``right_handed_view``), cropped square around the body (1.2 x its larger side), resized to 128^2
-with the intrinsics adjusted, and put on black through ``_segm.mat`` as the THUman renders are.
+with the intrinsics adjusted, and put on black through ``_segm.mat`` as the THUman renders are. With
+``refine_steps`` (``narf-eval --refine-steps N``), a third code joins them: the encoder's code refined by N steps of
+the training loss on the encoded frame (``fitting.autoencoder.refine_code``; the field is fixed). Its reconstruction
+row fits the scored image itself; its novel-pose row is the fair measure of what refinement adds.
 """
 
 from __future__ import annotations
@@ -22,7 +25,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from fitting.autoencoder import build_encoder, encode
+from fitting.autoencoder import build_encoder, encode, refine_code
 from fitting.checkpoint import load_checkpoint
 from fitting.config import FitConfig, load_config
 from fitting.evaluate import average_metrics, library_versions, render_view, spread, ssim, write_report
@@ -170,7 +173,38 @@ def surreal_view(clip, info_path: Path, frame: int, body_model: BodyModel, video
     return ThumanView(image, mask, np.zeros(mask.shape, bool), camera), pose
 
 
-def evaluate_cross_dataset(run, baseline, limit, device, out_dir, progress, grids, surreal_root=None) -> dict:
+def check_refinable(run: AutoencoderRun, run_dir: Path, refine_steps: int) -> None:
+    """Refuse ``refine_steps`` (--refine-steps) where it cannot run: a negative count, the CNN baseline."""
+    if refine_steps < 0:
+        raise ValueError(f"--refine-steps must be >= 0, got {refine_steps}")
+    if refine_steps and run.config.model.name == "cnn":
+        raise ValueError(
+            f"{run_dir}: the CNN baseline renders no rays, so its codes cannot be refined (--refine-steps)"
+        )
+
+
+def refined_code(run: AutoencoderRun, code, view: ThumanView, pose, steps: int, device) -> torch.Tensor:
+    """``refine_code`` on an input view (its own camera and pose)."""
+    t = torch.as_tensor
+    camera = view.camera
+    return refine_code(
+        run.config,
+        run.field,
+        code,
+        t(camera.K),
+        t(camera.cam_from_world),
+        pose.to(device),
+        t(view.image),
+        t(view.mask),
+        steps,
+    )
+
+
+def evaluate_cross_dataset(
+    run, baseline, limit, device, out_dir, progress, grids, surreal_root=None, refine_steps: int = 0
+) -> dict:
+    """Encode frame 0 of each clip; score it and two later frames with the code, the mean code and, when
+    ``refine_steps`` > 0, the code refined on frame 0 (``refine_code``)."""
     body_model = BodyModel()
     infos = spread(resolve_surreal(surreal_root, quiet=not progress), limit)
     records = {"reconstruction": [], "novel_pose": []}
@@ -182,26 +216,34 @@ def evaluate_cross_dataset(run, baseline, limit, device, out_dir, progress, grid
         encoder_input = torch.as_tensor(np.uint8(views[0][0].image * 255 + 0.5).transpose(2, 0, 1))[None]
         with torch.no_grad():
             code = encode(run.encoder, encoder_input.to(device))
+        refined = refined_code(run, code, *views[0], refine_steps, device) if refine_steps else None
         row = [views[0][0].image]
         for k, (view, pose) in enumerate(views):
             encoded, base, renders = _score(run, view, pose, code, baseline, device)
-            kind = "reconstruction" if k == 0 else "novel_pose"
-            records[kind].append({"view": view.camera.name, "full": encoded, "mean_code": base})
+            record = {"view": view.camera.name, "full": encoded, "mean_code": base}
             row += [view.image, renders["encoded"]["rgb"]]
+            if refined is not None:
+                with torch.no_grad():
+                    render = to_numpy(render_view(run.field, view.camera, pose.to(device), run.config, refined))
+                record["refined"] = _metrics(render, view.image, view.mask)
+                row.append(render["rgb"])
+            records["reconstruction" if k == 0 else "novel_pose"].append(record)
         if c < grids:
             save_png(
                 out_dir / "grids" / "cross_dataset" / f"{info.name.removesuffix('_info.mat')}.png",
                 np.concatenate(row, 1),
             )
-    return {
-        kind: {
+    result = {}
+    for kind, r in records.items():
+        result[kind] = {
             "n_views": len(r),
             "full": average_metrics(r, "full"),
             "mean_code": average_metrics(r, "mean_code"),
-            "per_view": r,
         }
-        for kind, r in records.items()
-    }
+        if refine_steps:
+            result[kind] |= {"refined": average_metrics(r, "refined"), "refine_steps": refine_steps}
+        result[kind]["per_view"] = r
+    return result
 
 
 def markdown_autoencoder(report: dict) -> str:
@@ -212,6 +254,13 @@ def markdown_autoencoder(report: dict) -> str:
         columns += [("SURREAL recon.", cross["reconstruction"]), ("SURREAL novel pose", cross["novel_pose"])]
     cell = lambda m: f"{m['mask_l2']:.1f}/{m['psnr']:.2f}/{m['ssim']:.4f}" if m else "-"  # noqa: E731
     size = f"{report['image_size']}^2 bone maps" if report["model"] == "cnn" else f"width {report['width']}"
+    steps = {part.get("refine_steps") for _, part in columns} - {None}
+    refined_row = [
+        f"| encoder + {n} refinement steps on the input | "
+        + " | ".join(cell(part.get("refined")) for _, part in columns)
+        + " |"
+        for n in steps
+    ]
     lines = [
         f"# autoencoder {report['model']} ({size}, latent {report['latent_dim']}), step {report['step']}",
         "",
@@ -221,6 +270,7 @@ def markdown_autoencoder(report: dict) -> str:
         "| code | " + " | ".join(_SHORT.get(name, name) for name, _ in columns) + " |",
         "|---|" + "---|" * len(columns),
         "| encoder | " + " | ".join(cell(part["full"]) for _, part in columns) + " |",
+        *refined_row,
         "| mean code (baseline) | " + " | ".join(cell(part["mean_code"]) for _, part in columns) + " |",
         "",
         "Views: " + ", ".join(f"{_SHORT.get(name, name)} {part['n_views']}" for name, part in columns),
@@ -237,10 +287,16 @@ def evaluate_autoencoder_run(
     progress: bool = True,
     grids: int = 4,
     surreal_root: str | None = None,
+    refine_steps: int = 0,
 ) -> dict:
-    """Evaluate ``splits`` (THUman's four and/or ``cross_dataset``); update ``run_dir/eval/metrics.{json,md}``."""
+    """Evaluate ``splits`` (THUman's four and/or ``cross_dataset``); update ``run_dir/eval/metrics.{json,md}``.
+    ``refine_steps`` > 0 adds cross_dataset's refined-code row (``refine_code`` on the encoded frame)."""
     run_dir = Path(run_dir)
     run = load_autoencoder_run(run_dir, device)
+    if refine_steps and run.config.model.name == "cnn":
+        raise ValueError(
+            f"{run_dir}: the CNN baseline renders no rays, so its codes cannot be refined (--refine-steps)"
+        )
     out_dir = run_dir / "eval"
     metrics_path = out_dir / "metrics.json"
     report = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {"splits": {}}
@@ -248,7 +304,7 @@ def evaluate_autoencoder_run(
     for split in splits:
         if split == "cross_dataset":
             report["splits"][split] = evaluate_cross_dataset(
-                run, baseline, limit, device, out_dir, progress, grids, surreal_root
+                run, baseline, limit, device, out_dir, progress, grids, surreal_root, refine_steps
             )
         else:
             report["splits"][split] = evaluate_thuman_split(

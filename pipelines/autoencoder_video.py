@@ -22,7 +22,13 @@ from fitting.evaluate import render_view
 from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
 from narf.kinematics import rest_offsets_from_world, retarget
-from pipelines.autoencoder_evaluation import AutoencoderRun, load_autoencoder_run, surreal_view
+from pipelines.autoencoder_evaluation import (
+    AutoencoderRun,
+    check_refinable,
+    load_autoencoder_run,
+    refined_code,
+    surreal_view,
+)
 from pipelines.autoencoder_session import ThumanView, load_views, view_of_render
 from pipelines.body.model import BodyModel, pose_batch_from_joints
 from pipelines.datasets.surreal import check_clip
@@ -110,18 +116,24 @@ def render_autoencoder_video(
     fps: int = 24,
     device: str = "cpu",
     progress: bool = True,
+    refine_steps: int = 0,
 ) -> Path:
-    """Render ``kind`` for the encoded ``inputs`` to an mp4 of input | RGB | depth | segmentation."""
+    """Render ``kind`` for the encoded ``inputs`` to an mp4 of input | RGB | depth | segmentation; ``refine_steps``
+    > 0 refines each code on its input first (``fitting.autoencoder.refine_code``)."""
     if kind not in AUTOENCODER_KINDS:
         raise ValueError(f"an autoencoder run renders --kind {', '.join(AUTOENCODER_KINDS)}, not '{kind}'")
     needed = 2 if kind == "interpolate" else 1
     if len(inputs) != needed:
         raise ValueError(f"--kind {kind} takes {needed} --input, got {len(inputs)}")
     run = load_autoencoder_run(run_dir, device)
+    check_refinable(run, run_dir, refine_steps)
     body_model = BodyModel()
     items = [read_input(spec, body_model) for spec in inputs]
     with torch.no_grad():
         codes = [encode(run.encoder, item.image_u8.to(device)) for item in items]
+    if refine_steps:
+        poses = [pose_batch_from_joints(item.world_from_joint.double()).to(torch.float32) for item in items]
+        codes = [refined_code(run, z, item.view, p, refine_steps, device) for z, item, p in zip(codes, items, poses)]
     first = items[0]
     rest = rest_offsets_from_world(first.world_from_joint)
     image = lambda item: item.view.image  # noqa: E731

@@ -39,6 +39,14 @@ def main(argv: list[str] | None = None) -> int:
         default=[],
         help="autoencoder runs: the person to encode (repeat for --kind interpolate)",
     )
+    parser.add_argument(
+        "--refine-steps",
+        type=int,
+        default=0,
+        help="autoencoder runs: refine each input's code for N steps of the training loss on that input before "
+        "rendering (the field fixed; about 0.1 s per step on 2 CPU cores; docs/model.md section 4). Default 0: the "
+        "encoder's code as it is",
+    )
     parser.add_argument("--out", type=Path, default=None, help="output .mp4 (default: RUN/videos/<kind>.mp4)")
     parser.add_argument("--frames", type=int, default=60, help="number of video frames (at most)")
     parser.add_argument(
@@ -76,14 +84,16 @@ def main(argv: list[str] | None = None) -> int:
     device = str(auto_device(args.device))
     if load_checkpoint(args.run).get("kind") == "autoencoder":
         path = render_autoencoder_video(
-            args.run, args.kind, args.inputs, out, args.frames, args.fps, device, not args.quiet
+            args.run, args.kind, args.inputs, out, args.frames, args.fps, device, not args.quiet, args.refine_steps
         )
         print(f"narf-render-video: wrote {path}")
         return 0
     if args.motion is not None and args.kind != "poses":
         raise ValueError("--motion plays with --kind poses")
-    if args.inputs or args.kind not in KINDS:
-        raise ValueError(f"{args.run}: a per-subject fit; --input and --kind interpolate are for autoencoder runs")
+    if args.inputs or args.refine_steps or args.kind not in KINDS:
+        raise ValueError(
+            f"{args.run}: a per-subject fit; --input, --refine-steps and --kind interpolate are for autoencoder runs"
+        )
     path = render_video(
         args.run,
         args.kind,
