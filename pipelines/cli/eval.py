@@ -91,14 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.refine_steps and "cross_dataset" not in splits:
             raise ValueError(f"{args.run}: --refine-steps refines SURREAL codes; it needs --split cross_dataset or all")
         report = evaluate_autoencoder_run(
-            args.run,
-            splits,
-            args.limit,
-            device,
-            not args.quiet,
-            args.grids,
-            surreal_root=args.surreal,
-            refine_steps=args.refine_steps,
+            args.run, splits, args.limit, device, not args.quiet, args.grids, args.surreal, args.refine_steps
         )
         print(markdown_autoencoder(report))
         print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
