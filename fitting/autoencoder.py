@@ -78,8 +78,8 @@ def refine_code(
     z_0 = the encoder's code; then ``steps`` Adam steps (``REFINE_LR``) on z alone minimise the training loss
     ``ray_loss`` over ``rays_per_step`` pixels of the input drawn uniformly, at the deterministic samples of a
     full-image render (``render.eval_coarse`` + ``eval_fine``: the estimator the scored renders use; random strata
-    would shift the optimum by their noise); the field is not changed. The input must
-    come with its camera and pose (a SURREAL frame, a ``render_128`` image), since the loss renders it.
+    would shift the optimum by their noise); the field is not changed. The input must come with its camera and pose
+    (a SURREAL frame, a ``render_128`` image), since the loss renders it.
 
     Args:
         code: (1, 2 L) encoder code. K (3, 3), cam_from_world (4, 4): the input's camera. pose: its one-frame
@@ -97,35 +97,21 @@ def refine_code(
     origins, dirs = rays_from_pixels(
         K.float().to(device), cam_from_world.float().to(device), image_pixels(height, width, device)
     )
-    rgb, silhouette = image.reshape(-1, 3).float().to(device), mask.reshape(-1).float().to(device)
+    count = height * width
+    ones, frames = torch.ones(count, device=device), torch.zeros(count, dtype=torch.long, device=device)
+    pixels = RayBatch(
+        origins, dirs, frames, image.reshape(-1, 3).float().to(device), mask.reshape(-1).float().to(device), ones
+    )
     generator = torch.Generator(device).manual_seed(seed)
     latent = code.detach().clone().requires_grad_(True)
     optimiser = torch.optim.Adam([latent], lr=REFINE_LR)
     frozen = [p.requires_grad for p in field.parameters()]
     field.requires_grad_(False)
+    samples = (config.render.eval_coarse, config.render.eval_fine)
     try:
         for _ in range(steps):
-            rays = torch.randint(0, height * width, (rays_per_step,), device=device, generator=generator)
-            frames = torch.zeros(rays_per_step, dtype=torch.long, device=device)
-            batch = RayBatch(
-                origins[rays],
-                dirs[rays],
-                frames,
-                rgb[rays],
-                silhouette[rays],
-                torch.ones_like(frames, dtype=torch.float32),
-            )
-            loss, _ = ray_loss(
-                config,
-                field,
-                batch,
-                pose,
-                generator,
-                config.render.eval_coarse,
-                config.render.eval_fine,
-                latent=latent,
-                randomized=False,
-            )
+            batch = pixels.take(torch.randint(0, count, (rays_per_step,), device=device, generator=generator))
+            loss, _ = ray_loss(config, field, batch, pose, generator, *samples, latent=latent, randomized=False)
             optimiser.zero_grad()
             loss.backward()
             optimiser.step()
