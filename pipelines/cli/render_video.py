@@ -42,10 +42,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--refine-steps",
         type=int,
+        metavar="N",
         default=0,
         help="autoencoder runs: refine each input's code for N steps of the training loss on that input before "
-        "rendering (the field fixed; about 0.1 s per step on 2 CPU cores; docs/model.md section 4). Default 0: the "
-        "encoder's code as it is",
+        "rendering (the field fixed; about 0.15 s per step for the CPU preset on 2 CPU cores; docs/model.md "
+        "section 4); 0 renders the encoder's code as it is",
     )
     parser.add_argument("--out", type=Path, default=None, help="output .mp4 (default: RUN/videos/<kind>.mp4)")
     parser.add_argument("--frames", type=int, default=60, help="number of video frames (at most)")
