@@ -293,10 +293,7 @@ def evaluate_autoencoder_run(
     ``refine_steps`` > 0 adds cross_dataset's refined-code row (``refine_code`` on the encoded frame)."""
     run_dir = Path(run_dir)
     run = load_autoencoder_run(run_dir, device)
-    if refine_steps and run.config.model.name == "cnn":
-        raise ValueError(
-            f"{run_dir}: the CNN baseline renders no rays, so its codes cannot be refined (--refine-steps)"
-        )
+    check_refinable(run, run_dir, refine_steps)
     out_dir = run_dir / "eval"
     metrics_path = out_dir / "metrics.json"
     report = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {"splits": {}}
