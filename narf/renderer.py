@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import torch
 
+from narf.fields.base import FieldOutput
 from narf.geometry import check_shape
 from narf.occupancy import field_ray_bounds
 from narf.rays import image_pixels, rays_from_pixels
@@ -121,6 +122,67 @@ def render_rays(
     return RenderOutput(rgb, mask, depth, part_weights)
 
 
+@torch.no_grad()
+def render_rays_inference(
+    field_fn: Callable,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    near: torch.Tensor,
+    far: torch.Tensor,
+    hit: torch.Tensor,
+    n_coarse: int,
+    n_fine: int,
+    background: float = 0.0,
+) -> RenderOutput:
+    """Deterministic inference path of :func:`render_rays` (docs/model.md §5, "Inference renders"): the same coarse
+    and fine depths, but the final pass reuses the coarse pass's outputs and evaluates only the Nf fine samples,
+    so each ray costs Nc + Nf field samples instead of 2 Nc + Nf. Outputs equal ``render_rays(...,
+    randomized=False)`` up to rounding (the field sees the samples in other batches).
+
+    Args:
+        as :func:`render_rays`. Returns a RenderOutput.
+    """
+    check_shape("origins", origins, (-1, 3))
+    n_rays = origins.shape[0]
+    dtype, device = origins.dtype, origins.device
+    rgb = torch.full((n_rays, 3), float(background), dtype=dtype, device=device)
+    mask = torch.zeros(n_rays, dtype=dtype, device=device)
+    depth = torch.zeros(n_rays, dtype=dtype, device=device)
+    ids = hit.nonzero()[:, 0]
+    if ids.numel() == 0:
+        return RenderOutput(rgb, mask, depth, None)
+    o, d, t_far = origins[ids], dirs[ids], far[ids]
+    depths = stratified_depths(near[ids], t_far, n_coarse)
+    out = field_fn(o[:, None] + depths[..., None] * d[:, None], ids)
+    if n_fine:
+        edges = torch.cat([depths, t_far[:, None]], dim=-1)
+        fine = importance_depths(edges, weights_from_density(out.sigma, depths, t_far), n_fine)
+        fine_out = field_fn(o[:, None] + fine[..., None] * d[:, None], ids)
+        depths, order = torch.sort(torch.cat([depths, fine], dim=-1), dim=-1)
+        out = FieldOutput(*(_merge(a, b, order) for a, b in zip(vars(out).values(), vars(fine_out).values())))
+    weights = weights_from_density(out.sigma, depths, t_far)
+    rgb_hit, mask_hit, depth_hit = composite(weights, out.rgb, depths, background)
+    rgb, mask, depth = (
+        rgb.index_put((ids,), rgb_hit),
+        mask.index_put((ids,), mask_hit),
+        depth.index_put((ids,), depth_hit),
+    )
+    part_weights = None
+    if out.part_probs is not None:
+        part_weights = torch.zeros(n_rays, out.part_probs.shape[-1], dtype=dtype, device=device)
+        part_weights = part_weights.index_put((ids,), (weights[..., None] * out.part_probs).sum(dim=1))
+    return RenderOutput(rgb, mask, depth, part_weights)
+
+
+def _merge(coarse: torch.Tensor | None, fine: torch.Tensor | None, order: torch.Tensor) -> torch.Tensor | None:
+    """cat([coarse, fine], dim=1) reordered along dim 1 by ``order`` (R, Nc + Nf); values (R, N, ...)."""
+    if coarse is None:
+        return None
+    values = torch.cat([coarse, fine], dim=1)
+    index = order.reshape(*order.shape, *(1,) * (values.dim() - 2)).expand(*order.shape, *values.shape[2:])
+    return values.gather(1, index)
+
+
 def bind_field(field, dirs: torch.Tensor, pose, frame_of_ray: torch.Tensor, latent: torch.Tensor | None = None):
     """Adapt a field module to ``field_fn``: gathers each ray's direction, pose (``pose.select``) and latent."""
 
@@ -148,12 +210,16 @@ def render_image(
     background: float = 0.0,
     chunk: int = 4096,
     latent: torch.Tensor | None = None,
+    reference: bool = False,
 ) -> dict[str, torch.Tensor]:
-    """Render a full image of one frame in chunks of rays (bounded memory), deterministically.
+    """Render a full image of one frame, deterministically: ray bounds for every pixel, then the rays that hit
+    (compacted) in chunks of ``chunk`` rays (bounded memory).
 
     Args:
         field: a Field module. K, cam_from_world: undistorted camera. pose: PoseBatch with one frame.
         latent: optional (1, 2 * latent_dim).
+        reference: render with the reference :func:`render_rays` instead of :func:`render_rays_inference` (the
+            same outputs up to rounding, one more evaluation of the coarse samples).
 
     Returns:
         rgb (H, W, 3), mask (H, W), depth (H, W), segmentation (H, W) long (-1 = background; only for part models).
@@ -163,34 +229,29 @@ def render_image(
     pixels = image_pixels(height, width, device=device, dtype=dtype)
     origins, dirs = rays_from_pixels(K.to(device, dtype), cam_from_world.to(device, dtype), pixels)
     pose = pose.to(device)
-    outputs: dict[str, list] = {"rgb": [], "mask": [], "depth": [], "segmentation": []}
-    has_parts = field.n_parts > 1
-    for start in range(0, pixels.shape[0], chunk):
-        o, d = origins[start : start + chunk], dirs[start : start + chunk]
-        frames = torch.zeros(o.shape[0], dtype=torch.long, device=device)
-        per_ray = pose.select(frames)
-        near, far, hit = field_ray_bounds(field, o, d, per_ray)
-        result = render_rays(
-            bind_field(field, d, pose, frames, latent),
-            o,
-            d,
-            near,
-            far,
-            hit,
-            n_coarse,
-            n_fine,
-            background,
-            randomized=False,
-        )
-        outputs["rgb"].append(result.rgb)
-        outputs["mask"].append(result.mask)
-        outputs["depth"].append(result.depth)
-        # a chunk whose rays miss every box has no part weights: its pixels are background (-1)
-        outputs["segmentation"].append(
-            result.segmentation()
-            if result.part_weights is not None
-            else torch.full((o.shape[0],), -1, dtype=torch.long, device=device)
-        )
-    if not has_parts:
+    n_pixels = pixels.shape[0]
+    frames = torch.zeros(n_pixels, dtype=torch.long, device=device)
+    bounds = [
+        field_ray_bounds(field, origins[s : s + chunk], dirs[s : s + chunk], pose.select(frames[s : s + chunk]))
+        for s in range(0, n_pixels, chunk)
+    ]
+    near, far, hit = (torch.cat(b) for b in zip(*bounds))
+    outputs = {
+        "rgb": torch.full((n_pixels, 3), float(background), dtype=dtype, device=device),
+        "mask": torch.zeros(n_pixels, dtype=dtype, device=device),
+        "depth": torch.zeros(n_pixels, dtype=dtype, device=device),
+        "segmentation": torch.full((n_pixels,), -1, dtype=torch.long, device=device),
+    }
+    hit_ids = hit.nonzero()[:, 0]
+    for start in range(0, hit_ids.numel(), chunk):
+        ids = hit_ids[start : start + chunk]
+        o, d, all_hit = origins[ids], dirs[ids], torch.ones_like(ids, dtype=torch.bool)
+        field_fn = bind_field(field, d, pose, frames[ids], latent)
+        args = (field_fn, o, d, near[ids], far[ids], all_hit, n_coarse, n_fine, background)
+        result = render_rays(*args, randomized=False) if reference else render_rays_inference(*args)
+        outputs["rgb"][ids], outputs["mask"][ids], outputs["depth"][ids] = result.rgb, result.mask, result.depth
+        if result.part_weights is not None:
+            outputs["segmentation"][ids] = result.segmentation()
+    if field.n_parts == 1:
         del outputs["segmentation"]
-    return {k: torch.cat(v).reshape(height, width, *torch.cat(v).shape[1:]) for k, v in outputs.items()}
+    return {k: v.reshape(height, width, *v.shape[1:]) for k, v in outputs.items()}
