@@ -41,15 +41,21 @@ def test_two_processes_follow_one(data_root_64, tmp_path):
     assert rows and all(row["world_size"] == 2 for row in rows)
     assert "world_size: 2" in (tmp_path / "two" / "config.yaml").read_text()
     assert not list((tmp_path / "two").glob(".checkpoint.*.tmp"))
-    # Adam's first moments are 0.1-weighted sums of the gradients: the summed shares equal the single-process
-    # gradient up to float32 summation order (~1e-7 relative of moments up to ~0.05); halved (averaged) or
-    # missing shares would be off by half the moment
-    for key, state in one["optimizer"]["state"].items():
-        torch.testing.assert_close(two["optimizer"]["state"][key]["exp_avg"], state["exp_avg"], atol=1e-6, rtol=0)
-    # the weights: Adam (eps 1e-12) divides each moment by its own running magnitude, so the few weights whose
-    # gradient sits at the rounding level can take a different step of up to ~lr = 0.01 (at most 2 lr per step,
-    # 0.1 over 5 steps); all others agree to float32 rounding of O(1) weights after 5 steps
+    # Adam's first moments are 0.1-weighted sums of the gradients. The summed shares equal the single-process
+    # gradient up to rounding: summation order and thread count (torchrun gives each process 1 thread, the single
+    # process has 2), amplified by the importance sampler (docs/model.md §5). One process with 1 thread against one
+    # with 2 already differs by up to 4e-6 in a moment over seeds 0-2, against moments up to ~0.05. A halved
+    # (averaged) or missing share is off by half of every moment: relative error ~0.5, not ~1e-4.
+    keys = list(one["optimizer"]["state"])
+    m_one = torch.cat([one["optimizer"]["state"][k]["exp_avg"].reshape(-1) for k in keys])
+    m_two = torch.cat([two["optimizer"]["state"][k]["exp_avg"].reshape(-1) for k in keys])
+    assert (m_two - m_one).abs().max() < 1e-4
+    assert (m_two - m_one).norm() < 1e-2 * m_one.norm()
+    # the weights: Adam (eps 1e-12) divides each moment by its own running magnitude, so the weights whose gradient
+    # sits at the rounding level can take a different step of up to ~lr = 0.01 (at most 2 lr per step, 0.1 over 5
+    # steps); the 99th percentile of the differences was up to 1.2e-4 between thread counts over seeds 0-2, while a
+    # missing share turns most weights' steps, by ~lr
     diff = torch.cat(
         [(two["model"][k] - v).abs().reshape(-1) for k, v in one["model"].items() if v.is_floating_point()]
     )
-    assert diff.max() < 0.1 and torch.quantile(diff, 0.99) < 1e-5
+    assert diff.max() < 0.1 and torch.quantile(diff, 0.99) < 1e-3

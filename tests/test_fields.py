@@ -7,7 +7,7 @@ from kornia.geometry.linalg import transform_points
 
 from narf.fields import ARTICULATED, MODELS, PAPER_COSTS, PoseBatch, build_field, paper_presets
 from narf.fields.base import masked_softmax, rescale_selection
-from narf.fields.common import part_local
+from narf.fields.common import part_box_coordinates, part_directions, part_local
 from narf.geometry import se3_exp
 from narf.layers import EqualLinear, WNLinear, leaky_backward_relu
 from narf.renderer import render_image
@@ -124,6 +124,34 @@ def test_part_local_matches_loop():
     with torch.autocast("cpu", dtype=torch.bfloat16):  # the bf16 switch must not round the coordinates
         x_auto, d_auto = part_local(points, dirs, pose)
     assert x_auto.dtype == torch.float32 and torch.equal(x_auto, x_local) and torch.equal(d_auto, d_local)
+
+
+def test_fused_box_coordinates_match_the_two_step_reference():
+    """part_box_coordinates (one affine map per ray) against (part_local - c) / h, and float32 against float64."""
+    pose = _random_pose(n_frames=3, n_parts=4, dtype=torch.float64)
+    points, dirs = _points(3, 5, dtype=torch.float64)
+    shift = torch.tensor([2.5, -3.0, 1.0], dtype=torch.float64)  # a capture's world origin is metres from the body
+    points = points + shift
+    pose.world_from_part[..., :3, 3] += shift
+    centres = torch.randn(4, 3, dtype=torch.float64) * 0.2
+    half = torch.rand(4, 3, dtype=torch.float64) * 0.3 + 0.05
+    reference = (part_local(points, dirs, pose)[0] - centres) / half
+    fused = part_box_coordinates(points, pose, centres, half)
+    # float64, a dozen operations on values <= ~3 / 0.05: ~1e-13
+    assert torch.allclose(fused, reference, rtol=0, atol=1e-10)
+    assert torch.allclose(part_directions(dirs, pose), part_local(points, dirs, pose)[1], rtol=0, atol=1e-12)
+    pose32 = PoseBatch(
+        *(
+            v.float()
+            for v in (pose.world_from_part, pose.reach, pose.bone_lengths, pose.pose_features, pose.rest_offsets)
+        )
+    )
+    fused32 = part_box_coordinates(points.float(), pose32, centres.float(), half.float())
+    # float32: coordinates ~2 relative to the anchor, rounding ~2 * 6e-8 per operation, divided by h >= 0.05:
+    # ~1e-5; gamma_10 needs u to ~1e-4 (its top frequency is 2^9 pi)
+    assert (fused32.double() - reference).abs().max() < 1e-4
+    with torch.autocast("cpu", dtype=torch.bfloat16):  # the bf16 switch must not round the coordinates
+        assert part_box_coordinates(points.float(), pose32, centres.float(), half.float()).dtype == torch.float32
 
 
 @pytest.mark.parametrize("name", ["narf_d", "narf_p", "d_narf", "p_nerf"])

@@ -18,6 +18,8 @@ class BallField(Field):
     """Density SIGMA inside a ball of RADIUS about part 0's origin, 0 elsewhere; constant colour (0.2, 0.5, 0.8).
     Part 1's box overlaps part 0's and is empty."""
 
+    uses_part_points = True
+
     def __init__(self):
         super().__init__(n_parts=2)
         self.dummy = torch.nn.Parameter(torch.zeros(()))  # render_image reads the device and dtype of a parameter
@@ -70,7 +72,8 @@ def test_untouched_grid_is_the_dense_reference():
 
 
 def test_image_render_matches_the_reference_renderer():
-    """render_image's default path (inference renderer, compacted rays) against the reference render_rays on NARF_D's fast path."""
+    """render_image's default path (inference renderer, compacted rays) against the reference render_rays, on NARF_D's
+    fast path."""
     torch.manual_seed(1)
     field = build_field("narf_d", width=16)
     field.set_boxes(torch.randn(19, 3) * 0.3, torch.full((19, 3), 0.25))

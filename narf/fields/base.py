@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from narf.encodings import positional_encoding
-from narf.fields.common import PoseBatch, RadianceHead, part_local
+from narf.fields.common import PoseBatch, RadianceHead, part_box_coordinates, part_directions, part_local
 from narf.geometry import check_shape
 from narf.layers import GroupedLinear
 
@@ -39,8 +39,12 @@ SAMPLES_FOR_COST = 96
 class Field(nn.Module):
     """A NeRF-type field over P parts with fixed boxes (centres, half-extents in body units).
 
-    Subclasses implement ``_forward(points, dirs, pose, local, z)``.
+    Subclasses implement ``_forward(points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a)``; x_local is None
+    unless the subclass sets ``uses_part_points``.
     """
+
+    #: whether ``_forward`` reads x_local (R, S, P, 3); the others get None and skip computing it
+    uses_part_points = False
 
     def __init__(self, n_parts: int, latent_dim: int = 0):
         super().__init__()
@@ -89,8 +93,11 @@ class Field(nn.Module):
                 f"pose: expected {points.shape[0]} per-ray entries of {self.n_parts} parts, got "
                 f"{tuple(pose.world_from_part.shape[:2])}"
             )
-        x_local, d_local = part_local(points, dirs, pose)
-        u, in_box = self.box_coordinates(x_local)
+        # fused u (one affine map per ray); x_local, the per-part points, only for the fields that read them
+        x_local = part_local(points, dirs, pose)[0] if self.uses_part_points else None
+        d_local = part_directions(dirs, pose)
+        u = part_box_coordinates(points, pose, self.box_centres, self.box_half_extents)
+        in_box = u.abs().amax(dim=-1) <= 1
         z_s = z_a = None
         if latent is not None and self.latent_dim:
             check_shape("latent", latent, (points.shape[0], 2 * self.latent_dim))

@@ -74,6 +74,40 @@ def part_local(points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch) -> tup
     return x_local, d_local
 
 
+def part_box_coordinates(
+    points: torch.Tensor, pose: PoseBatch, box_centres: torch.Tensor, box_half_extents: torch.Tensor
+) -> torch.Tensor:
+    """Box coordinates u_i = (x_i - c_i) / h_i of every sample in every part, as one affine map per ray: the fast
+    path of ``(part_local(...)[0] - c) / h`` (:meth:`narf.fields.base.Field.box_coordinates`), its test oracle.
+
+    With a per-ray anchor a (the first part's origin), x_i = R_i^T (x - t_i) / s gives
+    u_i = R_i^T (x - a) / (s h_i) - (R_i^T (t_i - a) / s + c_i) / h_i: one (S, 3) x (3, 3P) product per ray. The
+    anchor keeps the operands at body scale, so float32 rounding stays ~1e-6 / h like the two-step form.
+
+    Args:
+        points: (R, S, 3) world samples. pose: per-ray PoseBatch (R entries). box_centres, box_half_extents: (P, 3).
+
+    Returns:
+        u (R, S, P, 3), float32 or wider (never bf16: see :func:`part_local`).
+    """
+    rotation = pose.world_from_part[:, :, :3, :3]  # (R, P, 3, 3)
+    origin = pose.world_from_part[:, :, :3, 3]  # (R, P, 3)
+    n_rays, n_parts = origin.shape[:2]
+    with torch.autocast(points.device.type, enabled=False):
+        anchor = origin[:, :1]  # (R, 1, 3)
+        scale = 1 / (pose.reach[:, None, None] * box_half_extents)  # (R, P, 3) per output axis i
+        linear = (rotation * scale[:, :, None, :]).permute(0, 2, 1, 3).reshape(n_rays, 3, n_parts * 3)
+        shift = torch.einsum("rpji,rpj->rpi", rotation, origin - anchor) * scale + box_centres / box_half_extents
+        u = torch.baddbmm(-shift.reshape(n_rays, 1, -1), points - anchor, linear)
+    return u.reshape(*points.shape[:2], n_parts, 3)
+
+
+def part_directions(dirs: torch.Tensor, pose: PoseBatch) -> torch.Tensor:
+    """d_i = R_i^T d per part: dirs (R, 3) -> (R, P, 3) (as :func:`part_local`)."""
+    with torch.autocast(dirs.device.type, enabled=False):
+        return torch.einsum("rpji,rj->rpi", pose.world_from_part[:, :, :3, :3], dirs)
+
+
 class RadianceHead(nn.Module):
     """Trunk, density and colour branch (docs/model.md §3), over ``groups`` independent copies.
 

@@ -24,6 +24,8 @@ class DNarf(Field):
     path (every pair, every sample) is its test reference.
     """
 
+    uses_part_points = True  # the blended canonical point sums x_i
+
     def __init__(
         self,
         n_parts: int = 19,
