@@ -107,10 +107,11 @@ class Trunk(nn.Module):
 
     def forward(self, hidden: torch.Tensor, group_index: torch.Tensor | None = None) -> torch.Tensor:
         """(G, N, H) -> (G, N, H); ``group_index`` as in :meth:`GroupedLinear.forward`."""
-        hidden = torch.relu(self.first(hidden, group_index))
+        # in-place ReLUs on fresh matmul outputs (their backward needs the inputs only): no extra (N, H) buffers
+        hidden = torch.relu_(self.first(hidden, group_index))
         for lin_a, lin_b in self.blocks:
-            hidden = hidden + torch.relu(lin_b(torch.relu(lin_a(hidden, group_index)), group_index))
-        return torch.relu(self.last(hidden, group_index))
+            hidden = hidden + torch.relu_(lin_b(torch.relu_(lin_a(hidden, group_index)), group_index))
+        return torch.relu_(self.last(hidden, group_index))
 
     def extra_flops(self) -> int:
         """+H per ReLU module (8) and per residual add (3)."""

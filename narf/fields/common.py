@@ -198,8 +198,9 @@ class RadianceHead(nn.Module):
         h1 = h1.reshape(g, r, s, h)
         if self.latent_appearance is not None and z_a is not None:
             h1 = h1 + self._embed(self.latent_appearance, z_a.expand(blocks, -1, -1, -1), group_index)
-        h2 = self._embed(self.color_hidden, nn.functional.leaky_relu(h1, 0.2), group_index)
-        h3 = nn.functional.leaky_relu(h2 + color_embedded, 0.2)
+        # in place: h1 and the sum are fresh tensors used once
+        h2 = self._embed(self.color_hidden, nn.functional.leaky_relu(h1, 0.2, inplace=True), group_index)
+        h3 = nn.functional.leaky_relu(h2 + color_embedded, 0.2, inplace=True)
         rgb = torch.sigmoid(self._embed(self.rgb_out, h3, group_index))
         return sigma, rgb
 
