@@ -97,7 +97,7 @@ def _measure(index: int) -> dict:
     import torch
 
     from narf.fields import build_field
-    from narf.renderer import bind_field, render_rays
+    from narf.renderer import bind_field, render_rays, render_rays_inference
 
     torch.set_num_threads(2)
     label, name, kwargs, (n_c, n_f), (r_c, r_f), n_rays = CONFIGS[index]
@@ -154,7 +154,7 @@ def _measure(index: int) -> dict:
     budget = min(RENDER_RAY_BUDGET if heavy <= 64 * 64 else 4 * chunk_rays, n_hit)
     frames = torch.zeros(budget, dtype=torch.long)
     with torch.no_grad():  # warm-up call (first no-grad shapes)
-        render_rays(
+        render_rays_inference(
             bind_field(field, dirs[:64], pose, frames[:64]),
             origins[:64],
             dirs[:64],
@@ -163,13 +163,12 @@ def _measure(index: int) -> dict:
             torch.ones(64, dtype=torch.bool),
             r_c,
             r_f,
-            randomized=False,
         )
     start = time.perf_counter()
     with torch.no_grad():
         for chunk in range(0, budget, chunk_rays):
             sl = slice(chunk, min(chunk + chunk_rays, budget))
-            render_rays(
+            render_rays_inference(  # as render_image renders (the coarse outputs reused)
                 bind_field(field, dirs[sl], pose, frames[sl]),
                 origins[sl],
                 dirs[sl],
@@ -178,7 +177,6 @@ def _measure(index: int) -> dict:
                 torch.ones(sl.stop - sl.start, dtype=torch.bool),
                 r_c,
                 r_f,
-                randomized=False,
             )
     seconds = (time.perf_counter() - start) * n_hit / budget
     estimate = "" if budget == n_hit else " (est.)"

@@ -85,14 +85,10 @@ def render_rays(
             fits render disjoint shares of one global batch).
     """
     check_shape("origins", origins, (-1, 3))
-    n_rays = origins.shape[0]
     dtype, device = origins.dtype, origins.device
-    rgb = torch.full((n_rays, 3), float(background), dtype=dtype, device=device)
-    mask = torch.zeros(n_rays, dtype=dtype, device=device)
-    depth = torch.zeros(n_rays, dtype=dtype, device=device)
     ids = hit.nonzero()[:, 0]
     if ids.numel() == 0:
-        return RenderOutput(rgb, mask, depth, None)
+        return _place(origins, ids, None, None, None, background)
     o, d, t_near, t_far = origins[ids], dirs[ids], near[ids], far[ids]
 
     def rand(which: int, n: int):
@@ -110,11 +106,25 @@ def render_rays(
         fine = importance_depths(edges, coarse_weights, n_fine, rand(1, n_fine)) if n_fine else coarse[:, :0]
         depths = torch.sort(torch.cat([coarse, fine], dim=-1), dim=-1).values
     out = field_fn(o[:, None] + depths[..., None] * d[:, None], ids)
-    weights = weights_from_density(out.sigma, depths, t_far)
+    return _place(origins, ids, out, depths, t_far, background)
+
+
+def _place(origins: torch.Tensor, ids: torch.Tensor, out, depths, far, background: float) -> RenderOutput:
+    """Composite the samples of the rays ``ids`` (FieldOutput ``out`` at ``depths`` (R', K), ``far`` (R',)) and place
+    them among all R rays (``origins`` (R, 3)); the others (all, when ``out`` is None) are misses: C = bg, M = 0."""
+    n_rays, dtype, device = origins.shape[0], origins.dtype, origins.device
+    rgb = torch.full((n_rays, 3), float(background), dtype=dtype, device=device)
+    mask = torch.zeros(n_rays, dtype=dtype, device=device)
+    depth = torch.zeros(n_rays, dtype=dtype, device=device)
+    if out is None:
+        return RenderOutput(rgb, mask, depth, None)
+    weights = weights_from_density(out.sigma, depths, far)
     rgb_hit, mask_hit, depth_hit = composite(weights, out.rgb, depths, background)
-    rgb = rgb.index_put((ids,), rgb_hit)
-    mask = mask.index_put((ids,), mask_hit)
-    depth = depth.index_put((ids,), depth_hit)
+    rgb, mask, depth = (
+        rgb.index_put((ids,), rgb_hit),
+        mask.index_put((ids,), mask_hit),
+        depth.index_put((ids,), depth_hit),
+    )
     part_weights = None
     if out.part_probs is not None:
         part_weights = torch.zeros(n_rays, out.part_probs.shape[-1], dtype=dtype, device=device)
@@ -143,14 +153,9 @@ def render_rays_inference(
         as :func:`render_rays`. Returns a RenderOutput.
     """
     check_shape("origins", origins, (-1, 3))
-    n_rays = origins.shape[0]
-    dtype, device = origins.dtype, origins.device
-    rgb = torch.full((n_rays, 3), float(background), dtype=dtype, device=device)
-    mask = torch.zeros(n_rays, dtype=dtype, device=device)
-    depth = torch.zeros(n_rays, dtype=dtype, device=device)
     ids = hit.nonzero()[:, 0]
     if ids.numel() == 0:
-        return RenderOutput(rgb, mask, depth, None)
+        return _place(origins, ids, None, None, None, background)
     o, d, t_far = origins[ids], dirs[ids], far[ids]
     depths = stratified_depths(near[ids], t_far, n_coarse)
     out = field_fn(o[:, None] + depths[..., None] * d[:, None], ids)
@@ -160,18 +165,7 @@ def render_rays_inference(
         fine_out = field_fn(o[:, None] + fine[..., None] * d[:, None], ids)
         depths, order = torch.sort(torch.cat([depths, fine], dim=-1), dim=-1)
         out = FieldOutput(*(_merge(a, b, order) for a, b in zip(vars(out).values(), vars(fine_out).values())))
-    weights = weights_from_density(out.sigma, depths, t_far)
-    rgb_hit, mask_hit, depth_hit = composite(weights, out.rgb, depths, background)
-    rgb, mask, depth = (
-        rgb.index_put((ids,), rgb_hit),
-        mask.index_put((ids,), mask_hit),
-        depth.index_put((ids,), depth_hit),
-    )
-    part_weights = None
-    if out.part_probs is not None:
-        part_weights = torch.zeros(n_rays, out.part_probs.shape[-1], dtype=dtype, device=device)
-        part_weights = part_weights.index_put((ids,), (weights[..., None] * out.part_probs).sum(dim=1))
-    return RenderOutput(rgb, mask, depth, part_weights)
+    return _place(origins, ids, out, depths, t_far, background)
 
 
 def _merge(coarse: torch.Tensor | None, fine: torch.Tensor | None, order: torch.Tensor) -> torch.Tensor | None:
