@@ -11,10 +11,11 @@ from dataclasses import dataclass
 
 import torch
 
+from narf.extraction import posed_box_bounds
 from narf.fields.base import FieldOutput
 from narf.geometry import check_shape
 from narf.occupancy import field_ray_bounds
-from narf.rays import image_pixels, rays_from_pixels
+from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
 from narf.sampling import importance_depths, stratified_depths
 
 
@@ -192,6 +193,34 @@ def bind_field(field, dirs: torch.Tensor, pose, frame_of_ray: torch.Tensor, late
 
 
 @torch.no_grad()
+def image_ray_bounds(field, origins: torch.Tensor, dirs: torch.Tensor, pose, chunk: int = 1024):
+    """:func:`narf.occupancy.field_ray_bounds` of all rays of one frame, computed only for the rays that cross the
+    world box around all posed part boxes (padded by 1e-3 of its size against rounding); the others miss every
+    box. Same results as calling ``field_ray_bounds`` on every ray, at a fraction of the cost when the body covers
+    a small part of the image.
+
+    Args:
+        field: a Field. origins, dirs: (R, 3). pose: PoseBatch with one frame. chunk: rays per bounds call.
+
+    Returns:
+        near (R,), far (R,), hit (R,) bool.
+    """
+    low, high = posed_box_bounds(pose, field.box_centres, field.box_half_extents).to(origins.dtype)
+    n_rays = origins.shape[0]
+    one_box = torch.eye(4, dtype=origins.dtype, device=origins.device).expand(n_rays, 1, 4, 4)
+    centre, half = (low + high)[None] / 2, (high - low)[None] / 2 * (1 + 1e-3)
+    reach = torch.ones(n_rays, dtype=origins.dtype, device=origins.device)
+    candidates = ray_box_intersect(origins, dirs, one_box, reach, centre, half)[2].nonzero()[:, 0]
+    near, far = torch.zeros_like(origins[:, 0]), torch.zeros_like(origins[:, 0])
+    hit = torch.zeros(n_rays, dtype=torch.bool, device=origins.device)
+    frames = torch.zeros(n_rays, dtype=torch.long, device=origins.device)
+    for start in range(0, candidates.numel(), chunk):
+        ids = candidates[start : start + chunk]
+        near[ids], far[ids], hit[ids] = field_ray_bounds(field, origins[ids], dirs[ids], pose.select(frames[ids]))
+    return near, far, hit
+
+
+@torch.no_grad()
 def render_image(
     field,
     K: torch.Tensor,
@@ -202,7 +231,7 @@ def render_image(
     n_coarse: int = 64,
     n_fine: int = 128,
     background: float = 0.0,
-    chunk: int = 4096,
+    chunk: int = 1024,
     latent: torch.Tensor | None = None,
     reference: bool = False,
 ) -> dict[str, torch.Tensor]:
@@ -225,11 +254,7 @@ def render_image(
     pose = pose.to(device)
     n_pixels = pixels.shape[0]
     frames = torch.zeros(n_pixels, dtype=torch.long, device=device)
-    bounds = [
-        field_ray_bounds(field, origins[s : s + chunk], dirs[s : s + chunk], pose.select(frames[s : s + chunk]))
-        for s in range(0, n_pixels, chunk)
-    ]
-    near, far, hit = (torch.cat(b) for b in zip(*bounds))
+    near, far, hit = image_ray_bounds(field, origins, dirs, pose, chunk)
     outputs = {
         "rgb": torch.full((n_pixels, 3), float(background), dtype=dtype, device=device),
         "mask": torch.zeros(n_pixels, dtype=dtype, device=device),

@@ -8,8 +8,8 @@ import torch
 from narf.fields import PoseBatch, build_field
 from narf.fields.base import Field, FieldOutput
 from narf.occupancy import OccupancyGrid, field_ray_bounds, refresh_cells
-from narf.rays import ray_box_intersect
-from narf.renderer import render_image, render_rays
+from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
+from narf.renderer import image_ray_bounds, render_image, render_rays
 
 RADIUS, SIGMA = 0.3, 5.0
 
@@ -92,6 +92,24 @@ def test_image_render_matches_the_reference_renderer():
         assert (inference[key] - reference[key]).abs().max() < 1e-4, key
     assert (inference["segmentation"] != reference["segmentation"]).float().mean() < 0.01
     assert (reference["mask"] > 0.99).float().mean() > 0.1
+
+
+def test_image_bounds_skip_only_rays_that_miss_every_box():
+    """image_ray_bounds tests the per-part boxes only for rays that cross the world box around them: the same bounds
+    as field_ray_bounds on every ray, with and without an occupancy grid."""
+    field, pose = _ball_field()
+    K = torch.tensor([[40.0, 0, 24], [0, 40.0, 24], [0, 0, 1]])
+    cam_from_world = torch.eye(4)
+    cam_from_world[2, 3] = 4.0
+    origins, dirs = rays_from_pixels(K, cam_from_world, image_pixels(48, 48))
+    per_ray = pose.select(torch.zeros(origins.shape[0], dtype=torch.long))
+    for grid in (field.occupancy, None):
+        field.occupancy = grid
+        expected = field_ray_bounds(field, origins, dirs, per_ray)
+        got = image_ray_bounds(field, origins, dirs, pose, chunk=100)
+        assert torch.equal(got[2], expected[2]) and 0 < expected[2].float().mean() < 0.5
+        # the same per-ray arithmetic in other batches: float32 depths ~4, a few eps32
+        assert torch.allclose(got[0], expected[0], atol=1e-5) and torch.allclose(got[1], expected[1], atol=1e-5)
 
 
 def test_refreshed_grid_brackets_the_ball_and_drops_rays_that_miss_it():
