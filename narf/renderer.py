@@ -254,23 +254,26 @@ def render_image(
     pose = pose.to(device)
     n_pixels = pixels.shape[0]
     frames = torch.zeros(n_pixels, dtype=torch.long, device=device)
-    near, far, hit = image_ray_bounds(field, origins, dirs, pose, chunk)
-    outputs = {
-        "rgb": torch.full((n_pixels, 3), float(background), dtype=dtype, device=device),
-        "mask": torch.zeros(n_pixels, dtype=dtype, device=device),
-        "depth": torch.zeros(n_pixels, dtype=dtype, device=device),
-        "segmentation": torch.full((n_pixels,), -1, dtype=torch.long, device=device),
-    }
-    hit_ids = hit.nonzero()[:, 0]
-    for start in range(0, hit_ids.numel(), chunk):
-        ids = hit_ids[start : start + chunk]
-        o, d, all_hit = origins[ids], dirs[ids], torch.ones_like(ids, dtype=torch.bool)
-        field_fn = bind_field(field, d, pose, frames[ids], latent)
-        args = (field_fn, o, d, near[ids], far[ids], all_hit, n_coarse, n_fine, background)
-        result = render_rays(*args, randomized=False) if reference else render_rays_inference(*args)
-        outputs["rgb"][ids], outputs["mask"][ids], outputs["depth"][ids] = result.rgb, result.mask, result.depth
-        if result.part_weights is not None:
-            outputs["segmentation"][ids] = result.segmentation()
+    near, far, hit = image_ray_bounds(field, origins, dirs, pose, chunk)  # outside inference mode: it fills caches
+    # inference mode (no autograd bookkeeping at all) for the field passes only; the images are cloned out of it so
+    # that callers get ordinary tensors
+    with torch.inference_mode():
+        outputs = {
+            "rgb": torch.full((n_pixels, 3), float(background), dtype=dtype, device=device),
+            "mask": torch.zeros(n_pixels, dtype=dtype, device=device),
+            "depth": torch.zeros(n_pixels, dtype=dtype, device=device),
+            "segmentation": torch.full((n_pixels,), -1, dtype=torch.long, device=device),
+        }
+        hit_ids = hit.nonzero()[:, 0]
+        for start in range(0, hit_ids.numel(), chunk):
+            ids = hit_ids[start : start + chunk]
+            o, d, all_hit = origins[ids], dirs[ids], torch.ones_like(ids, dtype=torch.bool)
+            field_fn = bind_field(field, d, pose, frames[ids], latent)
+            args = (field_fn, o, d, near[ids], far[ids], all_hit, n_coarse, n_fine, background)
+            result = render_rays(*args, randomized=False) if reference else render_rays_inference(*args)
+            outputs["rgb"][ids], outputs["mask"][ids], outputs["depth"][ids] = result.rgb, result.mask, result.depth
+            if result.part_weights is not None:
+                outputs["segmentation"][ids] = result.segmentation()
     if field.n_parts == 1:
         del outputs["segmentation"]
-    return {k: v.reshape(height, width, *v.shape[1:]) for k, v in outputs.items()}
+    return {k: v.reshape(height, width, *v.shape[1:]).clone() for k, v in outputs.items()}
