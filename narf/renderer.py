@@ -200,12 +200,14 @@ def image_ray_bounds(field, origins: torch.Tensor, dirs: torch.Tensor, pose, chu
     a small part of the image.
 
     Args:
-        field: a Field. origins, dirs: (R, 3). pose: PoseBatch with one frame. chunk: rays per bounds call.
+        field: a Field. origins, dirs: (R, 3). pose: PoseBatch (its first frame is used). chunk: rays per bounds
+            call.
 
     Returns:
         near (R,), far (R,), hit (R,) bool.
     """
-    low, high = posed_box_bounds(pose, field.box_centres, field.box_half_extents).to(origins.dtype)
+    first = pose.select(torch.zeros(1, dtype=torch.long, device=origins.device))  # the frame render_image renders
+    low, high = posed_box_bounds(first, field.box_centres, field.box_half_extents).to(origins.dtype)
     n_rays = origins.shape[0]
     one_box = torch.eye(4, dtype=origins.dtype, device=origins.device).expand(n_rays, 1, 4, 4)
     centre, half = (low + high)[None] / 2, (high - low)[None] / 2 * (1 + 1e-3)
