@@ -11,7 +11,7 @@ import itertools
 
 import torch
 
-from narf.fields.common import PoseBatch, part_local
+from narf.fields.common import PoseBatch, part_box_coordinates
 from narf.geometry import check_shape
 
 
@@ -86,6 +86,6 @@ def nearest_part(field, points: torch.Tensor, pose: PoseBatch) -> torch.Tensor:
     """(N,) index of the part whose box holds each point most deeply (smallest max |u_i|), for fields without a
     part selector."""
     frames = torch.zeros(points.shape[0], dtype=torch.long, device=points.device)
-    x_local, _ = part_local(points[:, None], torch.zeros_like(points), pose.select(frames))
-    u, _ = field.box_coordinates(x_local)
+    # the box coordinates the field's forward uses for its in-box test
+    u = part_box_coordinates(points[:, None], pose.select(frames), field.box_centres, field.box_half_extents)
     return u.abs().amax(dim=-1)[:, 0].argmin(dim=-1)
