@@ -261,3 +261,16 @@ def test_precision_and_compile_switches(data_root_64, tmp_path):
         load_config("ae_tiny", ["render.occupancy=true"])
     with pytest.raises(ConfigError, match="render.occupancy_resolution"):
         _config(data_root_64, "render.occupancy_resolution=1")
+
+
+@pytest.mark.parametrize("user_env", [{}, {"MALLOC_MMAP_THRESHOLD_": "131072"}])
+def test_allocator_keeps_freed_memory_unless_the_user_chose(user_env):
+    """keep_freed_memory: glibc's mallopt accepts both thresholds (it returns 0 for a value out of its range, e.g. an
+    mmap threshold above 32 MiB); a user's own malloc settings are left alone."""
+    import platform
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "LD_PRELOAD"} | user_env
+    code = "from pipelines.cli.common import keep_freed_memory; print(keep_freed_memory())"
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    expected = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc" and not user_env
+    assert done.stdout.strip() == str(expected)
