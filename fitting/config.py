@@ -58,6 +58,7 @@ class RenderConfig:
     occupancy_threshold: float = 0.5  #: density below which a cell is empty (per world unit of depth; 1 % over 2 cm)
     occupancy_every: int = 16  #: refresh the grid every n training steps
     occupancy_rounds: int = 4  #: a refresh measures 1/n of the cells, so every cell is measured every n refreshes
+    grid_proposal: bool = False  #: training: importance samples follow the grid's density, no coarse field pass
 
 
 @dataclass
@@ -214,6 +215,8 @@ def validate_config(config: FitConfig) -> None:
     autoencoder = config.data.dataset == "thuman"
     if autoencoder and config.model.latent_dim == 0:
         raise ConfigError("model.latent_dim: the thuman dataset trains an autoencoder; set a latent size (paper 256)")
+    if config.render.grid_proposal and not config.render.occupancy:
+        raise ConfigError("render.grid_proposal: the proposal is the occupancy grid's density; set render.occupancy")
     if config.render.occupancy and autoencoder:  # (image-space models have no rays: the switch does not apply)
         raise ConfigError("render.occupancy: the occupancy grid is for per-subject fits (densities differ per person)")
     if not autoencoder and config.model.latent_dim:

@@ -22,7 +22,7 @@ from fitting.plots import write_curve, write_validation
 from narf.fields import build_field, build_model
 from narf.metrics import psnr
 from narf.occupancy import OccupancyGrid, field_ray_bounds, refresh_cells
-from narf.renderer import bind_field, render_rays
+from narf.renderer import bind_field, bind_grid_proposal, render_rays
 
 
 def auto_device(name: str = "auto") -> torch.device:
@@ -72,6 +72,7 @@ def ray_loss(
     per_ray = poses.select(batch.frames)
     near, far, hit = field_ray_bounds(field, batch.origins, batch.dirs, per_ray)
     background = 1.0 if config.data.white_background else 0.0
+    grid_proposal = config.render.grid_proposal and getattr(field, "occupancy", None) is not None
     out = render_rays(
         bind_field(field, batch.dirs, poses, batch.frames, latent),
         batch.origins,
@@ -85,6 +86,7 @@ def ray_loss(
         randomized=randomized,
         generator=generator,
         uniforms=uniforms,
+        proposal_fn=bind_grid_proposal(field, poses, batch.frames) if grid_proposal and randomized else None,
     )
     colour_count, mask_count = normalisers or (out.rgb.numel(), batch.mask_weight.sum().clamp_min(1))
     colour = (out.rgb - batch.rgb).pow(2).sum() / colour_count

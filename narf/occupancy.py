@@ -125,6 +125,24 @@ def occupied_bounds(
     return near, far, any_marked
 
 
+def grid_density(grid: OccupancyGrid, u: torch.Tensor, ceiling: float = 1e4) -> torch.Tensor:
+    """The grid's density at sample points: sigma_grid = max over the parts whose box contains the point of the
+    stored density of that part's cell there; 0 outside every box. Cells never measured (+inf) read as ``ceiling``
+    (opaque, as the grid treats them: occupied).
+
+    Args:
+        grid: an OccupancyGrid. u: (R, S, P, 3) box coordinates of the samples in every part box.
+
+    Returns:
+        (R, S) densities.
+    """
+    in_box = u.abs().amax(dim=-1) <= 1
+    cell = cell_index(u, grid.resolution)
+    part = torch.arange(u.shape[-2], device=u.device).expand(in_box.shape)
+    values = grid.density[part, cell[..., 0], cell[..., 1], cell[..., 2]].clamp_max(ceiling).to(u.dtype)
+    return torch.where(in_box, values, torch.zeros_like(values)).amax(dim=-1)
+
+
 def refresh_cells(
     grid: OccupancyGrid,
     density_fn,

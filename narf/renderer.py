@@ -13,8 +13,9 @@ import torch
 
 from narf.extraction import posed_box_bounds
 from narf.fields.base import FieldOutput
+from narf.fields.common import part_box_coordinates
 from narf.geometry import check_shape
-from narf.occupancy import field_ray_bounds
+from narf.occupancy import field_ray_bounds, grid_density
 from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
 from narf.sampling import importance_depths, stratified_depths
 
@@ -73,6 +74,7 @@ def render_rays(
     randomized: bool = True,
     generator: torch.Generator | None = None,
     uniforms: tuple[torch.Tensor, torch.Tensor] | None = None,
+    proposal_fn: Callable | None = None,
 ) -> RenderOutput:
     """Coarse pass without gradient, importance samples, then one final pass over all sorted samples with
     gradient through the same network. Rays that miss every box are not evaluated (C = bg, M = 0).
@@ -84,6 +86,9 @@ def render_rays(
         uniforms: optional ((R, n_coarse), (R, n_fine)) draws in [0, 1) for every ray, used instead of the
             generator, so that a ray's samples do not depend on which other rays share its batch (data-parallel
             fits render disjoint shares of one global batch).
+        proposal_fn: optional ``(points (R', S, 3), ray_ids) -> sigma (R', S)`` that stands in for the field's density
+            in the coarse pass (the occupancy grid's, :func:`bind_grid_proposal`): the importance samples then
+            follow it, and the final pass still evaluates the coarse and fine samples with the field.
     """
     check_shape("origins", origins, (-1, 3))
     dtype, device = origins.dtype, origins.device
@@ -101,8 +106,12 @@ def render_rays(
 
     with torch.no_grad():
         coarse = stratified_depths(t_near, t_far, n_coarse, rand(0, n_coarse))
-        out = field_fn(o[:, None] + coarse[..., None] * d[:, None], ids)
-        coarse_weights = weights_from_density(out.sigma, coarse, t_far)
+        coarse_points = o[:, None] + coarse[..., None] * d[:, None]
+        if proposal_fn is None:
+            coarse_sigma = field_fn(coarse_points, ids).sigma
+        else:
+            coarse_sigma = proposal_fn(coarse_points, ids)
+        coarse_weights = weights_from_density(coarse_sigma, coarse, t_far)
         edges = torch.cat([coarse, t_far[:, None]], dim=-1)
         fine = importance_depths(edges, coarse_weights, n_fine, rand(1, n_fine)) if n_fine else coarse[:, :0]
         depths = torch.sort(torch.cat([coarse, fine], dim=-1), dim=-1).values
@@ -190,6 +199,18 @@ def bind_field(field, dirs: torch.Tensor, pose, frame_of_ray: torch.Tensor, late
         )
 
     return field_fn
+
+
+def bind_grid_proposal(field, pose, frame_of_ray: torch.Tensor):
+    """A ``proposal_fn`` for :func:`render_rays`: the density of the field's occupancy grid
+    (:func:`narf.occupancy.grid_density`) at the samples, posed as :func:`bind_field` poses them."""
+
+    def proposal_fn(points: torch.Tensor, ray_ids: torch.Tensor) -> torch.Tensor:
+        ray_pose = pose.select(frame_of_ray[ray_ids])
+        u = part_box_coordinates(points, ray_pose, field.box_centres, field.box_half_extents)
+        return grid_density(field.occupancy, u)
+
+    return proposal_fn
 
 
 @torch.no_grad()

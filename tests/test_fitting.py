@@ -157,6 +157,8 @@ def test_config_is_strict():
         load_config("tiny", ["train.steps=1.5"])
     with pytest.raises(ConfigError, match="unknown preset 'fast'"):
         load_config("fast")
+    with pytest.raises(ConfigError, match="render.grid_proposal: the proposal is the occupancy grid's density"):
+        load_config("tiny", ["render.grid_proposal=true", "render.occupancy=false"])
     assert load_config("cpu", ["model.width=32"]).model.width == 32
     from fitting.config import CONFIG_DIR
 

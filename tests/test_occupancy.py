@@ -7,9 +7,9 @@ import torch
 
 from narf.fields import PoseBatch, build_field
 from narf.fields.base import Field, FieldOutput
-from narf.occupancy import OccupancyGrid, field_ray_bounds, refresh_cells
+from narf.occupancy import OccupancyGrid, cell_index, field_ray_bounds, grid_density, refresh_cells
 from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
-from narf.renderer import image_ray_bounds, render_image, render_rays
+from narf.renderer import bind_field, bind_grid_proposal, image_ray_bounds, render_image, render_rays
 
 RADIUS, SIGMA = 0.3, 5.0
 
@@ -217,3 +217,51 @@ def test_fit_with_occupancy_refreshes_the_grid_and_resumes_exactly(data_root_64,
     for key, value in a["model"].items():
         assert torch.allclose(value, b["model"][key], atol=1e-6), key
     assert "occupancy.density" in a["model"]
+
+
+def test_grid_density_against_a_loop():
+    torch.manual_seed(0)
+    grid = OccupancyGrid(3, resolution=4)
+    grid.density.copy_(torch.rand(3, 4, 4, 4) * 10)
+    grid.density[1, 0, 0, 0] = float("inf")  # never measured: reads as the ceiling
+    u = torch.rand(5, 6, 3, 3) * 2.6 - 1.3  # some samples outside some or all boxes
+    u[0, 0] = -0.9  # part 1's unmeasured corner cell, inside every box
+    got = grid_density(grid, u, ceiling=1e4)
+    expected = torch.zeros(5, 6)
+    for r in range(5):
+        for s in range(6):
+            for p in range(3):
+                if u[r, s, p].abs().max() <= 1:
+                    i, j, k = cell_index(u[r, s, p], 4).tolist()
+                    expected[r, s] = max(expected[r, s], min(float(grid.density[p, i, j, k]), 1e4))
+    assert torch.equal(got, expected)  # a gather and a max: no arithmetic
+    assert got[0, 0] == 1e4
+
+
+def test_grid_proposal_places_the_fine_samples_and_skips_the_coarse_field_pass():
+    """The field is evaluated once (the final pass, with gradient), and the importance samples follow the grid, not
+    the field: with the front half of the ball's cells emptied after the bounds were taken, the fine samples fall
+    behind the ball's middle although the field's own weights lie mostly in front (1 - exp(-5 * 0.3) = 78 %)."""
+    field, pose = _ball_field()
+    origins = torch.tensor([[-2.0, 0.0, 0.0], [-2.0, 0.1, 0.05]])
+    dirs = torch.tensor([[1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
+    frames = torch.zeros(2, dtype=torch.long)
+    near, far, hit = field_ray_bounds(field, origins, dirs, pose.select(frames))
+    field.occupancy.density[0, :16] = 0  # part 0's cells with u_x < 0: the front half of the ball
+    calls, depths = [], []
+    field_fn = bind_field(field, dirs, pose, frames)
+
+    def counting(points, ray_ids):
+        calls.append(torch.is_grad_enabled())
+        depths.append(points[..., 0] + 2)  # depth along +x from x = -2: the ball's middle at 2
+        return field_fn(points, ray_ids)
+
+    n_coarse, n_fine = 4, 32
+    generator = torch.Generator().manual_seed(0)
+    proposal = bind_grid_proposal(field, pose, frames)
+    render_rays(counting, origins, dirs, near, far, hit, n_coarse, n_fine, generator=generator, proposal_fn=proposal)
+    assert calls == [True]
+    # a fine sample lies in a coarse bin of positive proposal weight: within one bin ((far - near) / n_coarse) in
+    # front of the first non-empty cell at u_x = 0, i.e. depth 2
+    in_front = depths[-1] < 2 - (far - near)[:, None] / n_coarse
+    assert (in_front.sum(dim=-1) <= n_coarse).all()  # only coarse samples there
