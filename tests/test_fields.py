@@ -9,7 +9,7 @@ from narf.fields import ARTICULATED, MODELS, PAPER_COSTS, PoseBatch, build_field
 from narf.fields.base import masked_softmax, rescale_selection
 from narf.fields.common import part_box_coordinates, part_directions, part_local
 from narf.geometry import se3_exp
-from narf.layers import EqualLinear, WNLinear, leaky_backward_relu
+from narf.layers import EqualLinear, WNLinear, leaky_backward_relu, scaled_unit_rows
 from narf.renderer import render_image
 
 torch.set_default_dtype(torch.float32)
@@ -106,6 +106,24 @@ def test_layers():
     a = torch.tensor([-1.0, -1.0, 2.0], requires_grad=True)
     leaky_backward_relu(a).backward(torch.tensor([-1.0, 1.0, 3.0]))
     assert torch.equal(a.grad, torch.tensor([-0.1, 0.0, 3.0]))  # negative pre-activations can only rise
+
+
+def test_scaled_unit_rows_matches_autograd():
+    """The hand-written backward against autograd of s x / max(|x|, eps), float64, with rows above and below eps
+    (where the clamp holds the norm and the gradient is s g / eps)."""
+    torch.manual_seed(0)
+    x = torch.randn(6, 8, dtype=torch.float64)
+    x[1] *= 1e-8  # |x| ~ 3e-8 < eps: the clamped branch
+    grad = torch.randn(6, 8, dtype=torch.float64)
+    a, b = x.clone().requires_grad_(), x.clone().requires_grad_()
+    ours = scaled_unit_rows(a, 8.0, 1e-6)
+    reference = 8.0 * b / b.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+    ours.backward(grad)
+    reference.backward(grad)
+    # float64, a dozen operations per element on O(1) values (O(s/eps) = 8e6 in the clamped row): ~1e-15 relative
+    assert torch.allclose(ours, reference, rtol=1e-12, atol=0)
+    assert torch.allclose(a.grad, b.grad, rtol=1e-12, atol=0)
+    assert torch.autograd.gradcheck(lambda t: scaled_unit_rows(t, 3.0, 1e-6), (x[[0, 2]].clone().requires_grad_(),))
 
 
 def test_part_local_matches_loop():

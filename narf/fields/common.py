@@ -9,7 +9,7 @@ import torch
 from torch import nn
 
 from narf.geometry import check_shape
-from narf.layers import EqualLinear, Trunk, WNLinear, density_activation
+from narf.layers import EqualLinear, Trunk, WNLinear, density_activation, scaled_unit_rows
 
 
 @dataclass
@@ -194,7 +194,7 @@ class RadianceHead(nn.Module):
         g, r, s, h = embedded.shape
         hidden = self.trunk(embedded.reshape(g, r * s, h), group_index)
         sigma = self.density_act(self.sigma_out(hidden, group_index))[..., 0].reshape(g, r, s)
-        h1 = math.sqrt(self.width) * hidden / hidden.norm(dim=-1, keepdim=True).clamp_min(1e-6)
+        h1 = scaled_unit_rows(hidden, math.sqrt(self.width), 1e-6)
         h1 = h1.reshape(g, r, s, h)
         if self.latent_appearance is not None and z_a is not None:
             h1 = h1 + self._embed(self.latent_appearance, z_a.expand(blocks, -1, -1, -1), group_index)

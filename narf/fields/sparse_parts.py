@@ -92,13 +92,13 @@ def sparse_masked_inputs(
             0, sample, torch.ones_like(sample, dtype=u.dtype)
         )
         weights, probs = torch.ones_like(sample, dtype=u.dtype), 1.0 / n_in[sample]
-    hidden_width = features.shape[-1]
-    density = torch.zeros(r_count * s_count, hidden_width, dtype=u.dtype, device=u.device)
-    density = density.index_add(0, sample, weights[:, None] * features) + head.density_embed["parts"].bias[0]
+    n_samples = r_count * s_count
+    # the biases, broadcast to every sample, are the tensors the sums are added into (one pass over (RS, H))
+    density = head.density_embed["parts"].bias[0].to(u.dtype).expand(n_samples, -1)
+    density = density.index_add(0, sample, weights[:, None] * features)
     table = _colour_table(head, pose, d_local)  # (R, P, H/2)
-    colour = torch.zeros(r_count * s_count, table.shape[-1], dtype=u.dtype, device=u.device)
+    colour = (head.color_embed["pose"].bias[0] + head.color_embed["dirs"].bias[0]).to(u.dtype).expand(n_samples, -1)
     colour = colour.index_add(0, sample, weights[:, None] * table[ray, part])
-    colour = colour + head.color_embed["pose"].bias[0] + head.color_embed["dirs"].bias[0]
     segmentation = torch.zeros(r_count * s_count, p_count, dtype=u.dtype, device=u.device)
     segmentation = segmentation.index_put((sample, part), probs if torch.is_tensor(probs) else weights)
     return (
