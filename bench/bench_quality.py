@@ -19,10 +19,13 @@ from pathlib import Path
 #: (row label, ``--set`` overrides of the CPU preset)
 SIXTEEN = ["render.train_coarse=16", "render.train_fine=16"]
 CONFIGS = [
-    ("NARF_D cpu preset (8+8, occupancy grid)", []),
-    ("NARF_D 8+8, box bounds", ["render.occupancy=false"]),
-    ("NARF_D 16+16, occupancy grid", SIXTEEN),
-    ("NARF_D 16+16, box bounds (the previous preset)", [*SIXTEEN, "render.occupancy=false"]),
+    ("NARF_D cpu preset (8+8, occupancy grid, grid proposal)", []),
+    ("NARF_D 8+8, occupancy grid, coarse field pass", ["render.grid_proposal=false"]),
+    ("NARF_D 8+8, box bounds", ["render.occupancy=false", "render.grid_proposal=false"]),
+    (
+        "NARF_D 16+16, box bounds (the preset before the grid)",
+        [*SIXTEEN, "render.occupancy=false", "render.grid_proposal=false"],
+    ),
 ]
 SLICES = (1, 2, 3, 5, 10)  #: cumulative minutes of fitting at which the split is evaluated
 VIEWS = 17  #: evaluated views (spread over the held-out poses and test cameras)

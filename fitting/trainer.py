@@ -123,6 +123,10 @@ class Trainer:
         # Adam's first steps move each weight by about lr * sign(gradient), so even rounding-level differences
         # between runs (CPU kernels that sum in thread order, e.g. index_add) grow to 1e-2 within a few steps
         torch.use_deterministic_algorithms(config.train.deterministic, warn_only=True)
+        # subnormal floats (below 1.2e-38) become 0 on the CPU: behind a learned surface the transmittance, and with
+        # it the gradients of the samples there, underflows into that range, where x86 kernels run several times
+        # slower (docs/design.md, "Subnormal numbers"); no value that the fit can resolve changes
+        torch.set_flush_denormal(True)
         torch.manual_seed(config.train.seed)
         np.random.seed(config.train.seed)
         random.seed(config.train.seed)
