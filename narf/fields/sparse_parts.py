@@ -4,7 +4,8 @@ The dense models feed [p_i gamma(u_i)] (P*60 wide) to one linear layer, but p_i 
 does not contain the sample, and a sample lies in only a few boxes. Since W [p_i gamma(u_i)]_i =
 sum_i p_i W_i gamma(u_i) (W_i the column block of part i), the fast path evaluates gamma(u_i), the selector and
 W_i gamma(u_i) only for in-box (sample, part) pairs, one small matmul per part. The colour blocks depend only on
-the ray (xi_i, d_i), so W_k [p_i Y_i] = sum_i p_i (W_k,i Y_i) is a p-weighted sum of a per-ray (P, H/2) table.
+the ray (xi_i, d_i), so W_k [p_i Y_i] = sum_i p_i (W_k,i Y_i) is a p-weighted sum of a per-ray (P, H/2) table: the
+(S, P) weights of a ray's samples times its table.
 """
 
 from __future__ import annotations
@@ -96,9 +97,11 @@ def sparse_masked_inputs(
     # the biases, broadcast to every sample, are the tensors the sums are added into (one pass over (RS, H))
     density = head.density_embed["parts"].bias[0].to(u.dtype).expand(n_samples, -1)
     density = density.index_add(0, sample, weights[:, None] * features)
-    table = _colour_table(head, pose, d_local)  # (R, P, H/2)
-    colour = (head.color_embed["pose"].bias[0] + head.color_embed["dirs"].bias[0]).to(u.dtype).expand(n_samples, -1)
-    colour = colour.index_add(0, sample, weights[:, None] * table[ray, part])
+    table = _colour_table(head, pose, d_local).to(u.dtype)  # (R, P, H/2)
+    # the colour sums sum_i p_i table[r, i] of a ray's samples are one (S, P) x (P, H/2) product per ray
+    per_part = torch.zeros(n_samples, p_count, dtype=u.dtype, device=u.device).index_put((sample, part), weights)
+    colour_bias = (head.color_embed["pose"].bias[0] + head.color_embed["dirs"].bias[0]).to(u.dtype)
+    colour = torch.baddbmm(colour_bias, per_part.reshape(r_count, s_count, p_count), table)
     segmentation = torch.zeros(r_count * s_count, p_count, dtype=u.dtype, device=u.device)
     segmentation = segmentation.index_put((sample, part), probs if torch.is_tensor(probs) else weights)
     return (
