@@ -17,10 +17,6 @@ import torch
 from narf.encodings import positional_encoding
 
 
-def _block(weight: torch.Tensor, part: int, width: int) -> torch.Tensor:
-    return weight[0, :, part * width : (part + 1) * width]
-
-
 def segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: int) -> torch.Tensor:
     """Softmax of ``logits`` (M,) within each segment (``segments`` (M,) in [0, n_segments))."""
     peak = torch.full((n_segments,), float("-inf"), dtype=logits.dtype, device=logits.device)
@@ -47,9 +43,8 @@ def selector_logits(selector, chunks: tuple[torch.Tensor, ...], ray: torch.Tenso
     Returns:
         (M,) logits.
     """
-    local = torch.cat(
-        [chunk @ selector.local.effective_weight()[k].T + selector.local.bias[k] for k, chunk in enumerate(chunks)]
-    )
+    weights, biases = selector.local.effective_weight().unbind(0), selector.local.bias.unbind(0)
+    local = torch.cat([torch.addmm(bias, chunk, weight.T) for chunk, weight, bias in zip(chunks, weights, biases)])
     r_count, p_count = encoded_zeta.shape[0], len(chunks)
     bones = selector.bones(encoded_zeta.reshape(1, r_count, -1)).reshape(r_count, p_count, selector.hidden)
     hidden = torch.relu(local + bones[ray, part])
@@ -79,7 +74,9 @@ def sparse_masked_inputs(
     w_density = head.density_embed["parts"].effective_weight()
     selector = getattr(model, "selector", None)
     # an empty chunk gives an empty block (every sample may miss every box)
-    features = torch.cat([chunk @ _block(w_density, k, 60).T for k, chunk in enumerate(chunks)])
+    # one split (one backward node) rather than a slice per part, whose backwards each fill a full-size gradient
+    blocks = w_density[0].split(60, dim=-1)  # P x (H, 60): the column block of each part
+    features = torch.cat([chunk @ block.T for chunk, block in zip(chunks, blocks)])
     if selector is not None:
         logit = selector_logits(selector, chunks, ray, part, encoded_zeta)
         if model.selector_kind == "softmax":
