@@ -126,6 +126,16 @@ def test_scaled_unit_rows_matches_autograd():
     assert torch.autograd.gradcheck(lambda t: scaled_unit_rows(t, 3.0, 1e-6), (x[[0, 2]].clone().requires_grad_(),))
 
 
+def test_in_box_pairs_are_the_nonzeros_stably_sorted_by_part():
+    from narf.fields.sparse_parts import in_box_pairs
+
+    torch.manual_seed(0)
+    in_box = torch.rand(7, 5, 4) < 0.3
+    pairs = in_box.nonzero()
+    expected = pairs[torch.argsort(pairs[:, 2], stable=True)].unbind(-1)
+    assert all(torch.equal(a, b) for a, b in zip(in_box_pairs(in_box), expected))
+
+
 def test_part_local_matches_loop():
     pose = _random_pose(n_frames=3, n_parts=4)
     points, dirs = _points(3, 5)

@@ -29,8 +29,8 @@ def segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: in
 def in_box_pairs(in_box: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The (ray, sample, part) index triples of in-box pairs, sorted by part (stably), so that each part's pairs are
     one contiguous block: in_box (R, S, P) bool -> ray, sample, part, each (M,) long."""
-    pairs = in_box.nonzero()
-    return pairs[torch.argsort(pairs[:, 2], stable=True)].unbind(-1)
+    part, ray, sample = in_box.permute(2, 0, 1).nonzero().unbind(-1)  # row-major over (part, ray, sample): no sort
+    return ray, sample, part
 
 
 def selector_logits(selector, chunks: tuple[torch.Tensor, ...], ray: torch.Tensor, part: torch.Tensor, encoded_zeta):
