@@ -72,7 +72,8 @@ def ray_loss(
     per_ray = poses.select(batch.frames)
     near, far, hit = field_ray_bounds(field, batch.origins, batch.dirs, per_ray)
     background = 1.0 if config.data.white_background else 0.0
-    grid_proposal = config.render.grid_proposal and getattr(field, "occupancy", None) is not None
+    # training renders only; validate_config ties the switch to render.occupancy, so the field has its grid
+    proposal = bind_grid_proposal(field, poses, batch.frames) if config.render.grid_proposal and randomized else None
     out = render_rays(
         bind_field(field, batch.dirs, poses, batch.frames, latent),
         batch.origins,
@@ -86,7 +87,7 @@ def ray_loss(
         randomized=randomized,
         generator=generator,
         uniforms=uniforms,
-        proposal_fn=bind_grid_proposal(field, poses, batch.frames) if grid_proposal and randomized else None,
+        proposal_fn=proposal,
     )
     colour_count, mask_count = normalisers or (out.rgb.numel(), batch.mask_weight.sum().clamp_min(1))
     colour = (out.rgb - batch.rgb).pow(2).sum() / colour_count

@@ -66,6 +66,7 @@ def sparse_masked_inputs(
     """
     head = model.head
     r_count, s_count, p_count, _ = u.shape
+    n_samples = r_count * s_count
     ray, in_ray, part = in_box_pairs(in_box)
     sample = ray * s_count + in_ray
     encoded = positional_encoding(u[ray, in_ray, part], 10)  # (M, 60)
@@ -80,27 +81,29 @@ def sparse_masked_inputs(
     if selector is not None:
         logit = selector_logits(selector, chunks, ray, part, encoded_zeta)
         if model.selector_kind == "softmax":
-            probs = segment_softmax(logit, sample, r_count * s_count)
+            probs = segment_softmax(logit, sample, n_samples)
         else:
             probs = torch.sigmoid(logit)
-        norm = torch.zeros(r_count * s_count, dtype=u.dtype, device=u.device).index_add(0, sample, probs**2).sqrt()
+        norm = torch.zeros(n_samples, dtype=u.dtype, device=u.device).index_add(0, sample, probs**2).sqrt()
         weights = probs * math.sqrt(p_count) / norm[sample].clamp_min(1e-12)
     else:
-        n_in = torch.zeros(r_count * s_count, dtype=u.dtype, device=u.device).index_add(
+        n_in = torch.zeros(n_samples, dtype=u.dtype, device=u.device).index_add(
             0, sample, torch.ones_like(sample, dtype=u.dtype)
         )
         weights, probs = torch.ones_like(sample, dtype=u.dtype), 1.0 / n_in[sample]
-    n_samples = r_count * s_count
+
+    def per_sample(values: torch.Tensor) -> torch.Tensor:  # (M,) pair values -> (RS, P), zero off the pairs
+        return torch.zeros(n_samples, p_count, dtype=u.dtype, device=u.device).index_put((sample, part), values)
+
     # the biases, broadcast to every sample, are the tensors the sums are added into (one pass over (RS, H))
     density = head.density_embed["parts"].bias[0].to(u.dtype).expand(n_samples, -1)
     density = density.index_add(0, sample, weights[:, None] * features)
     table = _colour_table(head, pose, d_local).to(u.dtype)  # (R, P, H/2)
     # the colour sums sum_i p_i table[r, i] of a ray's samples are one (S, P) x (P, H/2) product per ray
-    per_part = torch.zeros(n_samples, p_count, dtype=u.dtype, device=u.device).index_put((sample, part), weights)
+    per_part = per_sample(weights)
     colour_bias = (head.color_embed["pose"].bias[0] + head.color_embed["dirs"].bias[0]).to(u.dtype)
     colour = torch.baddbmm(colour_bias, per_part.reshape(r_count, s_count, p_count), table)
-    segmentation = torch.zeros(r_count * s_count, p_count, dtype=u.dtype, device=u.device)
-    segmentation = segmentation.index_put((sample, part), probs if torch.is_tensor(probs) else weights)
+    segmentation = per_sample(probs)
     return (
         density.reshape(1, r_count, s_count, -1),
         colour.reshape(1, r_count, s_count, -1),
