@@ -98,11 +98,11 @@ def _measure(index: int) -> dict:
 
     from narf.fields import build_field
     from narf.renderer import bind_field, render_rays, render_rays_inference
-    from pipelines.cli.common import keep_freed_memory
+    from pipelines.cli.common import flush_subnormals, keep_freed_memory
 
-    torch.set_num_threads(2)
+    flush_subnormals()  # before any parallel work, as the commands do (docs/design.md, "Subnormal numbers")
     keep_freed_memory()  # as the commands run (docs/design.md, "Memory allocator")
-    torch.set_flush_denormal(True)  # as the Trainer runs (docs/design.md, "Subnormal numbers")
+    torch.set_num_threads(2)
     label, name, kwargs, (n_c, n_f), (r_c, r_f), n_rays = CONFIGS[index]
     pose, centres, half, origins, dirs, near, far, n_hit = _scene()
     kwargs = dict(kwargs)

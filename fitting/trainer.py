@@ -126,7 +126,8 @@ class Trainer:
         torch.use_deterministic_algorithms(config.train.deterministic, warn_only=True)
         # subnormal floats (below 1.2e-38) become 0 on the CPU: behind a learned surface the transmittance, and with
         # it the gradients of the samples there, underflows into that range, where x86 kernels run several times
-        # slower (docs/design.md, "Subnormal numbers"); no value that the fit can resolve changes
+        # slower (docs/design.md, "Subnormal numbers"); no value that the fit can resolve changes. The mode is per
+        # thread: here it reaches this thread; the commands set it before torch starts its worker threads
         torch.set_flush_denormal(True)
         torch.manual_seed(config.train.seed)
         np.random.seed(config.train.seed)

@@ -265,6 +265,32 @@ def test_precision_and_compile_switches(data_root_64, tmp_path):
         _config(data_root_64, "render.occupancy_resolution=1")
 
 
+_SUBNORMAL_PROBE = """
+import sys, torch
+def probe():  # 2**20 copies of the smallest subnormal, doubled on 2 threads: a thread that flushes writes 0
+    tiny = torch.ones(1 << 20, dtype=torch.int32).view(torch.float32)
+    return int(((tiny * 2).view(torch.int32) != 0).sum())
+torch.set_num_threads(2)
+if sys.argv[1] == "late":  # the worker threads start before the mode is set
+    probe(); print(torch.set_flush_denormal(True), probe())
+else:
+    import pipelines.cli.fit as fit  # every import a command makes before it runs
+    fit.run_cli("probe", lambda argv: print(torch.set_flush_denormal(True), probe()))
+"""
+
+
+@pytest.mark.parametrize("order", ["cli", "late"])
+def test_subnormals_flushed_in_every_thread(order):
+    """flush_subnormals (set by run_cli before a command's work) reaches both CPU threads: the doubled subnormals all
+    come back exactly 0 (integer count). Set after the worker threads started, the worker keeps its own half, which the
+    probe sees; that second case shows the probe can fail. Skipped where torch has no flush mode for this CPU."""
+    done = subprocess.run([sys.executable, "-c", _SUBNORMAL_PROBE, order], capture_output=True, text=True, check=True)
+    supported, unflushed = done.stdout.split()
+    if supported != "True":
+        pytest.skip("torch has no flush-to-zero mode on this CPU")
+    assert (int(unflushed) == 0) == (order == "cli")
+
+
 @pytest.mark.parametrize("user_env", [{}, {"MALLOC_MMAP_THRESHOLD_": "131072"}])
 def test_allocator_keeps_freed_memory_unless_the_user_chose(user_env):
     """keep_freed_memory: glibc's mallopt accepts both thresholds (it returns 0 for a value out of its range, e.g. an

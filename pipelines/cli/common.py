@@ -64,10 +64,25 @@ def keep_freed_memory() -> bool:
     )
 
 
+def flush_subnormals() -> bool:
+    """Treat float32 values below 1.2e-38 as 0 on the CPU (flush-to-zero and denormals-are-zero), in this thread and in
+    every CPU worker thread started after it; returns False where torch has no such mode for the CPU.
+
+    The mode is a per-thread register that a new thread copies from the thread that starts it, and torch starts its
+    worker threads at the first parallel operation; set later, it reaches the calling thread only and the workers
+    keep computing on subnormals at a fraction of the speed (docs/design.md, "Subnormal numbers").
+    """
+    import torch
+
+    return torch.set_flush_denormal(True)
+
+
 def run_cli(prog: str, main: Callable[[list[str] | None], int | None], argv: list[str] | None = None) -> int:
     """Run ``main(argv)``; print ``prog: error: ...`` and return 2 on a known error, 130 on Ctrl-C. The allocator
-    keeps freed memory for reuse (:func:`keep_freed_memory`)."""
+    keeps freed memory for reuse (:func:`keep_freed_memory`) and subnormal floats are flushed in every CPU thread
+    (:func:`flush_subnormals`), both set before ``main`` does any work."""
     keep_freed_memory()
+    flush_subnormals()
     try:
         return int(main(argv) or 0)
     except KeyboardInterrupt:
