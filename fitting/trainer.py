@@ -124,6 +124,10 @@ class Trainer:
         # Adam's first steps move each weight by about lr * sign(gradient), so even rounding-level differences
         # between runs (CPU kernels that sum in thread order, e.g. index_add) grow to 1e-2 within a few steps
         torch.use_deterministic_algorithms(config.train.deterministic, warn_only=True)
+        # that mode also fills every new tensor with NaN, a guard against kernels that read memory they never wrote
+        # (about 1 % of a CPU step); no kernel of the fit does (it allocates no uninitialised tensors), and the
+        # resume tests compare whole runs
+        torch.utils.deterministic.fill_uninitialized_memory = False
         # subnormal floats (below 1.2e-38) become 0 on the CPU: behind a learned surface the transmittance, and with
         # it the gradients of the samples there, underflows into that range, where x86 kernels run several times
         # slower (docs/design.md, "Subnormal numbers"); no value that the fit can resolve changes. The mode is per
@@ -135,6 +139,7 @@ class Trainer:
         self.data, self.frames = data.training, data.frames
         self.fit_data = data
         self.field = make_field(config).to(device)
+        self._cell_order: torch.Tensor | None = None  # the occupancy refresh's order of cells (refresh_occupancy)
         if state is None and hasattr(self.field, "set_boxes"):
             self.field.set_boxes(data.boxes[0].to(device), data.boxes[1].to(device))
         if config.train.compile:
@@ -250,14 +255,16 @@ class Trainer:
         if grid is None or self.step % r.occupancy_every:
             return
         seed = self.config.train.seed
-        order = torch.randperm(grid.density.numel(), generator=torch.Generator().manual_seed(seed))  # fixed per fit
+        if self._cell_order is None:  # a fixed permutation per fit
+            self._cell_order = torch.randperm(grid.density.numel(), generator=torch.Generator().manual_seed(seed))
+        order = self._cell_order
         round_index = (self.step // r.occupancy_every) % r.occupancy_rounds
         cells = order.chunk(r.occupancy_rounds)[round_index].to(self.device)
         poses, field = self.data.poses, self.field
         up = torch.tensor([[0.0, 0.0, 1.0]], device=self.device)
 
         def density(points: torch.Tensor, frame: int) -> torch.Tensor:  # the points as one ray of many samples
-            return field(points[None], up, poses.select(torch.tensor([frame], device=self.device))).sigma[0]
+            return field.density(points[None], up, poses.select(torch.tensor([frame], device=self.device)))[0]
 
         generator = torch.Generator().manual_seed(seed * 1_000_003 + self.step)
         refresh_cells(grid, density, poses, field.box_centres, field.box_half_extents, cells, generator)

@@ -328,6 +328,25 @@ def test_sparse_fast_path_matches_dense_reference(name, monkeypatch):
             assert torch.allclose(ga, gb, atol=1e-8)
 
 
+@pytest.mark.parametrize("name", [*MODELS, "narf_d_dense"])
+def test_density_alone_equals_the_forward_sigma(name):
+    """Field.density (the occupancy refresh's query; NARF_D / NARF_H skip the colour branch) against the full
+    forward's sigma: the same kernels on the same inputs, so equal to the bit; with an autoencoder latent, whose
+    shape half enters the density."""
+    dense = name == "narf_d_dense"
+    field = _field("narf_d" if dense else name, latent_dim=4)
+    if dense:
+        field.fast = False
+    points, dirs = _points(8, 12, seed=5)
+    points[0, :3] = 20.0  # outside every box: sigma 0
+    pose = _random_pose(n_frames=2, n_parts=field.n_parts).select(torch.tensor([0, 1] * 4))
+    latent = torch.randn(8, 8)
+    with torch.no_grad():
+        full, alone = field(points, dirs, pose, latent).sigma, field.density(points, dirs, pose, latent)
+    assert alone.shape == (8, 12) and alone[0, :3].abs().max() == 0 and alone.abs().max() > 0
+    assert torch.equal(alone, full)
+
+
 def test_narf_p_packed_pass_without_in_box_samples(monkeypatch):
     monkeypatch.setattr("narf.fields.narf_p.PACKED_SHARE", 1.0)
     field = _field("narf_p")

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 from torch import nn
@@ -21,6 +22,22 @@ class FieldOutput:
     sigma: torch.Tensor
     rgb: torch.Tensor
     part_probs: torch.Tensor | None = None
+
+
+class FieldInputs(NamedTuple):
+    """What ``Field._forward`` / ``_density`` take, in order: the validated arguments of ``Field.forward``, x_local
+    (R, S, P, 3) or None, d_local (R, P, 3), u (R, S, P, 3), in_box (R, S, P) and the latent halves (1, R, 1, L) or
+    None."""
+
+    points: torch.Tensor
+    dirs: torch.Tensor
+    pose: PoseBatch
+    x_local: torch.Tensor | None
+    d_local: torch.Tensor
+    u: torch.Tensor
+    in_box: torch.Tensor
+    z_s: torch.Tensor | None
+    z_a: torch.Tensor | None
 
 
 @dataclass(frozen=True)
@@ -86,6 +103,22 @@ class Field(nn.Module):
         Returns:
             FieldOutput; sigma is 0 wherever no part box contains the point.
         """
+        inputs = self._inputs(points, dirs, pose, latent)
+        out = self._forward(*inputs)
+        out.sigma = torch.where(inputs.in_box.any(dim=-1), out.sigma, torch.zeros_like(out.sigma))
+        return out
+
+    def density(
+        self, points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch, latent: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """sigma (R, S) alone, equal to ``forward(...).sigma`` (arguments as :meth:`forward`); fields whose density
+        does not need their colour branch skip it (``_density``), e.g. for the occupancy grid's refresh."""
+        inputs = self._inputs(points, dirs, pose, latent)
+        sigma = self._density(*inputs)
+        return torch.where(inputs.in_box.any(dim=-1), sigma, torch.zeros_like(sigma))
+
+    def _inputs(self, points, dirs, pose, latent) -> FieldInputs:
+        """Validated inputs and the per-part coordinates that ``_forward`` / ``_density`` take."""
         check_shape("points", points, (-1, -1, 3))
         check_shape("dirs", dirs, (points.shape[0], 3))
         if pose.world_from_part.shape[:2] != (points.shape[0], self.n_parts):
@@ -102,9 +135,10 @@ class Field(nn.Module):
         if latent is not None and self.latent_dim:
             check_shape("latent", latent, (points.shape[0], 2 * self.latent_dim))
             z_s, z_a = latent[None, :, None, : self.latent_dim], latent[None, :, None, self.latent_dim :]
-        out = self._forward(points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a)
-        out.sigma = torch.where(in_box.any(dim=-1), out.sigma, torch.zeros_like(out.sigma))
-        return out
+        return FieldInputs(points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a)
+
+    def _density(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> torch.Tensor:
+        return self._forward(points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a).sigma
 
     def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
         raise NotImplementedError

@@ -184,16 +184,10 @@ class RadianceHead(nn.Module):
     ):
         """As ``forward`` from already embedded sums (G, R, S or 1, H) and (G, R, S or 1, H/2); blocks in
         ``extra_density`` are embedded and added here."""
-        if extra_density:
-            embedded = embedded + self._embed_sum(self.density_embed, extra_density, group_index)
-        blocks = embedded.shape[0]
-        if self.latent_shape is not None and z_s is not None:
-            embedded = embedded + self._embed(self.latent_shape, z_s.expand(blocks, -1, -1, -1), group_index)
         n_samples = max(embedded.shape[2], color_embedded.shape[2])
-        embedded = embedded.expand(-1, -1, n_samples, -1)
-        g, r, s, h = embedded.shape
-        hidden = self.trunk(embedded.reshape(g, r * s, h), group_index)
-        sigma = self.density_act(self.sigma_out(hidden, group_index))[..., 0].reshape(g, r, s)
+        hidden, sigma = self._trunk(embedded, extra_density, z_s, n_samples, group_index)
+        g, r, s, h = *sigma.shape, self.width
+        blocks = embedded.shape[0]
         h1 = scaled_unit_rows(hidden, math.sqrt(self.width), 1e-6)
         h1 = h1.reshape(g, r, s, h)
         if self.latent_appearance is not None and z_a is not None:
@@ -203,6 +197,23 @@ class RadianceHead(nn.Module):
         h3 = nn.functional.leaky_relu(h2 + color_embedded, 0.2, inplace=True)
         rgb = torch.sigmoid(self._embed(self.rgb_out, h3, group_index))
         return sigma, rgb
+
+    def density_embedded(
+        self, embedded: torch.Tensor, extra_density: dict[str, torch.Tensor], z_s=None, group_index=None
+    ) -> torch.Tensor:
+        """sigma (G, R, S) alone, as ``forward_embedded`` without the colour branch (the density does not read it)."""
+        return self._trunk(embedded, extra_density, z_s, embedded.shape[2], group_index)[1]
+
+    def _trunk(self, embedded, extra_density, z_s, n_samples: int, group_index):
+        """Density input sum -> trunk features (G, R*S, H) and sigma (G, R, S), S = ``n_samples``."""
+        if extra_density:
+            embedded = embedded + self._embed_sum(self.density_embed, extra_density, group_index)
+        if self.latent_shape is not None and z_s is not None:
+            embedded = embedded + self._embed(self.latent_shape, z_s.expand(embedded.shape[0], -1, -1, -1), group_index)
+        embedded = embedded.expand(-1, -1, n_samples, -1)
+        g, r, s, h = embedded.shape
+        hidden = self.trunk(embedded.reshape(g, r * s, h), group_index)
+        return hidden, self.density_act(self.sigma_out(hidden, group_index))[..., 0].reshape(g, r, s)
 
     def extra_costs(self) -> tuple[int, int, int]:
         """(paper FLOPs, complete FLOPs, memory) beyond the linear layers: ReLUs, residual adds, feature sums."""

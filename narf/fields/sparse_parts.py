@@ -51,6 +51,12 @@ def selector_logits(selector, chunks: tuple[torch.Tensor, ...], ray: torch.Tenso
     return (hidden * selector.out.effective_weight()[:, 0, :][part]).sum(-1) + selector.out.bias[part, 0, 0]
 
 
+def sparse_density_inputs(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: torch.Tensor) -> torch.Tensor:
+    """The density input of :func:`sparse_masked_inputs` alone (arguments as there): (1, R, S, H)."""
+    r_count, s_count = u.shape[:2]
+    return _in_box_density(model, u, in_box, encoded_zeta)[0].reshape(1, r_count, s_count, -1)
+
+
 def sparse_masked_inputs(
     model, u: torch.Tensor, in_box: torch.Tensor, d_local: torch.Tensor, pose, encoded_zeta: torch.Tensor
 ):
@@ -63,6 +69,33 @@ def sparse_masked_inputs(
     Returns:
         density (1, R, S, H) = W_parts [p gamma(u)] + b (without the zeta block), colour (1, R, S, H/2) =
         W_pose [p gamma(xi)] + W_dirs [p gamma(d)] + biases, and the segmentation probabilities (R, S, P).
+    """
+    head = model.head
+    r_count, s_count, p_count, _ = u.shape
+    density, weights, probs, sample, part = _in_box_density(model, u, in_box, encoded_zeta)
+
+    def per_sample(values: torch.Tensor) -> torch.Tensor:  # (M,) pair values -> (RS, P), zero off the pairs
+        return torch.zeros(r_count * s_count, p_count, dtype=u.dtype, device=u.device).index_put((sample, part), values)
+
+    table = _colour_table(head, pose, d_local).to(u.dtype)  # (R, P, H/2)
+    # the colour sums sum_i p_i table[r, i] of a ray's samples are one (S, P) x (P, H/2) product per ray
+    per_part = per_sample(weights)
+    colour_bias = (head.color_embed["pose"].bias[0] + head.color_embed["dirs"].bias[0]).to(u.dtype)
+    colour = torch.baddbmm(colour_bias, per_part.reshape(r_count, s_count, p_count), table)
+    segmentation = per_sample(probs)
+    return (
+        density.reshape(1, r_count, s_count, -1),
+        colour.reshape(1, r_count, s_count, -1),
+        segmentation.reshape(r_count, s_count, p_count),
+    )
+
+
+def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: torch.Tensor):
+    """The part-block sum of the density input over in-box pairs, and the pairs' weights.
+
+    Returns:
+        density (R*S, H) = W_parts [p gamma(u)] + b; per in-box pair (M,): the block weights p (rescaled for NARF_D),
+        the segmentation probabilities, the flat sample index and the part index.
     """
     head = model.head
     r_count, s_count, p_count, _ = u.shape
@@ -91,24 +124,9 @@ def sparse_masked_inputs(
             0, sample, torch.ones_like(sample, dtype=u.dtype)
         )
         weights, probs = torch.ones_like(sample, dtype=u.dtype), 1.0 / n_in[sample]
-
-    def per_sample(values: torch.Tensor) -> torch.Tensor:  # (M,) pair values -> (RS, P), zero off the pairs
-        return torch.zeros(n_samples, p_count, dtype=u.dtype, device=u.device).index_put((sample, part), values)
-
     # the biases, broadcast to every sample, are the tensors the sums are added into (one pass over (RS, H))
     density = head.density_embed["parts"].bias[0].to(u.dtype).expand(n_samples, -1)
-    density = density.index_add(0, sample, weights[:, None] * features)
-    table = _colour_table(head, pose, d_local).to(u.dtype)  # (R, P, H/2)
-    # the colour sums sum_i p_i table[r, i] of a ray's samples are one (S, P) x (P, H/2) product per ray
-    per_part = per_sample(weights)
-    colour_bias = (head.color_embed["pose"].bias[0] + head.color_embed["dirs"].bias[0]).to(u.dtype)
-    colour = torch.baddbmm(colour_bias, per_part.reshape(r_count, s_count, p_count), table)
-    segmentation = per_sample(probs)
-    return (
-        density.reshape(1, r_count, s_count, -1),
-        colour.reshape(1, r_count, s_count, -1),
-        segmentation.reshape(r_count, s_count, p_count),
-    )
+    return density.index_add(0, sample, weights[:, None] * features), weights, probs, sample, part
 
 
 def _colour_table(head, pose, d_local: torch.Tensor) -> torch.Tensor:
