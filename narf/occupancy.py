@@ -28,6 +28,21 @@ def cell_index(u: torch.Tensor, resolution: int) -> torch.Tensor:
     return ((u + 1) * (resolution / 2)).floor().long().clamp(0, resolution - 1)
 
 
+def flat_cell_index(u: torch.Tensor, part: torch.Tensor, resolution: int, n_parts: int) -> torch.Tensor:
+    """The cell of :func:`cell_index` as one index into the flattened (n_parts, N, N, N) grid: u (..., 3) box
+    coordinates of part ``part`` (broadcast against u[..., 0]) -> (...) long.
+
+    Computed in floating point and converted to integers once, which is exact while every index is an integer below
+    2^24 (float32; float64 above) and takes less than half the time of four integer index tensors. NaN coordinates
+    give index 0 (masked by every caller: a NaN point is in no box).
+    """
+    n = resolution
+    dtype = torch.float32 if n_parts * n**3 <= 2**24 and u.dtype != torch.float64 else torch.float64
+    cells = ((u.to(dtype) + 1) * (n / 2)).floor_().clamp_(0, n - 1)
+    flat = (cells[..., 0] * n + cells[..., 1]) * n + cells[..., 2] + part.to(dtype) * n**3
+    return flat.long().clamp_(0, n_parts * n**3 - 1)
+
+
 class OccupancyGrid(nn.Module):
     """Per-part density maxima over box-coordinate cells.
 
@@ -111,8 +126,8 @@ def occupied_bounds(
     overlaps = (depths + half_step >= low) & (depths - half_step <= high)
     t = torch.minimum(torch.maximum(depths, low), high)
     u = o_box[ray, part, None] + t[..., None] * d_box[ray, part, None]  # (M, K, 3)
-    cell = cell_index(u, occupied.shape[-1])
-    marked_pairs = occupied[part[:, None], cell[..., 0], cell[..., 1], cell[..., 2]] & overlaps  # (M, K)
+    cell = flat_cell_index(u, part[:, None], occupied.shape[-1], occupied.shape[0])
+    marked_pairs = occupied.reshape(-1)[cell] & overlaps  # (M, K)
     marked = torch.zeros(hits.shape[0], n_steps, dtype=near.dtype, device=near.device)
     marked = marked.index_add(0, ray, marked_pairs.to(near.dtype)) > 0  # (R, K)
     any_marked = marked.any(dim=-1)
@@ -137,9 +152,9 @@ def grid_density(grid: OccupancyGrid, u: torch.Tensor, ceiling: float = 1e4) -> 
         (R, S) densities.
     """
     in_box = u.abs().amax(dim=-1) <= 1
-    cell = cell_index(u, grid.resolution)
-    part = torch.arange(u.shape[-2], device=u.device).expand(in_box.shape)
-    values = grid.density[part, cell[..., 0], cell[..., 1], cell[..., 2]].clamp_max(ceiling).to(u.dtype)
+    n_parts = u.shape[-2]
+    cell = flat_cell_index(u, torch.arange(n_parts, device=u.device), grid.resolution, n_parts)
+    values = grid.density.reshape(-1)[cell].clamp_max(ceiling).to(u.dtype)
     return torch.where(in_box, values, torch.zeros_like(values)).amax(dim=-1)
 
 

@@ -7,7 +7,14 @@ import torch
 
 from narf.fields import PoseBatch, build_field
 from narf.fields.base import Field, FieldOutput
-from narf.occupancy import OccupancyGrid, cell_index, field_ray_bounds, grid_density, refresh_cells
+from narf.occupancy import (
+    OccupancyGrid,
+    cell_index,
+    field_ray_bounds,
+    flat_cell_index,
+    grid_density,
+    refresh_cells,
+)
 from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
 from narf.renderer import bind_field, bind_grid_proposal, image_ray_bounds, render_image, render_rays
 
@@ -217,6 +224,21 @@ def test_fit_with_occupancy_refreshes_the_grid_and_resumes_exactly(data_root_64,
     for key, value in a["model"].items():
         assert torch.allclose(value, b["model"][key], atol=1e-6), key
     assert "occupancy.density" in a["model"]
+
+
+@pytest.mark.parametrize(
+    "dtype, resolution", [(torch.float32, 4), (torch.float32, 24), (torch.float64, 24), (torch.float32, 100)]
+)
+def test_flat_cell_index_against_cell_index(dtype, resolution):
+    """The flat index of the fast lookups equals the row-major index of cell_index's (part, i, j, k), clamping
+    included; at N = 100 (19 N^3 > 2^24) it must switch to float64 to stay exact. Integers: compared exactly."""
+    torch.manual_seed(0)
+    u = (torch.rand(7, 9, 19, 3) * 2.6 - 1.3).to(dtype)  # some coordinates outside the box: clamped to the edge
+    u[0, 0] = 1 - 1e-7  # just inside the last cell
+    part = torch.arange(19)
+    cell = cell_index(u, resolution)
+    expected = ((part * resolution + cell[..., 0]) * resolution + cell[..., 1]) * resolution + cell[..., 2]
+    assert torch.equal(flat_cell_index(u, part, resolution, 19), expected)
 
 
 def test_grid_density_against_a_loop():
