@@ -6,6 +6,8 @@ import argparse
 import importlib
 import os
 
+from pipelines.cli.common import flush_subnormals, keep_freed_memory
+
 BENCHMARKS = {
     "synth": "bench.bench_synth",
     "models": "bench.bench_models",
@@ -19,6 +21,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
     parser.add_argument("names", nargs="*", choices=[*BENCHMARKS, []], help="benchmarks to run (default: all)")
     args = parser.parse_args()
+    # as every command does before its first torch operation (docs/design.md, "Subnormal numbers", "Memory allocator")
+    flush_subnormals()
+    keep_freed_memory()
     os.environ.setdefault("NARF_CACHE", os.path.join(os.getcwd(), ".cache", "bench"))
     rows = []
     for name in args.names or list(BENCHMARKS):
