@@ -89,5 +89,9 @@ def barrier(processes: Processes) -> None:
 
 
 def shutdown(processes: Processes) -> None:
+    """Leave the process group together: each process waits until every other has finished (rank 0 may still be
+    writing the last checkpoint and the curve) before the group is destroyed. A process that fails instead never
+    reaches this point, and torchrun stops the others."""
     if processes.distributed and dist.is_initialized():
+        dist.barrier()
         dist.destroy_process_group()
