@@ -139,7 +139,10 @@ class Trainer:
         self.data, self.frames = data.training, data.frames
         self.fit_data = data
         self.field = make_field(config).to(device)
-        self._cell_order: torch.Tensor | None = None  # the occupancy refresh's order of cells (refresh_occupancy)
+        grid = getattr(self.field, "occupancy", None)
+        # the occupancy refresh's order of cells: a fixed permutation per fit (refresh_occupancy)
+        generator = torch.Generator().manual_seed(config.train.seed)
+        self._cell_order = None if grid is None else torch.randperm(grid.density.numel(), generator=generator)
         if state is None and hasattr(self.field, "set_boxes"):
             self.field.set_boxes(data.boxes[0].to(device), data.boxes[1].to(device))
         if config.train.compile:
@@ -255,11 +258,8 @@ class Trainer:
         if grid is None or self.step % r.occupancy_every:
             return
         seed = self.config.train.seed
-        if self._cell_order is None:  # a fixed permutation per fit
-            self._cell_order = torch.randperm(grid.density.numel(), generator=torch.Generator().manual_seed(seed))
-        order = self._cell_order
         round_index = (self.step // r.occupancy_every) % r.occupancy_rounds
-        cells = order.chunk(r.occupancy_rounds)[round_index].to(self.device)
+        cells = self._cell_order.chunk(r.occupancy_rounds)[round_index].to(self.device)
         poses, field = self.data.poses, self.field
         up = torch.tensor([[0.0, 0.0, 1.0]], device=self.device)
 

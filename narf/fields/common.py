@@ -186,12 +186,9 @@ class RadianceHead(nn.Module):
         ``extra_density`` are embedded and added here."""
         n_samples = max(embedded.shape[2], color_embedded.shape[2])
         hidden, sigma = self._trunk(embedded, extra_density, z_s, n_samples, group_index)
-        g, r, s, h = *sigma.shape, self.width
-        blocks = embedded.shape[0]
-        h1 = scaled_unit_rows(hidden, math.sqrt(self.width), 1e-6)
-        h1 = h1.reshape(g, r, s, h)
+        h1 = scaled_unit_rows(hidden, math.sqrt(self.width), 1e-6).reshape(*sigma.shape, self.width)
         if self.latent_appearance is not None and z_a is not None:
-            h1 = h1 + self._embed(self.latent_appearance, z_a.expand(blocks, -1, -1, -1), group_index)
+            h1 = h1 + self._embed(self.latent_appearance, z_a.expand(sigma.shape[0], -1, -1, -1), group_index)
         # in place: h1 and the sum are fresh tensors used once
         h2 = self._embed(self.color_hidden, nn.functional.leaky_relu(h1, 0.2, inplace=True), group_index)
         h3 = nn.functional.leaky_relu(h2 + color_embedded, 0.2, inplace=True)

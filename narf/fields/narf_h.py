@@ -40,6 +40,13 @@ class NarfH(Field):
             density_act=density_act,
         )
 
+    def _density(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a):
+        if not self.fast:  # the dense reference: sigma of the full forward
+            return super()._density(points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a)
+        encoded_zeta = self.zeta_encoding(pose)
+        density = sparse_density_inputs(self, u, in_box, encoded_zeta)
+        return self.head.density_embedded(density, {"zeta": encoded_zeta[None]}, z_s)[0]
+
     def part_weights(self, encoded_u, in_box, pose):
         """Per-sample part weights used to mask the blocks (R, S, P) and the segmentation probabilities."""
         weights = in_box.to(encoded_u.dtype)
@@ -51,17 +58,6 @@ class NarfH(Field):
             density, colour, probs = sparse_masked_inputs(self, u, in_box, d_local, pose, encoded_zeta)
             sigma, rgb = self.head.forward_embedded(density, colour, {"zeta": encoded_zeta[None]}, z_s, z_a)
             return FieldOutput(sigma[0], rgb[0], probs)
-        return self._dense_forward(pose, d_local, u, in_box, z_s, z_a)
-
-    def _density(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a):
-        if not self.fast:  # the dense reference stays one code path
-            return self._dense_forward(pose, d_local, u, in_box, z_s, z_a).sigma
-        encoded_zeta = self.zeta_encoding(pose)
-        density = sparse_density_inputs(self, u, in_box, encoded_zeta)
-        return self.head.density_embedded(density, {"zeta": encoded_zeta[None]}, z_s)[0]
-
-    def _dense_forward(self, pose, d_local, u, in_box, z_s, z_a) -> FieldOutput:
-        """The masked concatenation as written (docs/model.md §4), the fast path's test oracle."""
         r, s, p, _ = u.shape
         encoded_u = positional_encoding(u, 10)  # (R, S, P, 60)
         encoded_zeta = self.zeta_encoding(pose)
