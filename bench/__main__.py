@@ -1,11 +1,21 @@
-"""Run benchmarks and print one Markdown table: ``python -m bench [synth ...]`` (default: all)."""
+"""Run benchmarks and print one Markdown table: ``python -m bench [synth ...]`` (default: all).
+
+Each benchmark's rows are saved under ``$NARF_CACHE/rows/`` as it finishes, so that an interrupted run loses only the
+benchmark it was in (the time-to-quality benchmark, the longest, also keeps each finished configuration): ``--reuse``
+takes the saved rows of benchmarks already measured on this machine and runs the rest.
+"""
 
 from __future__ import annotations
 
 import argparse
+import datetime
 import importlib
+import json
 import os
+import sys
+from pathlib import Path
 
+from fitting.evaluate import write_text_atomic
 from pipelines.cli.common import flush_subnormals, keep_freed_memory
 
 BENCHMARKS = {
@@ -17,17 +27,37 @@ BENCHMARKS = {
 }
 
 
+def _rows(name: str, saved: Path, reuse: bool, machine: str) -> list[dict]:
+    """One benchmark's rows: the saved ones when ``reuse`` and they were measured on this machine, else measured now
+    and saved."""
+    if reuse and saved.exists():
+        record = json.loads(saved.read_text())
+        if record.get("machine") == machine:
+            print(f"bench: {name}: reusing the rows saved in {saved} on {record['date']}", file=sys.stderr)
+            return record["rows"]
+    rows = importlib.import_module(BENCHMARKS[name]).run()
+    record = {"machine": machine, "date": datetime.datetime.now().isoformat(timespec="minutes"), "rows": rows}
+    write_text_atomic(saved, json.dumps(record, indent=1))
+    return rows
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
     parser.add_argument("names", nargs="*", choices=[*BENCHMARKS, []], help="benchmarks to run (default: all)")
+    parser.add_argument("--reuse", action="store_true", help="take the saved rows of benchmarks already run here")
     args = parser.parse_args()
+    if args.reuse:  # the time-to-quality benchmark also keeps each finished configuration's row (bench_quality)
+        os.environ["NARF_BENCH_REUSE"] = "1"
     # as every command does before its first torch operation (docs/design.md, "Subnormal numbers", "Memory allocator")
     flush_subnormals()
     keep_freed_memory()
     os.environ.setdefault("NARF_CACHE", os.path.join(os.getcwd(), ".cache", "bench"))
+    from bench.bench_models import machine
+
+    rows_dir = Path(os.environ["NARF_CACHE"]) / "rows"
     rows = []
     for name in args.names or list(BENCHMARKS):
-        rows += importlib.import_module(BENCHMARKS[name]).run()
+        rows += _rows(name, rows_dir / f"{name}.json", args.reuse, machine())
     columns = list(dict.fromkeys(k for row in rows for k in row))
     print("| " + " | ".join(columns) + " |")
     print("|" + "---|" * len(columns))

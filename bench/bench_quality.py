@@ -16,6 +16,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+from fitting.evaluate import write_text_atomic
+
 #: (row label, ``--set`` overrides of the CPU preset)
 SIXTEEN = ["render.train_coarse=16", "render.train_fine=16"]
 CONFIGS = [
@@ -120,18 +122,31 @@ def run(configs: list[tuple[str, list[str]]] | None = None) -> list[dict]:
         generate_capture(capture, SynthConfig(), progress=False)
     rows = []
     for label, overrides in configs or CONFIGS:
-        try:
-            records = _curve(label, overrides, root, data_dir)
-        except RuntimeError as err:
-            rows.append({"model": f"{label}: time to quality", "params": f"failed: {err}"})
-            continue
-        last = records[-1]
-        row = {"model": f"{label}: time to quality", "train rays/s fp32": f"{last['rays/s']:,.0f} (fit median)"}
-        row.update({f"min to {db} dB full": _first(records, "full", db) for db in FULL_DB})
-        row.update({f"min to {db} dB NB crop": _first(records, "crop", db) for db in CROP_DB})
-        times = render_seconds(_run_dir(root, label))
-        row.update({f"render {size}^2 s (fitted)": f"{t:.2f}" for size, t in times.items()})
-        curve = ", ".join(f"{r['minutes']}: {r['full']:.2f}/{r['crop']:.2f}" for r in records)
-        row["NN PSNR full/crop by minute"] = curve
-        rows.append(row)
+        rows.append(_row(label, overrides, root, data_dir))
     return rows
+
+
+def _row(label: str, overrides: list[str], root: Path, data_dir: Path) -> dict:
+    """One configuration's row, saved as ``row.json`` in its run folder once complete; with ``NARF_BENCH_REUSE`` set
+    (``python -m bench --reuse``) a row saved on this machine is taken instead of fitting again."""
+    from bench.bench_models import machine
+
+    saved = _run_dir(root, label) / "row.json"
+    if os.environ.get("NARF_BENCH_REUSE") and saved.exists():
+        record = json.loads(saved.read_text())
+        if record.get("machine") == machine():
+            return record["row"]
+    try:
+        records = _curve(label, overrides, root, data_dir)
+    except RuntimeError as err:
+        return {"model": f"{label}: time to quality", "params": f"failed: {err}"}
+    last = records[-1]
+    row = {"model": f"{label}: time to quality", "train rays/s fp32": f"{last['rays/s']:,.0f} (fit median)"}
+    row.update({f"min to {db} dB full": _first(records, "full", db) for db in FULL_DB})
+    row.update({f"min to {db} dB NB crop": _first(records, "crop", db) for db in CROP_DB})
+    times = render_seconds(_run_dir(root, label))
+    row.update({f"render {size}^2 s (fitted)": f"{t:.2f}" for size, t in times.items()})
+    curve = ", ".join(f"{r['minutes']}: {r['full']:.2f}/{r['crop']:.2f}" for r in records)
+    row["NN PSNR full/crop by minute"] = curve
+    write_text_atomic(saved, json.dumps({"machine": machine(), "row": row}, indent=1))
+    return row
