@@ -113,13 +113,15 @@ def _first(records: list[dict], key: str, level: float) -> str:
 
 def run(configs: list[tuple[str, list[str]]] | None = None) -> list[dict]:
     from pipelines.datasets.subjects import data_root
-    from pipelines.synthetic.capture import SynthConfig, generate_capture, is_complete
+    from pipelines.synthetic.capture import is_complete
 
     root = Path(os.environ.get("NARF_CACHE", ".cache/bench")) / "quality_runs"
     data_dir = data_root(None)  # the user's data root ($NARF_DATA or data/), as narf-synth writes it
     capture = data_dir / "synthetic" / "taichi"
     if not is_complete(capture):
-        generate_capture(capture, SynthConfig(), progress=False)
+        # in its own process, as a user runs it: the generator forks render workers, and a child forked from this
+        # process, whose torch and OpenCV thread pools have run in the benchmarks before, can hang
+        _run(["pipelines.cli.synth", "--subject", "taichi", "--data-root", str(data_dir)])
     rows = []
     for label, overrides in configs or CONFIGS:
         rows.append(_row(label, overrides, root, data_dir))

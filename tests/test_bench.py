@@ -1,0 +1,26 @@
+"""``python -m bench`` keeps each benchmark's rows as it finishes and ``--reuse`` takes them back only when they were
+measured on the same machine (an interrupted 70-minute run loses only the benchmark it was in)."""
+
+import json
+import sys
+
+from bench import __main__ as bench_main
+
+
+def test_rows_are_saved_and_reused_only_on_the_same_machine(tmp_path, monkeypatch):
+    module = tmp_path / "fake_bench.py"
+    source = "CALLS = []\ndef run():\n    CALLS.append(1)\n    return [{'model': 'fake', 'value': len(CALLS)}]\n"
+    module.write_text(source)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setitem(bench_main.BENCHMARKS, "fake", "fake_bench")
+    saved = tmp_path / "rows" / "fake.json"
+
+    first = bench_main._rows("fake", saved, reuse=False, machine="cpu A")
+    assert first == [{"model": "fake", "value": 1}]
+    assert json.loads(saved.read_text())["machine"] == "cpu A"
+    assert bench_main._rows("fake", saved, reuse=True, machine="cpu A") == first  # taken back, not measured
+    assert sys.modules["fake_bench"].CALLS == [1]
+    # another machine's rows are measured again (and replace the saved ones); without --reuse always measured
+    assert bench_main._rows("fake", saved, reuse=True, machine="cpu B") == [{"model": "fake", "value": 2}]
+    assert bench_main._rows("fake", saved, reuse=False, machine="cpu B") == [{"model": "fake", "value": 3}]
+    assert json.loads(saved.read_text())["rows"] == [{"model": "fake", "value": 3}]
