@@ -43,9 +43,14 @@ def _rows(name: str, saved: Path, reuse: bool, machine: str) -> list[dict]:
 
 def main() -> None:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
-    parser.add_argument("names", nargs="*", choices=[*BENCHMARKS, []], help="benchmarks to run (default: all)")
+    # no argparse ``choices``: with nargs="*" it checks the empty default against them (and would list it in --help)
+    names = ", ".join(BENCHMARKS)
+    parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run, of {names} (default: all)")
     parser.add_argument("--reuse", action="store_true", help="take the saved rows of benchmarks already run here")
     args = parser.parse_args()
+    unknown = [name for name in args.names if name not in BENCHMARKS]
+    if unknown:
+        parser.error(f"unknown benchmark {unknown[0]!r} (choose from {names})")
     if args.reuse:  # the time-to-quality benchmark also keeps each finished configuration's row (bench_quality)
         os.environ["NARF_BENCH_REUSE"] = "1"
     # as every command does before its first torch operation (docs/design.md, "Subnormal numbers", "Memory allocator")

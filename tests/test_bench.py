@@ -4,6 +4,8 @@ measured on the same machine (an interrupted 70-minute run loses only the benchm
 import json
 import sys
 
+import pytest
+
 from bench import __main__ as bench_main
 
 
@@ -24,3 +26,11 @@ def test_rows_are_saved_and_reused_only_on_the_same_machine(tmp_path, monkeypatc
     assert bench_main._rows("fake", saved, reuse=True, machine="cpu B") == [{"model": "fake", "value": 2}]
     assert bench_main._rows("fake", saved, reuse=False, machine="cpu B") == [{"model": "fake", "value": 3}]
     assert json.loads(saved.read_text())["rows"] == [{"model": "fake", "value": 3}]
+
+
+def test_unknown_benchmark_is_a_usage_error(monkeypatch, capsys):
+    monkeypatch.setattr(sys, "argv", ["python -m bench", "synth", "fast"])
+    with pytest.raises(SystemExit) as stop:  # before any benchmark runs: "synth" would take two minutes
+        bench_main.main()
+    assert stop.value.code == 2
+    assert "unknown benchmark 'fast'" in capsys.readouterr().err
