@@ -302,3 +302,15 @@ def test_allocator_keeps_freed_memory_unless_the_user_chose(user_env):
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
     expected = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc" and not user_env
     assert done.stdout.strip() == str(expected)
+
+
+def test_eval_takes_several_splits(tiny_run, capsys):
+    """--split repeats: every named split is evaluated once, in the order given ('all' expands in place); one wrong
+    name fails the whole call before anything is rendered."""
+    argv = ["--run", str(tiny_run), "--limit", "1", "--grids", "0", "--quiet"]
+    twice = ["--split", "novel_pose_novel_view", "--split", "same_pose_novel_view", "--split", "novel_pose_novel_view"]
+    assert run_cli("narf-eval", cli_eval.main, [*argv, *twice]) == 0
+    report = json.loads((tiny_run / "eval" / "metrics.json").read_text())
+    assert list(report["splits"]) == ["novel_pose_novel_view", "same_pose_novel_view"]
+    assert run_cli("narf-eval", cli_eval.main, [*argv, "--split", "novel_pose", "--split", "cross_dataset"]) == 2
+    assert "'cross_dataset' is an autoencoder split" in capsys.readouterr().err

@@ -35,9 +35,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--split",
         default=None,
+        action="append",
         choices=sorted(set(ALL_SPLITS) | set(AUTOENCODER_SPLITS) | {"test"}),
         help="novel_pose / novel_view are the Neural Body splits; 'all' = the four pose x view splits (autoencoder: "
-        "and cross_dataset; rigid object: test). Default: novel_pose, test for a rigid-object run",
+        "and cross_dataset; rigid object: test); repeat to evaluate several. Default: novel_pose, test for a "
+        "rigid-object run",
     )
     parser.add_argument("--surreal", default=None, help="cross_dataset: SURREAL folder (default: the stand-in)")
     parser.add_argument(
@@ -74,19 +76,20 @@ def main(argv: list[str] | None = None) -> int:
     state = load_checkpoint(args.run)
     if args.refine_steps and state.get("kind") != "autoencoder":
         raise ValueError(f"{args.run}: --refine-steps is for autoencoder runs (narf-fit --dataset thuman)")
+    requested = list(dict.fromkeys(args.split or []))  # in the order given, each once
     if state["config"].get("data", {}).get("dataset") == "rigid":
-        if args.mesh or args.split not in (None, "test", "all"):
+        if args.mesh or not set(requested) <= {"test", "all"}:
             raise ValueError(f"{args.run}: a rigid-object run; it has one split, test (and no --mesh)")
         report = evaluate_rigid_run(args.run, args.limit, device, not args.quiet, args.grids)
         print(markdown_rigid(report))
         print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
         return 0
-    args.split = args.split or "novel_pose"
+    requested = requested or ["novel_pose"]
     if state.get("kind") == "autoencoder":
-        splits = list(AUTOENCODER_SPLITS) if args.split == "all" else [args.split]
+        splits = _expand(requested, AUTOENCODER_SPLITS)
         if args.mesh:
             raise ValueError(f"{args.run}: --mesh is for per-subject fits (an autoencoder run has no true surfaces)")
-        if args.split not in (*AUTOENCODER_SPLITS, "all"):
+        if not set(requested) <= {*AUTOENCODER_SPLITS, "all"}:
             raise ValueError(
                 f"{args.run}: an autoencoder run; choose --split from {', '.join(AUTOENCODER_SPLITS)}, all"
             )
@@ -98,10 +101,11 @@ def main(argv: list[str] | None = None) -> int:
         print(markdown_autoencoder(report))
         print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
         return 0
-    if args.split not in ALL_SPLITS:
-        kind = "an autoencoder split" if args.split in AUTOENCODER_SPLITS else "the rigid-object split"
-        raise ValueError(f"{args.run}: a per-subject fit; '{args.split}' is {kind}")
-    splits = list(EVAL_SPLITS) if args.split == "all" else [args.split]
+    for split in requested:
+        if split not in ALL_SPLITS:
+            kind = "an autoencoder split" if split in AUTOENCODER_SPLITS else "the rigid-object split"
+            raise ValueError(f"{args.run}: a per-subject fit; '{split}' is {kind}")
+    splits = _expand(requested, EVAL_SPLITS)
     report = evaluate_run(
         args.run,
         splits,
@@ -116,6 +120,11 @@ def main(argv: list[str] | None = None) -> int:
     print(markdown_table(report))
     print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
     return 0
+
+
+def _expand(requested: list[str], every: tuple[str, ...]) -> list[str]:
+    """The splits to evaluate: ``all`` stands for ``every``; each split once, in the order first named."""
+    return list(dict.fromkeys(name for split in requested for name in (every if split == "all" else (split,))))
 
 
 def entrypoint() -> None:
