@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     state = load_checkpoint(args.run)
     if args.refine_steps and state.get("kind") != "autoencoder":
         raise ValueError(f"{args.run}: --refine-steps is for autoencoder runs (narf-fit --dataset thuman)")
-    requested = list(dict.fromkeys(args.split or []))  # in the order given, each once
+    requested = args.split or []
     if state["config"].get("data", {}).get("dataset") == "rigid":
         if args.mesh or not set(requested) <= {"test", "all"}:
             raise ValueError(f"{args.run}: a rigid-object run; it has one split, test (and no --mesh)")
