@@ -86,13 +86,13 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     requested = requested or ["novel_pose"]
     if state.get("kind") == "autoencoder":
-        splits = _expand(requested, AUTOENCODER_SPLITS)
         if args.mesh:
             raise ValueError(f"{args.run}: --mesh is for per-subject fits (an autoencoder run has no true surfaces)")
         if not set(requested) <= {*AUTOENCODER_SPLITS, "all"}:
             raise ValueError(
                 f"{args.run}: an autoencoder run; choose --split from {', '.join(AUTOENCODER_SPLITS)}, all"
             )
+        splits = _expand(requested, AUTOENCODER_SPLITS)
         if args.refine_steps and "cross_dataset" not in splits:
             raise ValueError(f"{args.run}: --refine-steps refines SURREAL codes; it needs --split cross_dataset or all")
         report = evaluate_autoencoder_run(
