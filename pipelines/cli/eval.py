@@ -10,13 +10,9 @@ from pathlib import Path
 from pipelines.cli.common import HelpFormatter, run_cli
 
 
-def main(argv: list[str] | None = None) -> int:
-    from fitting.checkpoint import load_checkpoint
-    from fitting.evaluate import ALL_SPLITS, EVAL_SPLITS, markdown_table
-    from fitting.trainer import auto_device
-    from pipelines.autoencoder_evaluation import AUTOENCODER_SPLITS, evaluate_autoencoder_run, markdown_autoencoder
-    from pipelines.evaluation import evaluate_run
-    from pipelines.rigid_session import evaluate_rigid_run, markdown_rigid
+def build_parser() -> argparse.ArgumentParser:
+    from fitting.evaluate import ALL_SPLITS
+    from pipelines.autoencoder_evaluation import AUTOENCODER_SPLITS
 
     parser = argparse.ArgumentParser(
         prog="narf-eval",
@@ -67,7 +63,14 @@ def main(argv: list[str] | None = None) -> int:
     )
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from fitting.checkpoint import load_checkpoint
+    from fitting.trainer import auto_device
+
+    args = build_parser().parse_args(argv)
     if args.refine_steps < 0:
         raise ValueError(f"--refine-steps must be >= 0, got {args.refine_steps}")
     if not args.run.is_dir():
@@ -76,31 +79,51 @@ def main(argv: list[str] | None = None) -> int:
     state = load_checkpoint(args.run)
     if args.refine_steps and state.get("kind") != "autoencoder":
         raise ValueError(f"{args.run}: --refine-steps is for autoencoder runs (narf-fit --dataset thuman)")
-    requested = args.split or []
     if state["config"].get("data", {}).get("dataset") == "rigid":
-        if args.mesh or not set(requested) <= {"test", "all"}:
-            raise ValueError(f"{args.run}: a rigid-object run; it has one split, test (and no --mesh)")
-        report = evaluate_rigid_run(args.run, args.limit, device, not args.quiet, args.grids)
-        print(markdown_rigid(report))
-        print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
-        return 0
-    requested = requested or ["novel_pose"]
-    if state.get("kind") == "autoencoder":
-        if args.mesh:
-            raise ValueError(f"{args.run}: --mesh is for per-subject fits (an autoencoder run has no true surfaces)")
-        if not set(requested) <= {*AUTOENCODER_SPLITS, "all"}:
-            raise ValueError(
-                f"{args.run}: an autoencoder run; choose --split from {', '.join(AUTOENCODER_SPLITS)}, all"
-            )
-        splits = _expand(requested, AUTOENCODER_SPLITS)
-        if args.refine_steps and "cross_dataset" not in splits:
-            raise ValueError(f"{args.run}: --refine-steps refines SURREAL codes; it needs --split cross_dataset or all")
-        report = evaluate_autoencoder_run(
-            args.run, splits, args.limit, device, not args.quiet, args.grids, args.surreal, args.refine_steps
-        )
-        print(markdown_autoencoder(report))
-        print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
-        return 0
+        table = _evaluate_rigid(args, device)
+    elif state.get("kind") == "autoencoder":
+        table = _evaluate_autoencoder(args, device)
+    else:
+        table = _evaluate_subject(args, device)
+    print(table)
+    print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
+    return 0
+
+
+def _evaluate_rigid(args: argparse.Namespace, device: str) -> str:
+    """A rigid-object run: its one split, ``test``; returns the markdown table."""
+    from pipelines.rigid_session import evaluate_rigid_run, markdown_rigid
+
+    if args.mesh or not set(args.split or []) <= {"test", "all"}:
+        raise ValueError(f"{args.run}: a rigid-object run; it has one split, test (and no --mesh)")
+    return markdown_rigid(evaluate_rigid_run(args.run, args.limit, device, not args.quiet, args.grids))
+
+
+def _evaluate_autoencoder(args: argparse.Namespace, device: str) -> str:
+    """An autoencoder run: the THUman splits and cross_dataset beside the mean code; returns the markdown table."""
+    from pipelines.autoencoder_evaluation import AUTOENCODER_SPLITS, evaluate_autoencoder_run, markdown_autoencoder
+
+    requested = args.split or ["novel_pose"]
+    if args.mesh:
+        raise ValueError(f"{args.run}: --mesh is for per-subject fits (an autoencoder run has no true surfaces)")
+    if not set(requested) <= {*AUTOENCODER_SPLITS, "all"}:
+        raise ValueError(f"{args.run}: an autoencoder run; choose --split from {', '.join(AUTOENCODER_SPLITS)}, all")
+    splits = _expand(requested, AUTOENCODER_SPLITS)
+    if args.refine_steps and "cross_dataset" not in splits:
+        raise ValueError(f"{args.run}: --refine-steps refines SURREAL codes; it needs --split cross_dataset or all")
+    report = evaluate_autoencoder_run(
+        args.run, splits, args.limit, device, not args.quiet, args.grids, args.surreal, args.refine_steps
+    )
+    return markdown_autoencoder(report)
+
+
+def _evaluate_subject(args: argparse.Namespace, device: str) -> str:
+    """A per-subject fit: the protocol splits (and, with ``--mesh``, surface distances); returns the markdown table."""
+    from fitting.evaluate import ALL_SPLITS, EVAL_SPLITS, markdown_table
+    from pipelines.autoencoder_evaluation import AUTOENCODER_SPLITS
+    from pipelines.evaluation import evaluate_run
+
+    requested = args.split or ["novel_pose"]
     for split in requested:
         if split not in ALL_SPLITS:
             kind = "an autoencoder split" if split in AUTOENCODER_SPLITS else "the rigid-object split"
@@ -117,9 +140,7 @@ def main(argv: list[str] | None = None) -> int:
         args.mesh_resolution,
         args.mesh_level,
     )
-    print(markdown_table(report))
-    print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
-    return 0
+    return markdown_table(report)
 
 
 def _expand(requested: list[str], every: tuple[str, ...]) -> list[str]:
