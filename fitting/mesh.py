@@ -4,6 +4,10 @@
 and colours each vertex with the colour branch seen from outside along its normal, with a part label from the
 part selector. ``surface_metrics`` compares two meshes: the symmetric surface distance (mean and 95th percentile
 over points sampled uniformly on both surfaces) and the normal consistency.
+
+``vertex_normals`` and ``vertex_faces`` compute what trimesh's properties of the same names do, without their
+fallback: trimesh wraps its sparse-matrix path in ``except BaseException`` and drops to a slow loop, which also
+swallows a Ctrl-C that lands in it (docs/design.md *Ctrl-C*).
 """
 
 from __future__ import annotations
@@ -31,6 +35,44 @@ class ExtractedMesh:
     faces: np.ndarray
     colours: np.ndarray
     parts: np.ndarray
+
+
+def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Angle-weighted vertex normals (Thuermer & Wuethrich 1998, as trimesh's ``Trimesh.vertex_normals``).
+
+    n_v = normalize(sum over the faces f around v of angle_f(v) * n_f), n_f the unit face normal; faces with a
+    degenerate normal are left out, and a vertex without faces gets the zero vector.
+
+    Args:
+        vertices: (V, 3) float.
+        faces: (F, 3) int, counter-clockwise seen from outside.
+
+    Returns:
+        (V, 3) float64 unit normals.
+    """
+    triangles = np.asarray(vertices, np.float64)[faces]
+    normals, ok = trimesh.triangles.normals(triangles)  # unit normals of the (F_ok,) faces with an area
+    angles = trimesh.triangles.angles(triangles[ok])  # (F_ok, 3) corner angles
+    corners = np.asarray(faces)[ok].reshape(-1)
+    weighted = (angles[..., None] * normals[:, None, :]).reshape(-1, 3)
+    summed = np.stack([np.bincount(corners, weighted[:, k], minlength=len(vertices)) for k in range(3)], axis=1)
+    length = np.linalg.norm(summed, axis=1, keepdims=True)
+    return np.divide(summed, length, out=np.zeros_like(summed), where=length > 0)
+
+
+def vertex_faces(n_vertices: int, faces: np.ndarray) -> np.ndarray:
+    """The faces around each vertex: (F, 3) int -> (V, max degree) face indices, rows padded with -1.
+
+    Each row lists its faces in increasing order (trimesh's ``Trimesh.vertex_faces`` holds the same sets).
+    """
+    flat = np.asarray(faces).reshape(-1)
+    order = np.argsort(flat, kind="stable")  # corners grouped by vertex, faces increasing within a group
+    counts = np.bincount(flat, minlength=n_vertices)
+    starts = np.cumsum(counts) - counts
+    slot = np.arange(len(flat)) - np.repeat(starts, counts)  # position of each sorted corner within its group
+    out = np.full((n_vertices, max(int(counts.max(initial=0)), 1)), -1, np.int64)
+    out[flat[order], slot] = order // 3
+    return out
 
 
 def density_grid(field, pose, resolution: int, chunk: int = 1 << 16, latent=None, progress: bool = False):
@@ -68,8 +110,8 @@ def extract_mesh(
     padded = np.pad(volume, 1)  # zero density outside the grid closes the surface
     verts, faces, _, _ = marching_cubes(padded, level, spacing=(spacing,) * 3)
     verts, faces = verts + origin - spacing, np.ascontiguousarray(faces[:, ::-1])  # wind outward (density inside)
-    # area-weighted face normals of the mesh itself: the grid gradient of a sharp density is a poor normal
-    outward = trimesh.Trimesh(verts, faces, process=False).vertex_normals
+    # angle-weighted face normals of the mesh itself: the grid gradient of a sharp density is a poor normal
+    outward = vertex_normals(verts, faces)
     device = next(field.parameters()).device
     points = torch.as_tensor(verts, dtype=torch.float32, device=device)
     looking = -torch.tensor(np.array(outward, dtype=np.float32), device=device)
@@ -92,7 +134,7 @@ def closest_surface_points(
     every triangle and takes ~5x longer on a body grid).
     """
     _, nearest = cKDTree(vertices).query(points, k=k)
-    adjacency = trimesh.Trimesh(vertices, faces, process=False).vertex_faces  # (V, max degree), -1 padded
+    adjacency = vertex_faces(len(vertices), faces)  # (V, max degree), -1 padded
     candidates = adjacency[nearest].reshape(len(points), -1)  # (N, k * degree)
     valid = candidates >= 0
     safe = np.where(valid, candidates, 0)

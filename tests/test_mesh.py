@@ -7,7 +7,7 @@ import pytest
 import torch
 import trimesh
 
-from fitting.mesh import extract_mesh, surface_metrics
+from fitting.mesh import extract_mesh, surface_metrics, vertex_faces, vertex_normals
 from narf.fields.base import Field, FieldOutput
 from narf.fields.common import PoseBatch
 from pipelines.cli import eval as cli_eval
@@ -36,6 +36,32 @@ def _pose():
     return PoseBatch(
         torch.eye(4)[None, None], torch.ones(1), torch.zeros(1, 0), torch.zeros(1, 1, 6), torch.zeros(1, 1, 3)
     )
+
+
+def _bumpy_mesh() -> tuple[np.ndarray, np.ndarray]:
+    """A jittered icosphere with one degenerate face (three collinear corners) and one vertex no face uses."""
+    sphere = trimesh.creation.icosphere(subdivisions=3)
+    rng = np.random.default_rng(0)
+    vertices = sphere.vertices * rng.uniform(0.8, 1.2, (len(sphere.vertices), 1))
+    extra = np.array([[2.0, 0, 0], [3.0, 0, 0], [4.0, 0, 0], [9.0, 9, 9]])  # a line, and a lone vertex
+    n = len(vertices)
+    faces = np.vstack([sphere.faces, [[n, n + 1, n + 2]]])
+    return np.vstack([vertices, extra]), faces
+
+
+def test_vertex_normals_and_faces_match_trimesh():
+    vertices, faces = _bumpy_mesh()
+    reference = trimesh.Trimesh(vertices, faces, process=False)
+    normals = vertex_normals(vertices, faces)
+    # float64 sums of at most 6 weighted unit vectors per vertex, in another order than trimesh's sparse product:
+    # rounding stays near 1e-15, far below 1e-12
+    np.testing.assert_allclose(normals, reference.vertex_normals, atol=1e-12)
+    assert np.all(normals[-4:] == 0)  # the degenerate face counts for nothing, the lone vertex has no normal
+    around = vertex_faces(len(vertices), faces)
+    assert around.shape == reference.vertex_faces.shape
+    for mine, theirs in zip(around, reference.vertex_faces):
+        assert sorted(mine[mine >= 0]) == sorted(theirs[theirs >= 0])
+        assert np.all(np.diff(mine[mine >= 0]) > 0)
 
 
 def test_marching_cubes_of_an_analytic_ball():

@@ -21,6 +21,7 @@ import torch
 import trimesh
 from tqdm import tqdm
 
+from fitting.mesh import vertex_normals
 from pipelines.body.model import BodyModel
 from pipelines.datasets.capture import make_protocol
 from pipelines.datasets.easymocap import write_easymocap_cameras
@@ -122,8 +123,9 @@ def _bbox_pixels(camera: Camera, vertices: np.ndarray, pad: int = 6) -> tuple[in
     return None if x1 <= x0 or y1 <= y0 else (x0, y0, x1, y1)
 
 
-def render_view(mesh: trimesh.Trimesh, cam: int) -> tuple[np.ndarray, np.ndarray]:
-    """Render one camera of the current frame: (H, W, 3) float RGB and (H, W) uint8 CIHP labels."""
+def render_view(mesh: trimesh.Trimesh, normals: np.ndarray, cam: int) -> tuple[np.ndarray, np.ndarray]:
+    """Render one camera of the current frame, ``normals`` its (V, 3) vertex normals: (H, W, 3) float RGB and
+    (H, W) uint8 CIHP labels."""
     camera = _STATE["cameras"][cam]
     image = _STATE["backgrounds"][cam].copy()
     labels = np.zeros((camera.height, camera.width), np.uint8)
@@ -140,11 +142,11 @@ def render_view(mesh: trimesh.Trimesh, cam: int) -> tuple[np.ndarray, np.ndarray
     bary = trimesh.triangles.points_to_barycentric(mesh.vertices[faces], loc)
     rest = np.einsum("nk,nkd->nd", bary, _STATE["rest_vertices"][faces])
     label = _STATE["labels"][faces[np.arange(len(faces)), bary.argmax(1)]]
-    normals = np.einsum("nk,nkd->nd", bary, mesh.vertex_normals[faces])
-    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-9)
-    flip = np.einsum("nd,nd->n", normals, dirs[ray]) > 0
-    normals[flip] *= -1
-    colour = shade(albedo(rest, label), normals)
+    hit_normals = np.einsum("nk,nkd->nd", bary, normals[faces])
+    hit_normals /= np.maximum(np.linalg.norm(hit_normals, axis=1, keepdims=True), 1e-9)
+    flip = np.einsum("nd,nd->n", hit_normals, dirs[ray]) > 0
+    hit_normals[flip] *= -1
+    colour = shade(albedo(rest, label), hit_normals)
     rows, cols = ray // (x1 - x0) + y0, ray % (x1 - x0) + x0
     image[rows, cols] = colour
     labels[rows, cols] = label
@@ -155,8 +157,9 @@ def _render_frame(task: tuple[int, np.ndarray]) -> int:
     frame, vertices = task
     mesh = trimesh.Trimesh(vertices.astype(np.float64), _STATE["faces"], process=False)
     root, layout, quality = _STATE["root"], _STATE["layout"], _STATE["jpeg_quality"]
+    normals = vertex_normals(mesh.vertices, mesh.faces)
     for cam in range(len(_STATE["cameras"])):
-        image, labels = render_view(mesh, cam)
+        image, labels = render_view(mesh, normals, cam)
         rel = Path(image_relpath(layout, cam, frame))
         bgr = cv2.cvtColor((image * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)
         cv2.imwrite(str(root / rel), bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])

@@ -15,6 +15,7 @@ import cv2
 import numpy as np
 import trimesh
 
+from fitting.mesh import vertex_normals
 from pipelines.synthetic.scene import LABEL, vertex_regions
 
 _SKIN_TONES = np.array(
@@ -174,7 +175,7 @@ def raycast(
     if len(ray):
         corners = faces[tri]
         bary = trimesh.triangles.points_to_barycentric(vertices[corners], loc)
-        normals = np.einsum("nk,nkd->nd", bary, mesh.vertex_normals[corners])
+        normals = np.einsum("nk,nkd->nd", bary, vertex_normals(vertices, faces)[corners])
         normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-9)
         normals[np.einsum("nd,nd->n", normals, dirs[ray]) > 0] *= -1
         light = np.full(len(ray), ambient)
