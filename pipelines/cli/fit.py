@@ -80,12 +80,8 @@ def main(argv: list[str] | None = None) -> int:
     import torch
 
     from fitting.checkpoint import load_checkpoint
-    from fitting.config import load_config
     from fitting.distributed import barrier, from_environment, shutdown
     from fitting.trainer import auto_device, prepare_run_dir
-    from pipelines.autoencoder_session import start_autoencoder
-    from pipelines.fit_session import start_trainer
-    from pipelines.rigid_session import start_rigid
 
     if args.smpl_dir:
         os.environ["NARF_SMPL_DIR"] = args.smpl_dir
@@ -93,59 +89,14 @@ def main(argv: list[str] | None = None) -> int:
     processes = from_environment(device)
     if processes.distributed and device.type == "cuda":
         device = torch.device("cuda", processes.local_rank)
-    overrides = list(args.overrides)
-    if args.subject:
-        overrides.insert(0, f"data.subject={args.subject}")
-    if args.data_root:
-        if not Path(args.data_root).is_dir():
-            raise FileNotFoundError(f"{args.data_root}: no such data root folder")
-        overrides.insert(0, f"data.data_root={args.data_root}")
-    if args.model:
-        overrides.insert(0, f"model.name={args.model}")
-    if args.dataset:
-        overrides.insert(0, f"data.dataset={args.dataset}")
-    if args.dataset == "thuman" and args.model in ("p_nerf", "narf_h"):
-        overrides.insert(0, "train.lr=0.001")  # the supplement's exception for these two autoencoders (§F)
-    if args.resume:
-        if args.out is None:
-            raise ValueError("--resume needs --out (the run folder to continue)")
-        changed = sorted({o.split("=", 1)[0].strip() for o in args.overrides} - RESUMABLE)
-        if changed or args.subject or args.data_root or args.model or args.dataset or args.config:
-            raise ValueError(
-                f"--resume continues the run as it was configured; only --set {', '.join(sorted(RESUMABLE))} may "
-                f"change (got {', '.join(changed) or 'a preset, model, subject, dataset or data root'})"
-            )
-        config = None
-    else:
-        gpu = device.type == "cuda"
-        if args.dataset == "thuman":
-            default = ("ae_cnn_paper" if gpu else "ae_cnn") if args.model == "cnn" else "ae_paper" if gpu else "ae_cpu"
-        elif args.dataset == "rigid":
-            default = "rigid_paper" if gpu else "rigid_cpu"
-        else:
-            default = "cnn" if args.model == "cnn" else "paper" if gpu else "cpu"
-        config = load_config(args.config or default, overrides)
+    config = _config(args, device)
     name = config.data.dataset if config is not None and config.data.dataset in ("thuman", "rigid") else None
     out = args.out or Path("runs") / f"{name or Path(config.data.subject).name}-{config.model.name}"
     if args.resume and not (Path(out) / "checkpoint.pt").exists():
         raise FileNotFoundError(f"{out}: no checkpoint to resume")
     run_dir = prepare_run_dir(out, config, args.resume, write=processes.is_main)
     barrier(processes)
-    saved = load_checkpoint(run_dir) if args.resume else None
-    kind = saved.get("kind") if saved else config.data.dataset
-    dataset = saved["config"].get("data", {}).get("dataset") if saved else config.data.dataset
-    if kind in ("autoencoder", "thuman"):
-        if processes.distributed:
-            raise ValueError(
-                "data-parallel fitting (torchrun) covers per-subject fits; train the autoencoder as one process"
-            )
-        trainer = start_autoencoder(config, run_dir, device, args.resume, not args.quiet, args.overrides)
-    elif dataset == "rigid":
-        if processes.distributed:
-            raise ValueError("data-parallel fitting (torchrun) covers bodies; fit a rigid object in one process")
-        trainer = start_rigid(config, run_dir, device, args.resume, not args.quiet, args.overrides)
-    else:
-        trainer = start_trainer(config, run_dir, device, args.resume, not args.quiet, processes, args.overrides)
+    trainer = _start(args, config, run_dir, device, processes, load_checkpoint(run_dir) if args.resume else None)
     size = (
         f"{trainer.config.model.image_size}^2"
         if trainer.config.model.name == "cnn"
@@ -172,6 +123,65 @@ def main(argv: list[str] | None = None) -> int:
         print(f"narf-fit: {state} at step {result.step}, training PSNR {result.psnr:.2f} dB; run folder {run_dir}")
     shutdown(processes)
     return 0
+
+
+def _config(args: argparse.Namespace, device):
+    """The run's config from the preset (the device's default unless ``--config``) and the overrides; None when
+    resuming, which keeps the saved one (only the ``RESUMABLE`` keys may be set again)."""
+    from fitting.config import load_config
+
+    overrides = list(args.overrides)
+    if args.subject:
+        overrides.insert(0, f"data.subject={args.subject}")
+    if args.data_root:
+        if not Path(args.data_root).is_dir():
+            raise FileNotFoundError(f"{args.data_root}: no such data root folder")
+        overrides.insert(0, f"data.data_root={args.data_root}")
+    if args.model:
+        overrides.insert(0, f"model.name={args.model}")
+    if args.dataset:
+        overrides.insert(0, f"data.dataset={args.dataset}")
+    if args.dataset == "thuman" and args.model in ("p_nerf", "narf_h"):
+        overrides.insert(0, "train.lr=0.001")  # the supplement's exception for these two autoencoders (§F)
+    if args.resume:
+        if args.out is None:
+            raise ValueError("--resume needs --out (the run folder to continue)")
+        changed = sorted({o.split("=", 1)[0].strip() for o in args.overrides} - RESUMABLE)
+        if changed or args.subject or args.data_root or args.model or args.dataset or args.config:
+            raise ValueError(
+                f"--resume continues the run as it was configured; only --set {', '.join(sorted(RESUMABLE))} may "
+                f"change (got {', '.join(changed) or 'a preset, model, subject, dataset or data root'})"
+            )
+        return None
+    gpu = device.type == "cuda"
+    if args.dataset == "thuman":
+        default = ("ae_cnn_paper" if gpu else "ae_cnn") if args.model == "cnn" else "ae_paper" if gpu else "ae_cpu"
+    elif args.dataset == "rigid":
+        default = "rigid_paper" if gpu else "rigid_cpu"
+    else:
+        default = "cnn" if args.model == "cnn" else "paper" if gpu else "cpu"
+    return load_config(args.config or default, overrides)
+
+
+def _start(args: argparse.Namespace, config, run_dir: Path, device, processes, saved: dict | None):
+    """The trainer of the run's kind (per subject, autoencoder or rigid object), new or resumed from ``saved``."""
+    from pipelines.autoencoder_session import start_autoencoder
+    from pipelines.fit_session import start_trainer
+    from pipelines.rigid_session import start_rigid
+
+    kind = saved.get("kind") if saved else config.data.dataset
+    dataset = saved["config"].get("data", {}).get("dataset") if saved else config.data.dataset
+    if kind in ("autoencoder", "thuman"):
+        if processes.distributed:
+            raise ValueError(
+                "data-parallel fitting (torchrun) covers per-subject fits; train the autoencoder as one process"
+            )
+        return start_autoencoder(config, run_dir, device, args.resume, not args.quiet, args.overrides)
+    if dataset == "rigid":
+        if processes.distributed:
+            raise ValueError("data-parallel fitting (torchrun) covers bodies; fit a rigid object in one process")
+        return start_rigid(config, run_dir, device, args.resume, not args.quiet, args.overrides)
+    return start_trainer(config, run_dir, device, args.resume, not args.quiet, processes, args.overrides)
 
 
 def entrypoint() -> None:

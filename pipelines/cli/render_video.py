@@ -10,11 +10,9 @@ from pathlib import Path
 from pipelines.cli.common import HelpFormatter, run_cli
 
 
-def main(argv: list[str] | None = None) -> int:
-    from fitting.checkpoint import load_checkpoint
-    from fitting.trainer import auto_device
-    from pipelines.autoencoder_video import AUTOENCODER_KINDS, render_autoencoder_video
-    from pipelines.video import KINDS, render_video
+def build_parser() -> argparse.ArgumentParser:
+    from pipelines.autoencoder_video import AUTOENCODER_KINDS
+    from pipelines.video import KINDS
 
     parser = argparse.ArgumentParser(
         prog="narf-render-video",
@@ -74,7 +72,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scale", type=float, default=1.3, help="bones: largest leg-length factor")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from fitting.checkpoint import load_checkpoint
+    from fitting.trainer import auto_device
+    from pipelines.autoencoder_video import render_autoencoder_video
+    from pipelines.video import KINDS, render_video
+
+    args = build_parser().parse_args(argv)
     if args.frames < 1 or args.fps < 1:
         raise ValueError("--frames and --fps must be positive")
     out = args.out or args.run / "videos" / f"{args.kind}.mp4"
