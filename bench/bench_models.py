@@ -97,96 +97,101 @@ def _measure(index: int) -> dict:
     import torch
 
     from narf.fields import build_field
-    from narf.renderer import bind_field, render_rays, render_rays_inference
     from pipelines.cli.common import flush_subnormals, keep_freed_memory
 
     flush_subnormals()  # before any parallel work, as the commands do (docs/design.md, "Subnormal numbers")
     keep_freed_memory()  # as the commands run (docs/design.md, "Memory allocator")
     torch.set_num_threads(2)
     label, name, kwargs, (n_c, n_f), (r_c, r_f), n_rays = CONFIGS[index]
-    pose, centres, half, origins, dirs, near, far, n_hit = _scene()
+    scene = _scene()
     kwargs = dict(kwargs)
     compiled = kwargs.pop("compile", False)
     field = build_field(name, **kwargs)
-    field.set_boxes(centres, half)
+    field.set_boxes(scene[1], scene[2])
     if compiled:  # as train.compile does; the first steps (compilation) are not timed
         field.forward = torch.compile(field.forward, dynamic=True)
-    optimiser = torch.optim.Adam(field.parameters(), lr=1e-3)
-    gen = torch.Generator().manual_seed(0)
     result = {
         "model": label,
         "params": f"{sum(p.numel() for p in field.parameters()) / 1e6:.2f}M",
         "samples/ray train": n_c + n_f,
     }
     for precision in ("fp32",) if compiled else ("fp32", "bf16"):
-        times = []
-        warm_up = 2 if compiled else 1
-        for step in range(warm_up + 6 if compiled else 4):
-            pick = torch.randint(0, origins.shape[0], (n_rays,), generator=gen)
-            frames = torch.randint(0, pose.reach.shape[0], (n_rays,), generator=gen)
-            start = time.perf_counter()
-            with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
-                out = render_rays(
-                    bind_field(field, dirs[pick], pose, frames),
-                    origins[pick],
-                    dirs[pick],
-                    near[pick],
-                    far[pick],
-                    torch.ones(n_rays, dtype=torch.bool),
-                    n_c,
-                    n_f,
-                    generator=gen,
-                )
-                loss = (out.rgb.float() - 0.5).pow(2).mean() + (out.mask.float() - 1).pow(2).mean()
-            optimiser.zero_grad()
-            loss.backward()
-            optimiser.step()
-            if step >= warm_up:
-                times.append(time.perf_counter() - start)
-        rate = n_rays / (sum(times) / len(times))
+        steps = (2, 6) if compiled else (1, 3)  # (untimed, timed): compilation takes the first two
+        rate = _train_rate(field, scene, n_c, n_f, n_rays, precision, *steps)
         result[f"train rays/s {precision}"] = f"{rate:,.0f}"
         result[f"train samples/s {precision}"] = f"{rate * (n_c + n_f):,.0f}"
         if precision == "fp32":
             share = rate * train_flops_per_ray(field, n_c, n_f) / (matmul_gflops() * 1e9)
             result["nominal FLOP/s share of fp32 matmul"] = f"{100 * share:.1f} %"
-    if compiled:  # rendering would compile the no-gradient graphs again; timed for the eager rows only
-        result["peak RSS MB"] = f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f}"
-        return result
-    heavy = kwargs.get("width", 64) * (19 if name == "narf_p" else 1) * (r_c + r_f)
+    if not compiled:  # rendering would compile the no-gradient graphs again; timed for the eager rows only
+        heavy = kwargs.get("width", 64) * (19 if name == "narf_p" else 1) * (r_c + r_f)
+        seconds, estimated = _render_seconds(field, scene, heavy, r_c, r_f)
+        result["render samples"] = f"{r_c}+{r_f}"
+        result[f"render {RENDER_SIZE}^2 s"] = f"{seconds:.1f}{' (est.)' if estimated else ''}"
+    result["peak RSS MB"] = f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f}"
+    return result
+
+
+def _train_rate(field, scene, n_c: int, n_f: int, n_rays: int, precision: str, warm_up: int, timed: int) -> float:
+    """Training rays a second: the mean of ``timed`` Adam steps (rendering, loss, backward, update) after
+    ``warm_up`` untimed ones."""
+    import torch
+
+    from narf.renderer import bind_field, render_rays
+
+    pose, _, _, origins, dirs, near, far, _ = scene
+    optimiser = torch.optim.Adam(field.parameters(), lr=1e-3)
+    gen = torch.Generator().manual_seed(0)
+    times = []
+    for step in range(warm_up + timed):
+        pick = torch.randint(0, origins.shape[0], (n_rays,), generator=gen)
+        frames = torch.randint(0, pose.reach.shape[0], (n_rays,), generator=gen)
+        start = time.perf_counter()
+        with torch.autocast("cpu", dtype=torch.bfloat16, enabled=precision == "bf16"):
+            out = render_rays(
+                bind_field(field, dirs[pick], pose, frames),
+                origins[pick],
+                dirs[pick],
+                near[pick],
+                far[pick],
+                torch.ones(n_rays, dtype=torch.bool),
+                n_c,
+                n_f,
+                generator=gen,
+            )
+            loss = (out.rgb.float() - 0.5).pow(2).mean() + (out.mask.float() - 1).pow(2).mean()
+        optimiser.zero_grad()
+        loss.backward()
+        optimiser.step()
+        if step >= warm_up:
+            times.append(time.perf_counter() - start)
+    return n_rays / (sum(times) / len(times))
+
+
+def _render_seconds(field, scene, heavy: int, r_c: int, r_f: int) -> tuple[float, bool]:
+    """Seconds to render the scene's body rays at evaluation settings, as ``render_image`` does (the coarse outputs
+    reused), in chunks bounded by ``heavy`` (width x samples); a heavy model renders a share of the rays and the
+    time is scaled to all of them (then the flag is true)."""
+    import torch
+
+    from narf.renderer import bind_field, render_rays_inference
+
+    pose, _, _, origins, dirs, near, far, n_hit = scene
     chunk_rays = max(32, min(4096, (4096 * 64 * 32) // heavy))  # bounded activation memory per chunk
     budget = min(RENDER_RAY_BUDGET if heavy <= 64 * 64 else 4 * chunk_rays, n_hit)
     frames = torch.zeros(budget, dtype=torch.long)
-    with torch.no_grad():  # warm-up call (first no-grad shapes)
-        render_rays_inference(
-            bind_field(field, dirs[:64], pose, frames[:64]),
-            origins[:64],
-            dirs[:64],
-            near[:64],
-            far[:64],
-            torch.ones(64, dtype=torch.bool),
-            r_c,
-            r_f,
-        )
-    start = time.perf_counter()
+
+    def render(sl: slice) -> None:
+        hit = torch.ones(sl.stop - sl.start, dtype=torch.bool)
+        bound = bind_field(field, dirs[sl], pose, frames[sl])
+        render_rays_inference(bound, origins[sl], dirs[sl], near[sl], far[sl], hit, r_c, r_f)
+
     with torch.no_grad():
+        render(slice(0, 64))  # warm-up call (first no-grad shapes)
+        start = time.perf_counter()
         for chunk in range(0, budget, chunk_rays):
-            sl = slice(chunk, min(chunk + chunk_rays, budget))
-            render_rays_inference(  # as render_image renders (the coarse outputs reused)
-                bind_field(field, dirs[sl], pose, frames[sl]),
-                origins[sl],
-                dirs[sl],
-                near[sl],
-                far[sl],
-                torch.ones(sl.stop - sl.start, dtype=torch.bool),
-                r_c,
-                r_f,
-            )
-    seconds = (time.perf_counter() - start) * n_hit / budget
-    estimate = "" if budget == n_hit else " (est.)"
-    result["render samples"] = f"{r_c}+{r_f}"
-    result[f"render {RENDER_SIZE}^2 s"] = f"{seconds:.1f}{estimate}"
-    result["peak RSS MB"] = f"{resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f}"
-    return result
+            render(slice(chunk, min(chunk + chunk_rays, budget)))
+    return (time.perf_counter() - start) * n_hit / budget, budget != n_hit
 
 
 def machine() -> str:
