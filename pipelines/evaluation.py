@@ -22,6 +22,25 @@ from fitting.plots import grid, save_png, to_numpy
 from pipelines.fit_session import load_run, poses_for_frames
 
 
+def _view_metrics(run, split: str, items, frames: list[int], out_dir: Path, grids: int, device: str, progress: bool):
+    """Render every (frame, camera) of ``items`` and score it against the capture (full image and NB crop); the
+    first ``grids`` views also go to ``out_dir/grids/<split>/``. Returns one record per view."""
+    config, field, capture = run.config, run.field, run.capture
+    poses, _, _ = poses_for_frames(capture, run.body_model, frames)
+    poses = poses.to(device)
+    bg = 1.0 if config.data.white_background else 0.0
+    records = []
+    for index, (frame, cam) in enumerate(tqdm(items, desc=f"eval {split}", unit="view", disable=not progress)):
+        item = capture.load_frame(frame, cam)
+        pose = poses.select(torch.tensor([frames.index(frame)], device=device))
+        render = to_numpy(render_view(field, item.camera, pose, config))
+        region = nb_crop_region(item.camera, capture.vertices(frame))
+        records.append({"frame": frame, "camera": cam, **frame_metrics(render, item.image, item.mask, region, bg)})
+        if index < grids:
+            save_png(out_dir / "grids" / split / f"frame{frame:05d}_cam{cam:02d}.png", grid(item.image, render))
+    return records
+
+
 def evaluate_run(
     run_dir: Path,
     splits: list[str],
@@ -40,30 +59,16 @@ def evaluate_run(
     """
     run_dir = Path(run_dir)
     run = load_run(run_dir, device)
-    config, field, capture, protocol, body_model = run.config, run.field, run.capture, run.protocol, run.body_model
+    config, capture, protocol = run.config, run.capture, run.protocol
     out_dir = run_dir / "eval"
     metrics_path = out_dir / "metrics.json"
     report = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {"splits": {}}
-    bg = 1.0 if config.data.white_background else 0.0
     for split in splits:
         items = spread(protocol.split(split), limit)
         if not items:
             raise ValueError(f"split '{split}' is empty for {capture.root} under the {protocol.name} protocol")
         frames = sorted({f for f, _ in items})
-        poses, _, _ = poses_for_frames(capture, body_model, frames)
-        poses = poses.to(device)
-        records = []
-        for index, (frame, cam) in enumerate(tqdm(items, desc=f"eval {split}", unit="view", disable=not progress)):
-            item = capture.load_frame(frame, cam)
-            render = to_numpy(
-                render_view(
-                    field, item.camera, poses.select(torch.tensor([frames.index(frame)], device=device)), config
-                )
-            )
-            region = nb_crop_region(item.camera, capture.vertices(frame))
-            records.append({"frame": frame, "camera": cam, **frame_metrics(render, item.image, item.mask, region, bg)})
-            if index < grids:
-                save_png(out_dir / "grids" / split / f"frame{frame:05d}_cam{cam:02d}.png", grid(item.image, render))
+        records = _view_metrics(run, split, items, frames, out_dir, grids, device, progress)
         report["splits"][split] = {
             "n_views": len(records),
             "limit": limit,
