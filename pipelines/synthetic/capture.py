@@ -259,6 +259,16 @@ def write_true_surfaces(root: Path, faces: np.ndarray, vertices: np.ndarray, n_c
         mesh.export(root / "surfaces" / f"{frame}.ply")
 
 
+def _write_cameras(root: Path, config: SynthConfig, cameras: list[Camera]) -> None:
+    """The image folders of every camera, ``annots.npy`` (cameras and image paths) and EasyMocap's yml files."""
+    ims = [[image_relpath(config.layout, c, f) for c in range(config.cameras)] for f in range(config.frames)]
+    for folder in ("", "mask_cihp", "mask"):
+        for cam in cameras:
+            (root / folder / cam.name).mkdir(parents=True, exist_ok=True)
+    write_annots(root / "annots.npy", cameras, ims)
+    write_easymocap_cameras(root, cameras)
+
+
 def generate_capture(
     out: str | Path, config: SynthConfig = SynthConfig(), smpl_path: str | Path | None = None, progress: bool = True
 ) -> Path:
@@ -287,12 +297,7 @@ def generate_capture(
             for c, cam in enumerate(cameras)
         ]
     _write_sequence(partial, config.layout, params, old, new)
-    ims = [[image_relpath(config.layout, c, f) for c in range(config.cameras)] for f in range(config.frames)]
-    for folder in ("", "mask_cihp", "mask"):
-        for cam in cameras:
-            (partial / folder / cam.name).mkdir(parents=True, exist_ok=True)
-    write_annots(partial / "annots.npy", cameras, ims)
-    write_easymocap_cameras(partial, cameras)
+    _write_cameras(partial, config, cameras)
     rest = body.rest_body(torch.as_tensor(params[0].shapes)[None]).vertices[0].numpy()
     state = {
         "root": partial,
