@@ -2,6 +2,7 @@
 batch, record their world size, write one checkpoint, and resume."""
 
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -23,9 +24,12 @@ def test_shares_cover_the_batch_once():
 
 
 def _fit(args: list[str], processes: int) -> None:
+    """Fit in ``processes`` processes. Each torchrun process takes cores // 2 threads (``fitting.distributed``); the
+    single process is given as many, so that the runs differ only in how the batch is split."""
     launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={processes}"]
     command = [*(launcher if processes > 1 else [sys.executable]), "-m", "pipelines.cli.fit", *args]
-    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    env = {**os.environ, "OMP_NUM_THREADS": str(max(1, (os.cpu_count() or 1) // 2))}
+    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
     assert done.returncode == 0, done.stderr[-3000:]
 
 
@@ -42,10 +46,11 @@ def test_two_processes_follow_one(data_root_64, tmp_path):
     assert "world_size: 2" in (tmp_path / "two" / "config.yaml").read_text()
     assert not list((tmp_path / "two").glob(".checkpoint.*.tmp"))
     # Adam's first moments are 0.1-weighted sums of the gradients. The summed shares equal the single-process
-    # gradient up to rounding: summation order and thread count (torchrun gives each process 1 thread, the single
-    # process has 2), amplified by the importance sampler (docs/model.md §5). One process with 1 thread against one
-    # with 2 already differs by up to 4e-6 in a moment over seeds 0-2, against moments up to ~0.05. A halved
-    # (averaged) or missing share is off by half of every moment: relative error ~0.5, not ~1e-4.
+    # gradient up to rounding (the order in which the two halves of the batch are summed), amplified by the
+    # importance sampler (docs/model.md §5); both runs use the same thread count (_fit), since a different one
+    # changes the rounding as much again. One process with 1 thread against one with 2 differs by up to 4e-6 in a
+    # moment over seeds 0-2, against moments up to ~0.05. A halved (averaged) or missing share is off by half of every
+    # moment: relative error ~0.5, not ~1e-4.
     keys = list(one["optimizer"]["state"])
     m_one = torch.cat([one["optimizer"]["state"][k]["exp_avg"].reshape(-1) for k in keys])
     m_two = torch.cat([two["optimizer"]["state"][k]["exp_avg"].reshape(-1) for k in keys])
@@ -53,8 +58,9 @@ def test_two_processes_follow_one(data_root_64, tmp_path):
     assert (m_two - m_one).norm() < 1e-2 * m_one.norm()
     # the weights: Adam (eps 1e-12) divides each moment by its own running magnitude, so the weights whose gradient
     # sits at the rounding level can take a different step of up to ~lr = 0.01 (at most 2 lr per step, 0.1 over 5
-    # steps); the 99th percentile of the differences was up to 1.2e-4 between thread counts over seeds 0-2, while a
-    # missing share turns most weights' steps, by ~lr
+    # steps). How many weights sit there depends on the CPU's kernels: the 99th percentile of the differences was
+    # 2.5e-4 on an AMD EPYC Zen 5 with 1 thread in every process, but 4e-3 there for 1 process with 2 threads against
+    # 2 with 1 (1.2e-4 on the machines before). A missing share turns most weights' steps, by ~lr
     diff = torch.cat(
         [(two["model"][k] - v).abs().reshape(-1) for k, v in one["model"].items() if v.is_floating_point()]
     )
