@@ -380,7 +380,7 @@ def test_ctrl_c_during_synth_calibrate_and_eval_leaves_nothing_that_looks_finish
     ]
     # 400 frames render for about 9 s at 64^2 (40 took under a second on a fast machine, so the interrupt, sent from
     # a polling loop beside another test process, could land after the work); it lands well before the end
-    # a Ctrl-C that trimesh's vertex normals swallowed (docs/design.md *Ctrl-C*) let about one run in five finish
+    # trimesh's vertex normals swallow a Ctrl-C (docs/design.md *Ctrl-C*), so the generator computes its own
     done = _interrupt_after([*args, "--calib-shots", "0"], lambda err: "rendering" in err and "frame/s" in err)
     assert done.returncode == 130 and "Traceback" not in done.stderr, done.stderr[-500:]
     assert not out.exists()  # only the hidden .taichi.partial folder, which the next run replaces

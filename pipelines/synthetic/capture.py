@@ -26,7 +26,15 @@ from pipelines.body.model import BodyModel
 from pipelines.datasets.capture import make_protocol
 from pipelines.datasets.easymocap import write_easymocap_cameras
 from pipelines.datasets.zju_mocap import Camera, SmplParams, write_annots, write_params
-from pipelines.synthetic.scene import albedo, ring_cameras, shade, studio_background, taichi_motion, vertex_regions
+from pipelines.synthetic.scene import (
+    albedo,
+    facing_normals,
+    ring_cameras,
+    shade,
+    studio_background,
+    taichi_motion,
+    vertex_regions,
+)
 
 GENERATOR_VERSION = 4  # 2: tilted, closer ChArUco board poses; 3: supersampled shots, per-camera close-ups;
 # 4: true surfaces of the held-out evaluation frames (surfaces/)
@@ -142,11 +150,7 @@ def render_view(mesh: trimesh.Trimesh, normals: np.ndarray, cam: int) -> tuple[n
     bary = trimesh.triangles.points_to_barycentric(mesh.vertices[faces], loc)
     rest = np.einsum("nk,nkd->nd", bary, _STATE["rest_vertices"][faces])
     label = _STATE["labels"][faces[np.arange(len(faces)), bary.argmax(1)]]
-    hit_normals = np.einsum("nk,nkd->nd", bary, normals[faces])
-    hit_normals /= np.maximum(np.linalg.norm(hit_normals, axis=1, keepdims=True), 1e-9)
-    flip = np.einsum("nd,nd->n", hit_normals, dirs[ray]) > 0
-    hit_normals[flip] *= -1
-    colour = shade(albedo(rest, label), hit_normals)
+    colour = shade(albedo(rest, label), facing_normals(bary, normals[faces], dirs[ray]))
     rows, cols = ray // (x1 - x0) + y0, ray % (x1 - x0) + x0
     image[rows, cols] = colour
     labels[rows, cols] = label

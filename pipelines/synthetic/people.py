@@ -16,7 +16,7 @@ import numpy as np
 import trimesh
 
 from fitting.mesh import vertex_normals
-from pipelines.synthetic.scene import LABEL, vertex_regions
+from pipelines.synthetic.scene import LABEL, facing_normals, vertex_regions
 
 _SKIN_TONES = np.array(
     [[0.95, 0.80, 0.69], [0.87, 0.68, 0.55], [0.72, 0.53, 0.40], [0.55, 0.38, 0.27], [0.36, 0.24, 0.17]]
@@ -175,9 +175,7 @@ def raycast(
     if len(ray):
         corners = faces[tri]
         bary = trimesh.triangles.points_to_barycentric(vertices[corners], loc)
-        normals = np.einsum("nk,nkd->nd", bary, vertex_normals(vertices, faces)[corners])
-        normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-9)
-        normals[np.einsum("nd,nd->n", normals, dirs[ray]) > 0] *= -1
+        normals = facing_normals(bary, vertex_normals(vertices, faces)[corners], dirs[ray])
         light = np.full(len(ray), ambient)
         for direction, intensity in lights:
             light += intensity * np.clip(normals @ (direction / np.linalg.norm(direction)), 0, None)

@@ -179,6 +179,24 @@ LIGHTS = ((np.array([0.4, -0.6, -0.7]), 0.75), (np.array([-0.7, 0.5, -0.3]), 0.3
 AMBIENT = 0.25
 
 
+def facing_normals(bary: np.ndarray, corner_normals: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """Shading normals at ray hits: the hit triangle's vertex normals blended with the barycentric weights, unit
+    length, turned to face the incoming ray (so the inside of a thin part is lit like its outside).
+
+    Args:
+        bary: (N, 3) barycentric weights of the hits.
+        corner_normals: (N, 3, 3) the vertex normals of each hit triangle's corners.
+        dirs: (N, 3) ray directions.
+
+    Returns:
+        (N, 3) unit normals with n . d <= 0.
+    """
+    normals = np.einsum("nk,nkd->nd", bary, corner_normals)
+    normals /= np.maximum(np.linalg.norm(normals, axis=1, keepdims=True), 1e-9)
+    normals[np.einsum("nd,nd->n", normals, dirs) > 0] *= -1
+    return normals
+
+
 def shade(albedo_rgb: np.ndarray, normals_world: np.ndarray) -> np.ndarray:
     """Lambertian shading under the fixed world lights: (N, 3) albedo, (N, 3) unit normals -> (N, 3) RGB."""
     light = np.full(len(normals_world), AMBIENT)
