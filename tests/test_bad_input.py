@@ -9,13 +9,13 @@ import shutil
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
+import spawn
 
 from pipelines.cli import calibrate, convert_smpl, export_mesh, fit, prepare_thuman, render_video, synth
 from pipelines.cli import eval as cli_eval
@@ -320,20 +320,19 @@ def test_synth_refuses_foreign_folders(tmp_path, capsys):
 
 
 def _interrupt_after(argv: list[str], ready, timeout: float = 240.0) -> subprocess.CompletedProcess:
-    """Start a command, send SIGINT once ``ready(stderr so far)`` holds, and wait for it to end."""
+    """Start a command (SIGINT at its default, whatever this test run inherited), send SIGINT once ``ready(stderr so
+    far)`` holds, and wait for it to end; a command that has not ended 120 s after the interrupt fails the test."""
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-    proc = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
-    chunks: list[str] = []
-    reader = threading.Thread(target=lambda: chunks.extend(iter(lambda: proc.stderr.read(1), "")), daemon=True)
-    reader.start()
+    proc = spawn.popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=ROOT)
+    out, err = spawn.Reader(proc.stdout), spawn.Reader(proc.stderr)
     deadline = time.time() + timeout
-    while not ready("".join(chunks)) and proc.poll() is None and time.time() < deadline:
+    while not ready(err.text()) and proc.poll() is None and time.time() < deadline:
         time.sleep(0.1)
     proc.send_signal(signal.SIGINT)
-    out = proc.stdout.read()
-    proc.wait(timeout=120)
-    reader.join(timeout=10)
-    return subprocess.CompletedProcess(argv, proc.returncode, out, "".join(chunks))
+    spawn.finish(proc, 120, f"{' '.join(argv[2:4])} after Ctrl-C")
+    out.thread.join(timeout=10)
+    err.thread.join(timeout=10)
+    return subprocess.CompletedProcess(argv, proc.returncode, out.text(), err.text())
 
 
 def _cli(name: str) -> list[str]:

@@ -3,11 +3,11 @@ batch, record their world size, write one checkpoint, and resume."""
 
 import json
 import os
-import subprocess
 import sys
 from pathlib import Path
 
 import pytest
+import spawn
 import torch
 
 from fitting.checkpoint import load_checkpoint
@@ -29,7 +29,7 @@ def _fit(args: list[str], processes: int) -> None:
     launcher = [sys.executable, "-m", "torch.distributed.run", "--standalone", f"--nproc-per-node={processes}"]
     command = [*(launcher if processes > 1 else [sys.executable]), "-m", "pipelines.cli.fit", *args]
     env = {**os.environ, "OMP_NUM_THREADS": str(max(1, (os.cpu_count() or 1) // 2))}
-    done = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=300, env=env)
+    done = spawn.run(command, 300, cwd=ROOT, capture_output=True, text=True, env=env)
     assert done.returncode == 0, done.stderr[-3000:]
 
 

@@ -8,6 +8,7 @@ import time
 import imageio.v2 as imageio
 import numpy as np
 import pytest
+import spawn
 import torch
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
@@ -87,16 +88,16 @@ def test_fit_killed_with_sigkill_resumes_to_the_end(data_root_64, tmp_path):
         "--set",
         "train.checkpoint_minutes=0",
     ]
-    process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    process = spawn.popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.time() + 120
     while time.time() < deadline and not (out / "checkpoint.pt").exists():
         time.sleep(0.2)
     time.sleep(1.0)
     os.kill(process.pid, signal.SIGKILL)
-    process.wait()
+    spawn.finish(process, 30, "narf-fit after SIGKILL")
     killed_at = load_checkpoint(out)["step"]  # the visible checkpoint is always a complete one
     assert 0 < killed_at < 400
-    done = subprocess.run(command[:3] + ["--out", str(out), "--resume", "--quiet"], capture_output=True, text=True)
+    done = spawn.run(command[:3] + ["--out", str(out), "--resume", "--quiet"], 300, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert load_checkpoint(out)["step"] == 400
     assert not list(out.glob(".checkpoint.*"))  # a temporary left by the kill is cleaned by the next save
@@ -284,7 +285,7 @@ def test_subnormals_flushed_in_every_thread(order):
     """flush_subnormals (set by run_cli before a command's work) reaches both CPU threads: the doubled subnormals all
     come back exactly 0 (integer count). Set after the worker threads started, the worker keeps its own half, which the
     probe sees; that second case shows the probe can fail. Skipped where torch has no flush mode for this CPU."""
-    done = subprocess.run([sys.executable, "-c", _SUBNORMAL_PROBE, order], capture_output=True, text=True, check=True)
+    done = spawn.run([sys.executable, "-c", _SUBNORMAL_PROBE, order], 60, capture_output=True, text=True, check=True)
     supported, unflushed = done.stdout.split()
     if supported != "True":
         pytest.skip("torch has no flush-to-zero mode on this CPU")
@@ -299,7 +300,7 @@ def test_allocator_keeps_freed_memory_unless_the_user_chose(user_env):
 
     env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_") and k != "LD_PRELOAD"} | user_env
     code = "from pipelines.cli.common import keep_freed_memory; print(keep_freed_memory())"
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True)
+    done = spawn.run([sys.executable, "-c", code], 60, capture_output=True, text=True, env=env, check=True)
     expected = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc" and not user_env
     assert done.stdout.strip() == str(expected)
 

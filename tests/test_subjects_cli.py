@@ -1,8 +1,8 @@
 import shutil
-import subprocess
 import sys
 
 import pytest
+import spawn
 
 from pipelines.cli import synth as cli_synth
 from pipelines.cli.common import run_cli
@@ -46,7 +46,7 @@ def test_synth_cli_errors_are_one_line(tmp_path, capsys):
 
 def test_synth_cli_writes_a_capture(tmp_path):
     out = tmp_path / "cap"
-    result = subprocess.run(
+    result = spawn.run(
         [
             sys.executable,
             "-c",
@@ -66,14 +66,16 @@ def test_synth_cli_writes_a_capture(tmp_path):
             "--workers",
             "1",
         ],
+        120,
         capture_output=True,
         text=True,
     )
     assert result.returncode == 0, result.stderr
     assert "wrote" in result.stdout and (out / "annots.npy").is_file() and (out / "calib" / "board.json").is_file()
     assert (out / "calib" / "Camera_B2" / "intrinsics" / "000.jpg").is_file()
-    help_text = subprocess.run(
+    help_text = spawn.run(
         [sys.executable, "-c", "from pipelines.cli.synth import entrypoint; entrypoint()", "--help"],
+        60,
         capture_output=True,
         text=True,
     ).stdout
