@@ -91,7 +91,7 @@ def render_seconds(run_dir: Path) -> dict[int, float]:
     import torch
 
     from fitting.evaluate import render_view
-    from pipelines.fit_session import load_run, poses_for_frames
+    from pipelines.runs.subject.session import load_run, poses_for_frames
 
     torch.set_num_threads(2)
     run = load_run(run_dir)

@@ -135,7 +135,7 @@ class AutoencoderTrainer(Trainer):
         ]
 
     def _extra_state(self) -> dict:
-        return {"kind": "autoencoder", "encoder": self.encoder.state_dict()}
+        return {"encoder": self.encoder.state_dict()}
 
     def _restore(self, state: dict) -> None:
         self.encoder.load_state_dict(state["encoder"])

@@ -1,11 +1,16 @@
-"""Typed fit configuration, loaded strictly from YAML presets (an unknown key is an error) plus
-``--set section.key=value`` overrides."""
+"""Typed fit configuration, loaded strictly from YAML presets (an unknown key is an error, a value outside its type
+or its ``Literal`` choices too) plus ``--set section.key=value`` overrides. The run's kind (``subject``,
+``autoencoder``, ``rigid``) is the top-level ``kind``; run state (the process count of a data-parallel fit) is not a
+setting and lives in the checkpoint. docs/guides/fitting.md lists the presets."""
 
 from __future__ import annotations
 
 import dataclasses
+import types
+import typing
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import yaml
 
@@ -16,32 +21,40 @@ class ConfigError(ValueError):
     """A config file or override is malformed (names the key and the problem)."""
 
 
+#: What a run fits: one avatar per capture, the autoencoder across people, or one rigid object (supplement Table B).
+RunKindName = Literal["subject", "autoencoder", "rigid"]
+ModelName = Literal[
+    "narf_d", "narf_d_sigmoid", "narf_h", "narf_p", "p_nerf", "d_narf", "cnn", "rt_nerf", "rt_nerf_no_pose", "rp_nerf"
+]
+#: The names older run folders used for the kind, in ``data.dataset`` (and ``kind: autoencoder`` in the checkpoint).
+LEGACY_KINDS = {"zju": "subject", "thuman": "autoencoder", "rigid": "rigid"}
+
+
 @dataclass
 class DataConfig:
-    dataset: str = "zju"  #: zju (one subject), thuman (autoencoder across people, render_128) or rigid (one object)
     subject: str = "taichi"  #: subject name or folder (ZJU-MoCap layout)
     data_root: str | None = None  #: data root (default: $NARF_DATA or data/)
-    protocol: str = "narf"  #: narf (first 90 % frames train) or neuralbody
+    protocol: Literal["narf", "neuralbody"] = "narf"  #: narf (first 90 % frames train) or neuralbody
     ratio: float = 0.5  #: image resize ratio (Neural Body: 0.5)
-    mask_source: str = "cihp"  #: cihp, mask or union
+    mask_source: Literal["cihp", "mask", "union"] = "cihp"  #: the capture's mask folder (docs/formats.md)
     new_params: bool = True  #: new_params/ (pose blend shapes) instead of params/
     white_background: bool = False  #: composite onto white instead of black
     frame_stride: int = 1  #: use every n-th training frame
     box_frames: int = 100  #: training frames used to fit the part boxes
-    train_meshes: int = 0  #: thuman: meshes that train (0: the set's synthetic.json, else NARF's 3545)
-    renders_per_mesh: int = 10  #: thuman: train renders per mesh (NARF: 10)
+    train_meshes: int = 0  #: autoencoder: meshes that train (0: the set's synthetic.json, else NARF's 3545)
+    renders_per_mesh: int = 10  #: autoencoder: train renders per mesh (NARF: 10)
 
 
 @dataclass
 class ModelConfig:
-    name: str = "narf_d"  #: narf_d, narf_d_sigmoid, narf_h, narf_p, p_nerf, d_narf, or cnn (the CNN baseline)
+    name: ModelName = "narf_d"  #: the model; narf.fields.MODEL_OPTIONS says which options below it takes
     width: int = 64  #: hidden width H (paper: 256)
-    density_act: str = "leaky_backward"  #: leaky_backward (upstream) or softplus
-    temperature: float = 10.0  #: NARF_P softmax temperature tau
-    pose_in_color: bool = True  #: P-NeRF: pose into the colour branch (eq. D)
+    density_act: Literal["leaky_backward", "softplus"] = "leaky_backward"  #: upstream's, or softplus
+    temperature: float = 10.0  #: narf_p only: selector softmax temperature tau
+    pose_in_color: bool = True  #: p_nerf only: pose into the colour branch (eq. D)
     box_scale_pad: float = 1.1  #: part boxes: h <- scale * h + abs
     box_abs_pad: float = 0.03  #: part boxes: additive padding (body units)
-    image_size: int = 128  #: CNN baseline: side of its square bone maps and output images (paper: 128)
+    image_size: int = 128  #: cnn only: side of its square bone maps and output images (paper: 128)
     latent_dim: int = 0  #: autoencoder: size of z_s and of z_a (paper 256); 0 for a per-subject fit
     encoder_channels: int = 32  #: autoencoder: image encoder base width c (paper 32: 32..512 channels)
 
@@ -79,14 +92,14 @@ class TrainConfig:
     validate_every: int = 1000  #: render a validation image every n steps (0: never)
     log_every: int = 50  #: write a log line every n steps
     seed: int = 0  #: seed of initialisation and ray sampling
-    precision: str = "fp32"  #: fp32 (the reference) or bf16 (autocast of the training step's forward pass)
+    precision: Literal["fp32", "bf16"] = "fp32"  #: fp32 (the reference) or bf16 (autocast of the forward pass)
     compile: bool = False  #: torch.compile the field's forward pass (dynamic shapes; the eager path is the reference)
     deterministic: bool = True  #: deterministic kernels, so a resumed fit ends where an uninterrupted one would
-    world_size: int = 1  #: processes of the fit (set from torchrun; recorded, not a setting)
 
 
 @dataclass
 class FitConfig:
+    kind: RunKindName = "subject"  #: what the run fits (``pipelines.runs.kinds``)
     data: DataConfig = field(default_factory=DataConfig)
     model: ModelConfig = field(default_factory=ModelConfig)
     render: RenderConfig = field(default_factory=RenderConfig)
@@ -96,21 +109,28 @@ class FitConfig:
         return dataclasses.asdict(self)
 
 
-def _coerce(path: str, value, current):
-    kind = type(current)
-    if current is None:
+def _coerce(path: str, value, hint):
+    """``value`` checked against the field's type hint: bool, int, float, str, ``X | None`` or a ``Literal``."""
+    if typing.get_origin(hint) is Literal:
+        if value not in typing.get_args(hint):
+            choices = ", ".join(map(str, typing.get_args(hint)))
+            raise ConfigError(f"config key '{path}': expected one of {choices}, got {value!r}")
         return value
-    if kind is bool:
+    if isinstance(hint, types.UnionType):  # str | None
+        if value is None:
+            return None
+        hint = next(arg for arg in typing.get_args(hint) if arg is not type(None))
+    if hint is bool:
         if not isinstance(value, bool):
             raise ConfigError(f"config key '{path}': expected true/false, got {value!r}")
         return value
-    if kind in (int, float):
+    if hint in (int, float):
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"config key '{path}': expected a number, got {value!r}")
-        if kind is int and float(value) != int(value):
+        if hint is int and float(value) != int(value):
             raise ConfigError(f"config key '{path}': expected an integer, got {value!r}")
-        return kind(value)
-    if kind is str and not isinstance(value, str):
+        return hint(value)
+    if hint is str and not isinstance(value, str):
         raise ConfigError(f"config key '{path}': expected a string, got {value!r}")
     return value
 
@@ -118,16 +138,35 @@ def _coerce(path: str, value, current):
 def _apply(target, values: dict, prefix: str = "") -> None:
     if not isinstance(values, dict):
         raise ConfigError(f"config section '{prefix or 'top level'}': expected a mapping, got {values!r}")
-    names = {f.name for f in dataclasses.fields(target)}
+    hints = typing.get_type_hints(type(target))
     for key, value in values.items():
         path = f"{prefix}{key}"
-        if key not in names:
-            raise ConfigError(f"unknown config key '{path}' (known: {', '.join(sorted(names))})")
+        if key not in hints:
+            raise ConfigError(f"unknown config key '{path}' (known: {', '.join(sorted(hints))})")
         current = getattr(target, key)
         if dataclasses.is_dataclass(current):
             _apply(current, value, path + ".")
         else:
-            setattr(target, key, _coerce(path, value, current))
+            setattr(target, key, _coerce(path, value, hints[key]))
+
+
+def migrate_saved(saved: dict, checkpoint_kind: str | None = None) -> dict:
+    """A run folder's saved config in today's keys. Older runs named the kind in ``data.dataset`` (zju, thuman,
+    rigid; the autoencoder's checkpoint also said ``kind: autoencoder``) and kept the process count in
+    ``train.world_size``; both are read here, so every run folder written since loads as it was fitted."""
+    if not isinstance(saved, dict):
+        raise ConfigError(f"saved config: expected a mapping, got {type(saved).__name__}")
+    saved = {k: dict(v) if isinstance(v, dict) else v for k, v in saved.items()}
+    data, train = saved.get("data", {}), saved.get("train", {})
+    legacy = data.pop("dataset", None) if isinstance(data, dict) else None
+    if isinstance(train, dict):
+        train.pop("world_size", None)
+    if "kind" not in saved and (legacy is not None or checkpoint_kind is not None):
+        name = checkpoint_kind if checkpoint_kind == "autoencoder" else legacy
+        if name not in LEGACY_KINDS and name not in LEGACY_KINDS.values():
+            raise ConfigError(f"saved config: unknown data.dataset {name!r} (known: {', '.join(LEGACY_KINDS)})")
+        saved["kind"] = LEGACY_KINDS.get(name, name)
+    return saved
 
 
 def preset_path(name_or_path: str) -> Path:
@@ -148,7 +187,7 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None, b
     """Build a FitConfig from defaults, a base dict (a run's saved config), a preset and ``key=value`` overrides."""
     config = FitConfig()
     if base:
-        _apply(config, base)
+        _apply(config, migrate_saved(base))
     if preset:
         path = preset_path(preset)
         try:
@@ -174,52 +213,75 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None, b
     return config
 
 
-def validate_config(config: FitConfig) -> None:
-    """Value checks with messages naming the key."""
-    from narf.fields import ARTICULATED, IMAGE_MODELS, RIGID
+#: Settings that only one run kind reads; another kind refuses a value other than the default (rather than ignore it).
+KIND_ONLY = {
+    "model.latent_dim": "autoencoder",
+    "model.encoder_channels": "autoencoder",
+    "train.encoder_lr": "autoencoder",
+    "train.colour_jitter": "autoencoder",
+    "data.train_meshes": "autoencoder",
+    "data.renders_per_mesh": "autoencoder",
+}
+#: Values each setting must satisfy (the message names the key).
+RANGES = {
+    "data.ratio": lambda v: 0 < v <= 1,
+    "data.train_meshes": lambda v: v >= 0,
+    "data.renders_per_mesh": lambda v: v >= 1,
+    "model.width": lambda v: v >= 4,
+    "model.image_size": lambda v: v >= 32 and v % 32 == 0,
+    "model.latent_dim": lambda v: v >= 0,
+    "model.encoder_channels": lambda v: v >= 1,
+    "train.steps": lambda v: v >= 0,
+    "train.images_per_step": lambda v: v >= 1,
+    "train.rays_per_image": lambda v: v >= 1,
+    "train.lr": lambda v: v > 0,
+    "train.encoder_lr": lambda v: v > 0,
+    "train.colour_jitter": lambda v: 0 <= v < 1,
+    "render.train_coarse": lambda v: v >= 2,
+    "render.eval_coarse": lambda v: v >= 2,
+    "render.occupancy_resolution": lambda v: v >= 2,
+    "render.occupancy_threshold": lambda v: v >= 0,
+    "render.occupancy_every": lambda v: v >= 1,
+    "render.occupancy_rounds": lambda v: v >= 1,
+}
 
-    rigid = config.data.dataset == "rigid"
+
+def get_value(config: FitConfig, key: str):
+    section, name = key.split(".")
+    return getattr(getattr(config, section), name)
+
+
+def validate_config(config: FitConfig) -> None:
+    """Value checks with messages naming the key: ranges, the model's kind, settings of another kind or model."""
+    from narf.fields import ARTICULATED, IMAGE_MODELS, MODEL_OPTIONS, RIGID
+
+    rigid = config.kind == "rigid"
     allowed = RIGID if rigid else (*ARTICULATED, *IMAGE_MODELS)
     if config.model.name not in allowed:
         kind = "a rigid-object model" if rigid else "a body model"
         raise ConfigError(f"model.name: '{config.model.name}' is not {kind} ({', '.join(allowed)})")
-    checks = [
-        ("data.ratio", 0 < config.data.ratio <= 1),
-        ("model.width", config.model.width >= 4),
-        ("model.image_size", config.model.image_size >= 32 and config.model.image_size % 32 == 0),
-        ("train.steps", config.train.steps >= 0),
-        ("train.images_per_step", config.train.images_per_step >= 1),
-        ("train.rays_per_image", config.train.rays_per_image >= 1),
-        ("train.lr", config.train.lr > 0),
-        ("train.lr_min", 0 <= config.train.lr_min <= config.train.lr),
-        ("train.body_fraction", 0 <= config.train.body_fraction + config.train.border_fraction <= 1),
-        ("render.train_coarse", config.render.train_coarse >= 2),
-        ("render.eval_coarse", config.render.eval_coarse >= 2),
-        ("data.protocol", config.data.protocol in ("narf", "neuralbody")),
-        ("data.dataset", config.data.dataset in ("zju", "thuman", "rigid")),
-        ("data.train_meshes", config.data.train_meshes >= 0),
-        ("data.renders_per_mesh", config.data.renders_per_mesh >= 1),
-        ("model.latent_dim", config.model.latent_dim >= 0),
-        ("model.encoder_channels", config.model.encoder_channels >= 1),
-        ("train.encoder_lr", config.train.encoder_lr > 0),
-        ("train.colour_jitter", 0 <= config.train.colour_jitter < 1),
-        ("train.precision", config.train.precision in ("fp32", "bf16")),
-        ("render.occupancy_resolution", config.render.occupancy_resolution >= 2),
-        ("render.occupancy_threshold", config.render.occupancy_threshold >= 0),
-        ("render.occupancy_every", config.render.occupancy_every >= 1),
-        ("render.occupancy_rounds", config.render.occupancy_rounds >= 1),
-    ]
-    for key, ok in checks:
-        if not ok:
+    for key, ok in RANGES.items():
+        if not ok(get_value(config, key)):
             raise ConfigError(f"config key '{key}' has an invalid value")
-    autoencoder = config.data.dataset == "thuman"
+    if not 0 <= config.train.lr_min <= config.train.lr:
+        raise ConfigError("config key 'train.lr_min' has an invalid value")
+    if not 0 <= config.train.body_fraction + config.train.border_fraction <= 1:
+        raise ConfigError("config key 'train.body_fraction' has an invalid value")
+    defaults = FitConfig()
+    for key, kind in KIND_ONLY.items():
+        if config.kind != kind and get_value(config, key) != get_value(defaults, key):
+            raise ConfigError(f"{key}: only {kind} runs use it (this is a {config.kind} run); leave it at its default")
+    taken = MODEL_OPTIONS[config.model.name]
+    for option in ("temperature", "pose_in_color", "image_size"):
+        if option not in taken and getattr(config.model, option) != getattr(defaults.model, option):
+            users = ", ".join(name for name, options in MODEL_OPTIONS.items() if option in options)
+            raise ConfigError(f"model.{option}: {config.model.name} does not take it (only {users})")
+    autoencoder = config.kind == "autoencoder"
     if autoencoder and config.model.latent_dim == 0:
-        raise ConfigError("model.latent_dim: the thuman dataset trains an autoencoder; set a latent size (paper 256)")
+        raise ConfigError("model.latent_dim: an autoencoder run needs a latent size (paper 256)")
     if config.render.grid_proposal and not config.render.occupancy:
         raise ConfigError("render.grid_proposal: the proposal is the occupancy grid's density; set render.occupancy")
     if config.render.occupancy and autoencoder:  # (image-space models have no rays: the switch does not apply)
         raise ConfigError("render.occupancy: the occupancy grid is for per-subject fits (densities differ per person)")
-    if not autoencoder and config.model.latent_dim:
-        raise ConfigError("model.latent_dim: only the thuman dataset (an autoencoder) uses latents; set it to 0")
-    if config.train.colour_jitter and (not autoencoder or config.model.name == "cnn"):
-        raise ConfigError("train.colour_jitter: only the NeRF-type autoencoders (the thuman dataset) use it")
+    if config.train.colour_jitter and config.model.name == "cnn":
+        raise ConfigError("train.colour_jitter: only the NeRF-type autoencoders use it")

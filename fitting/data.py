@@ -1,6 +1,6 @@
 """Training data in memory: training views, per-frame poses, part boxes and mask-guided ray batches.
 
-Built by ``pipelines.fit_session`` from a capture; this module reads no files."""
+Built by ``pipelines.runs.subject.session`` from a capture; this module reads no files."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """Evaluation protocols (docs/model.md §7): full-image and Neural Body crop metrics of rendered views, and the
-report table. The loop over a capture's splits is ``pipelines.evaluation.evaluate_run``."""
+report table. The loop over a capture's splits is ``pipelines.runs.subject.evaluation.evaluate_run``."""
 
 from __future__ import annotations
 

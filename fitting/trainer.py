@@ -19,7 +19,7 @@ from fitting.config import FitConfig
 from fitting.data import FitData
 from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
 from fitting.plots import write_curve, write_validation
-from narf.fields import build_field, build_model
+from narf.fields import IMAGE_MODELS, MODEL_OPTIONS, build_model
 from narf.metrics import psnr
 from narf.occupancy import OccupancyGrid, field_ray_bounds, refresh_cells
 from narf.renderer import bind_field, bind_grid_proposal, render_rays
@@ -34,16 +34,11 @@ def auto_device(name: str = "auto") -> torch.device:
 
 
 def make_field(config: FitConfig):
-    """The model of a config (only the options its constructor takes)."""
+    """The model of a config, given the options its constructor takes (``narf.fields.MODEL_OPTIONS``)."""
     m = config.model
-    if m.name == "cnn":
-        return build_model("cnn", image_size=m.image_size, latent_dim=m.latent_dim)
-    kwargs = {"width": m.width, "density_act": m.density_act, "latent_dim": m.latent_dim}
-    if m.name == "narf_p":
-        kwargs["temperature"] = m.temperature
-    if m.name == "p_nerf":
-        kwargs["pose_in_color"] = m.pose_in_color
-    field = build_field(m.name, **kwargs)
+    field = build_model(m.name, **{option: getattr(m, option) for option in MODEL_OPTIONS[m.name]})
+    if m.name in IMAGE_MODELS:
+        return field
     r = config.render
     if r.occupancy:
         field.occupancy = OccupancyGrid(field.n_parts, r.occupancy_resolution, r.occupancy_threshold)
@@ -106,7 +101,7 @@ class FitResult:
 
 class Trainer:
     """Model and optimiser for ``config`` in ``run_dir``, trained on ``data``; ``state`` (a loaded checkpoint)
-    resumes where it stopped. Use ``pipelines.fit_session.start_trainer`` to build one from a capture."""
+    resumes where it stopped. Use ``pipelines.runs.subject.session.start_trainer`` to build one from a capture."""
 
     def __init__(
         self,
@@ -120,7 +115,6 @@ class Trainer:
     ):
         self.config, self.run_dir, self.device = config, Path(run_dir), device
         self.processes, self.progress = processes, progress and processes.is_main
-        config.train.world_size = processes.world_size
         # Adam's first steps move each weight by about lr * sign(gradient), so even rounding-level differences
         # between runs (CPU kernels that sum in thread order, e.g. index_add) grow to 1e-2 within a few steps
         torch.use_deterministic_algorithms(config.train.deterministic, warn_only=True)
@@ -160,7 +154,7 @@ class Trainer:
         self.step, self.elapsed = 0, 0.0
         if state is not None:
             self._restore(state)
-        if processes.is_main:  # the config as run (world_size included); resumed runs rewrite it
+        if processes.is_main:  # the config as run; resumed runs rewrite it
             (self.run_dir / "config.yaml").write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))
 
     def _build_extra_modules(self) -> None:
@@ -195,6 +189,7 @@ class Trainer:
                 "config": self.config.to_dict(),
                 "step": self.step,
                 "elapsed": self.elapsed,
+                "world_size": self.processes.world_size,  # run state: the processes that fitted it (not a setting)
                 "model": self.field.state_dict(),
                 "optimizer": self.optimiser.state_dict(),
                 "scheduler": self.scheduler.state_dict(),

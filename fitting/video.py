@@ -1,4 +1,4 @@
-"""Video frames and H.264 mp4 writing (imageio-ffmpeg). What to render is ``pipelines.video``."""
+"""Video frames and H.264 mp4 writing (imageio-ffmpeg). What to render is ``pipelines.runs.subject.video``."""
 
 from __future__ import annotations
 

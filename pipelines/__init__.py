@@ -1,17 +1,15 @@
 """Everything between files on disk and the model: readers and writers, the body model, calibration, the
-synthetic data, the command-line tools, and the glue that opens a capture for fitting, evaluation and videos.
+synthetic data, the run kinds, the experiments and the command-line tools.
 
-Sub-packages (imports flow one way, ``datasets`` first; ``tests/test_architecture.py`` keeps it so):
+Sub-packages (imports flow one way, ``datasets`` first; ``tests/test_architecture.py`` keeps it so and checks that
+the import graph has no cycle):
 
-* ``datasets``: readers and writers of real formats (ZJU-MoCap, EasyMocap cameras, SMPL files, subjects);
+* ``datasets``: readers and writers of real formats (ZJU-MoCap, EasyMocap cameras, COLMAP, SMPL files, subjects);
 * ``body``: the stand-in SMPL body and the SMPL glue that turns parameters into part transforms;
 * ``calibration``: ChArUco detection, intrinsics, rig initialisation, bundle adjustment, reports;
-* ``synthetic``: the synthetic capture in the real layouts (images, masks, SMPL fits, ChArUco shots, ``lbs/``);
-* ``cli``: one module per console script and their shared plumbing;
-* ``experiments``: the supplement's tables as experiments; it drives the real ``narf-fit`` (``cli.fit``) and the
-  glue's evaluations, so it sits above the commands.
-
-The top-level modules are the glue: ``fit_session`` (subject -> Trainer), ``autoencoder_session`` (THUman set ->
-AutoencoderTrainer), ``rigid_session`` (rigid-object set -> Trainer, and its evaluation), ``evaluation``,
-``autoencoder_evaluation``, ``video``, ``autoencoder_video`` and ``mesh_export``.
+* ``synthetic``: the synthetic data in the real layouts (captures, ChArUco shots, THUman, SURREAL, rigid object);
+* ``runs``: the run kinds (``subject``, ``autoencoder``, ``rigid``: start or resume, evaluate, render, export), one
+  table of them (``runs.kinds``) and ``runs.fit``, the fit that ``narf-fit`` and ``narf-experiments`` call;
+* ``experiments``: the supplement's tables as experiments, on ``runs``;
+* ``cli``: one module per console script, turning flags into ``runs`` requests.
 """

@@ -1,4 +1,5 @@
-"""The dependency direction narf <- fitting <- pipelines (and inside pipelines/), and no file I/O inside narf/."""
+"""The dependency direction narf <- fitting <- pipelines (and inside pipelines/), an acyclic import graph, and no
+file I/O inside narf/ (docs/design.md, "Layout")."""
 
 import ast
 from pathlib import Path
@@ -6,30 +7,28 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("narf", "fitting", "pipelines", "bench")
 FORBIDDEN = {"narf": ("fitting", "pipelines"), "fitting": ("pipelines",)}
-GLUE = (
-    "pipelines.fit_session",
-    "pipelines.autoencoder_session",
-    "pipelines.evaluation",
-    "pipelines.autoencoder_evaluation",
-    "pipelines.video",
-    "pipelines.autoencoder_video",
-    "pipelines.mesh_export",
-    "pipelines.rigid_session",
-)
+ABOVE_DATA = ("pipelines.runs", "pipelines.experiments", "pipelines.cli")
 #: pipelines sub-package -> the parts of pipelines/ it must not import (see pipelines/__init__.py)
 PIPELINES_FORBIDDEN = {
-    "datasets": ("pipelines.body", "pipelines.calibration", "pipelines.synthetic", "pipelines.cli", *GLUE),
-    "body": ("pipelines.calibration", "pipelines.synthetic", "pipelines.cli", *GLUE),
-    "calibration": ("pipelines.body", "pipelines.synthetic", "pipelines.cli", *GLUE),
-    "synthetic": ("pipelines.cli", *GLUE),
-    "experiments": ("pipelines.cli.experiments",),  # it runs narf-fit (cli.fit); its own CLI sits above it
+    "datasets": ("pipelines.body", "pipelines.calibration", "pipelines.synthetic", *ABOVE_DATA),
+    "body": ("pipelines.calibration", "pipelines.synthetic", *ABOVE_DATA),
+    "calibration": ("pipelines.body", "pipelines.synthetic", *ABOVE_DATA),
+    "synthetic": ABOVE_DATA,
+    "runs": ("pipelines.experiments", "pipelines.cli"),
+    "experiments": ("pipelines.cli",),
 }
-GLUE_FORBIDDEN = ("pipelines.cli",)
+
+
+def _module_name(path: Path) -> str:
+    parts = path.relative_to(ROOT).with_suffix("").parts
+    return ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
 
 
 def _modules(path: Path) -> set[str]:
-    """Every module imported by a file, at any depth (lazy imports inside functions count)."""
+    """Every module a file imports, at any depth (lazy imports inside functions count); ``from package import name``
+    counts ``package.name`` when that is a module of the project."""
     tree = ast.parse(path.read_text())
     names = set()
     for node in ast.walk(tree):
@@ -37,11 +36,53 @@ def _modules(path: Path) -> set[str]:
             names.update(alias.name for alias in node.names)
         elif isinstance(node, ast.ImportFrom) and node.module:
             names.add(node.module)
+            names.update(f"{node.module}.{alias.name}" for alias in node.names)
     return names
+
+
+def _project_modules() -> dict[str, Path]:
+    return {_module_name(p): p for package in PACKAGES for p in (ROOT / package).rglob("*.py")}
+
+
+def _graph() -> dict[str, set[str]]:
+    """Project module -> the project modules it imports (a package's ``__init__`` is the package's name)."""
+    modules = _project_modules()
+    return {name: {m for m in _modules(path) if m in modules and m != name} for name, path in modules.items()}
 
 
 def _hits(modules: set[str], forbidden: tuple[str, ...]) -> list[str]:
     return sorted(m for m in modules for f in forbidden if m == f or m.startswith(f + "."))
+
+
+def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """A cycle of ``graph`` as [a, b, ..., a], or None (depth-first search with three colours)."""
+    colour, stack = dict.fromkeys(graph, 0), []
+
+    def visit(node: str) -> list[str] | None:
+        colour[node] = 1
+        stack.append(node)
+        for child in sorted(graph.get(node, ())):
+            if colour.get(child) == 1:
+                return stack[stack.index(child) :] + [child]
+            if colour.get(child) == 0 and (cycle := visit(child)):
+                return cycle
+        stack.pop()
+        colour[node] = 2
+        return None
+
+    return next((cycle for node in sorted(graph) if colour[node] == 0 and (cycle := visit(node))), None)
+
+
+def test_find_cycle_finds_one():
+    assert find_cycle({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": set()}) == ["a", "b", "c", "a"]
+    assert find_cycle({"a": {"b", "c"}, "b": {"c"}, "c": set()}) is None
+
+
+def test_import_graph_is_acyclic():
+    graph = _graph()
+    assert "pipelines.runs.kinds" in graph and "pipelines.runs.fit" in graph["pipelines.cli.fit"]
+    cycle = find_cycle(graph)
+    assert cycle is None, "import cycle: " + " -> ".join(cycle)
 
 
 @pytest.mark.parametrize("package", sorted(FORBIDDEN))
@@ -60,15 +101,8 @@ def test_pipelines_subpackage_direction(package):
         assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
 
 
-def test_glue_does_not_import_the_clis():
-    for name in GLUE:
-        path = ROOT / (name.replace(".", "/") + ".py")
-        assert not _hits(_modules(path), GLUE_FORBIDDEN), f"{path.relative_to(ROOT)} imports a CLI module"
-
-
-def test_only_glue_at_the_top_of_pipelines():
-    top = sorted(p.stem for p in (ROOT / "pipelines").glob("*.py") if p.stem != "__init__")
-    assert top == sorted(name.split(".")[1] for name in GLUE)
+def test_nothing_at_the_top_of_pipelines():
+    assert sorted(p.name for p in (ROOT / "pipelines").glob("*.py")) == ["__init__.py"]
 
 
 def test_narf_does_no_file_io():

@@ -15,13 +15,13 @@ from fitting.config import ConfigError, load_config
 from fitting.trainer import prepare_run_dir
 from narf.fields.cnn import POSE_DIM
 from narf.fields.encoder import ImageEncoder
-from pipelines.autoencoder_evaluation import evaluate_autoencoder_run, surreal_view
-from pipelines.autoencoder_session import start_autoencoder
 from pipelines.body.model import pose_batch, pose_batch_from_joints
 from pipelines.cli import eval as cli_eval
 from pipelines.cli import fit as cli_fit
 from pipelines.cli.common import run_cli
 from pipelines.datasets.surreal import check_clip
+from pipelines.runs.autoencoder.evaluation import evaluate_autoencoder_run, surreal_view
+from pipelines.runs.fit import start_run
 from pipelines.synthetic.surreal import SurrealSynthConfig, generate_surreal
 from pipelines.synthetic.thuman import ThumanSynthConfig, generate_thuman
 
@@ -69,17 +69,17 @@ def test_colour_jitter_gains_scale_the_encoder_input():
 def test_fit_learns_and_resumes_exactly(sets, tmp_path):
     # with colour jitter on, so that its draws are shown to replay from the checkpointed generator too
     config = _config(sets, "train.steps=16", "train.colour_jitter=0.3")
-    straight = start_autoencoder(config, prepare_run_dir(tmp_path / "a", config, False), "cpu", progress=False)
+    straight = start_run(prepare_run_dir(tmp_path / "a", config, False), "cpu", config, progress=False)
     straight.fit()
-    first = start_autoencoder(config, prepare_run_dir(tmp_path / "b", config, False), "cpu", progress=False)
+    first = start_run(prepare_run_dir(tmp_path / "b", config, False), "cpu", config, progress=False)
     for _ in range(6):
         first.train_step()
     first.checkpoint()
-    resumed = start_autoencoder(None, tmp_path / "b", "cpu", resume=True, progress=False)
+    resumed = start_run(tmp_path / "b", "cpu", resume=True, progress=False)
     assert resumed.step == 6
     resumed.fit()
     a, b = load_checkpoint(tmp_path / "a"), load_checkpoint(tmp_path / "b")
-    assert a["kind"] == b["kind"] == "autoencoder" and b["step"] == 16
+    assert a["config"]["kind"] == b["config"]["kind"] == "autoencoder" and b["step"] == 16
     for part in ("model", "encoder"):
         for key, value in a[part].items():
             # float32 replay of the same batches (see test_fitting): only reduction order may differ, << 1e-6
@@ -88,7 +88,7 @@ def test_fit_learns_and_resumes_exactly(sets, tmp_path):
 
 def test_longer_fit_lowers_the_loss(sets, tmp_path):
     config = _config(sets, "train.steps=200", "train.log_every=20", "train.rays_per_image=64")
-    trainer = start_autoencoder(config, prepare_run_dir(tmp_path / "run", config, False), "cpu", progress=False)
+    trainer = start_run(prepare_run_dir(tmp_path / "run", config, False), "cpu", config, progress=False)
     trainer.fit()
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert np.mean([r["loss"] for r in log[-3:]]) < 0.7 * np.mean([r["loss"] for r in log[:2]])
@@ -97,7 +97,7 @@ def test_longer_fit_lowers_the_loss(sets, tmp_path):
 def test_evaluation_splits_and_grids(sets, tmp_path, monkeypatch):
     monkeypatch.setenv("NARF_DATA", str(sets))
     config = _config(sets, "train.steps=4")
-    start_autoencoder(config, prepare_run_dir(tmp_path / "run", config, False), "cpu", progress=False).fit()
+    start_run(prepare_run_dir(tmp_path / "run", config, False), "cpu", config, progress=False).fit()
     splits = ["same_pose_same_view", "novel_pose_novel_view", "cross_dataset"]
     report = evaluate_autoencoder_run(tmp_path / "run", splits, limit=1, progress=False, grids=1, refine_steps=2)
     assert report["splits"]["same_pose_same_view"]["n_views"] == 1
@@ -118,10 +118,10 @@ def test_evaluation_splits_and_grids(sets, tmp_path, monkeypatch):
 def test_cnn_autoencoder_fits_resumes_and_evaluates(sets, tmp_path, monkeypatch):
     monkeypatch.setenv("NARF_DATA", str(sets))
     config = _config(sets, "model.name=cnn", "model.image_size=32", "train.steps=2", "train.images_per_step=2")
-    trainer = start_autoencoder(config, prepare_run_dir(tmp_path / "run", config, False), "cpu", progress=False)
+    trainer = start_run(prepare_run_dir(tmp_path / "run", config, False), "cpu", config, progress=False)
     assert isinstance(trainer, CnnAutoencoderTrainer)
     trainer.fit()
-    resumed = start_autoencoder(None, tmp_path / "run", "cpu", resume=True, progress=False, resume_overrides=[])
+    resumed = start_run(tmp_path / "run", "cpu", resume=True, progress=False, overrides=[])
     assert isinstance(resumed, CnnAutoencoderTrainer) and resumed.step == 2
     splits = ["same_pose_same_view", "cross_dataset"]
     report = evaluate_autoencoder_run(tmp_path / "run", splits, limit=1, progress=False, grids=1)
@@ -153,22 +153,23 @@ def test_surreal_crop_camera_projects_the_body_into_the_crop(sets, body_model):
 
 
 def test_mixed_up_runs_and_settings_fail_clearly(sets, tmp_path, capsys, data_root_64):
-    with pytest.raises(ConfigError, match="model.latent_dim: the thuman dataset trains an autoencoder"):
+    with pytest.raises(ConfigError, match="model.latent_dim: an autoencoder run needs a latent size"):
         load_config("ae_tiny", ["model.latent_dim=0"])
-    with pytest.raises(ConfigError, match="only the thuman dataset"):
+    with pytest.raises(ConfigError, match="model.latent_dim: only autoencoder runs use it"):
         load_config("tiny", ["model.latent_dim=8"])
     with pytest.raises(ConfigError, match="train.colour_jitter: only the NeRF-type autoencoders"):
         load_config("ae_tiny", ["model.name=cnn", "train.colour_jitter=0.3"])
     subject = ["--config", "tiny", "--data-root", str(data_root_64), "--quiet", "--set", "train.steps=2"]
     assert run_cli("narf-fit", cli_fit.main, [*subject, "--out", str(tmp_path / "subject")]) == 0
     code = run_cli("narf-eval", cli_eval.main, ["--run", str(tmp_path / "subject"), "--split", "cross_dataset"])
-    assert code == 2 and "a per-subject fit; 'cross_dataset' is an autoencoder split" in capsys.readouterr().err
-    with pytest.raises(Exception, match="holds a per-subject fit, not an autoencoder"):
-        start_autoencoder(None, tmp_path / "subject", "cpu", resume=True, progress=False)
+    assert code == 2 and "a subject run; 'cross_dataset' is not one of its splits" in capsys.readouterr().err
+    resume = ["--out", str(tmp_path / "subject"), "--resume", "--kind", "autoencoder"]
+    assert run_cli("narf-fit", cli_fit.main, resume) == 2  # a run resumes as the kind it was fitted as
+    assert "--resume continues the run as it was configured" in capsys.readouterr().err
     config = _config(sets, "train.steps=1")
-    start_autoencoder(config, prepare_run_dir(tmp_path / "ae", config, False), "cpu", progress=False).fit()
+    start_run(prepare_run_dir(tmp_path / "ae", config, False), "cpu", config, progress=False).fit()
     code = run_cli("narf-eval", cli_eval.main, ["--run", str(tmp_path / "ae"), "--split", "novel_pose"])
-    assert code == 2 and "an autoencoder run; choose --split from" in capsys.readouterr().err
+    assert code == 2 and "an autoencoder run; 'novel_pose' is not one of its splits" in capsys.readouterr().err
     argv = ["--run", str(tmp_path / "ae"), "--split", "novel_pose_same_view", "--refine-steps", "5"]
     assert run_cli("narf-eval", cli_eval.main, argv) == 2
     assert "it needs --split cross_dataset or all" in capsys.readouterr().err
@@ -183,7 +184,7 @@ def test_videos_of_encoded_people(sets, tmp_path, capsys):
     from pipelines.cli import render_video as cli_video
 
     config = _config(sets, "train.steps=2")
-    start_autoencoder(config, prepare_run_dir(tmp_path / "ae", config, False), "cpu", progress=False).fit()
+    start_run(prepare_run_dir(tmp_path / "ae", config, False), "cpu", config, progress=False).fit()
     render = str(sets / "thuman" / "same_view" / "render_128" / "color" / "color_00000009.png")
     info = str(sorted((sets / "synthetic" / "surreal").rglob("*_info.mat"))[0])
     base = ["--run", str(tmp_path / "ae"), "--frames", "3", "--quiet"]

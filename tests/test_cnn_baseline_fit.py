@@ -10,8 +10,8 @@ from fitting.config import load_config
 from fitting.trainer import prepare_run_dir
 from narf.cnn_render import cnn_inputs, render_cnn_image, scaled_intrinsics
 from narf.fields import CnnBaseline
-from pipelines.evaluation import evaluate_run
-from pipelines.fit_session import start_trainer
+from pipelines.runs.fit import start_run
+from pipelines.runs.subject.evaluation import evaluate_run
 
 CNN = ["model.name=cnn", "model.image_size=32", "train.images_per_step=4", "train.lr=0.001", "train.log_every=1"]
 
@@ -19,7 +19,7 @@ CNN = ["model.name=cnn", "model.image_size=32", "train.images_per_step=4", "trai
 def _fit(root, out, *extra, resume=False):
     config = load_config("tiny", [f"data.data_root={root}", "data.ratio=1.0", *CNN, *extra])
     run = prepare_run_dir(out, config, resume)
-    return start_trainer(config, run, torch.device("cpu"), resume=resume, progress=False)
+    return start_run(run, torch.device("cpu"), config, resume=resume, progress=False)
 
 
 def test_scaled_intrinsics_keep_pixel_centres():
@@ -94,7 +94,7 @@ def _initial_loss(root, out) -> float:
 def test_cnn_video(data_root_64, tmp_path):
     import imageio.v2 as imageio
 
-    from pipelines.video import render_video
+    from pipelines.runs.subject.video import render_video
 
     _fit(data_root_64, tmp_path / "run", "train.steps=2").fit()
     out = render_video(tmp_path / "run", "bones", tmp_path / "bones.mp4", n_frames=4, fps=4, progress=False)

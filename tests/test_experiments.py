@@ -1,15 +1,17 @@
 """narf-experiments: table definitions, the supplement's orderings, resumable rows, and compare."""
 
 import json
+from dataclasses import replace
 
 import pytest
 
 from fitting.checkpoint import save_checkpoint
-from pipelines.cli import experiments, fit
+from pipelines.cli import experiments
 from pipelines.cli.common import run_cli
 from pipelines.experiments.orderings import check_orderings, paper_results
-from pipelines.experiments.runner import Settings, fit_argv, run_table
+from pipelines.experiments.runner import Settings, fit_request, run_table
 from pipelines.experiments.tables import TABLE_A, TABLE_B, TABLE_C, TABLES
+from pipelines.runs.fit import fit
 from pipelines.synthetic.rigid import RigidSynthConfig, generate_rigid
 
 
@@ -32,16 +34,15 @@ def test_resume_gets_the_rest_of_the_budget(tmp_path):
     run_dir = tmp_path / "run"
     run_dir.mkdir()
     save_checkpoint(run_dir, {"elapsed": 120.0, "step": 7, "config": {}, "model": {}})
-    argv = fit_argv(TABLE_B, TABLE_B.rows[0], Settings(budget_minutes=5.0), run_dir)
-    assert argv[0] == "--resume" and argv[argv.index("--max-minutes") + 1] == "3.0000"  # 5 min - 120 s
+    request = fit_request(TABLE_B, TABLE_B.rows[0], Settings(budget_minutes=5.0), run_dir)
+    assert request.resume and request.max_minutes == 3.0  # 5 min - 120 s (exact in binary: 5 - 2)
 
 
 def test_cnn_rows_take_the_cnn_presets(tmp_path):
     presets = {}
     for table, preset in ((TABLE_A, "cpu"), (TABLE_A, "paper"), (TABLE_C, "cpu")):
         row = next(r for r in table.rows if r.name == "cnn")
-        argv = fit_argv(table, row, Settings(preset=preset), tmp_path / "run")
-        presets[table.name, preset] = argv[argv.index("--config") + 1]
+        presets[table.name, preset] = fit_request(table, row, Settings(preset=preset), tmp_path / "run").preset
     assert presets == {("table-a", "cpu"): "ae_cnn", ("table-a", "paper"): "ae_cnn_paper", ("table-c", "cpu"): "cnn"}
 
 
@@ -50,12 +51,12 @@ def test_rows_resume_and_compare(tmp_path, capsys):
     calls = []
 
     def tiny_fit(table, row, settings, run_dir):
-        """The real narf-fit at the tiny preset; the second row is interrupted once, as by Ctrl-C."""
+        """The real fit at the tiny preset; the second row is interrupted once, as by Ctrl-C."""
         calls.append(row.name)
         if row.name == "rt_nerf_no_pose" and calls.count(row.name) == 1:
             raise KeyboardInterrupt
-        argv = ["--dataset", "rigid", "--data-root", str(data), "--config", "rigid_tiny", *row.fit_args]
-        assert fit.main([*argv, "--out", str(run_dir), "--quiet"]) == 0
+        request = fit_request(table, row, settings, run_dir)
+        fit(replace(request, preset="rigid_tiny", max_minutes=None) if not request.resume else request)
 
     settings = Settings(budget_minutes=1.0, limit=1, data_root=str(data), device="cpu")
     with pytest.raises(KeyboardInterrupt):

@@ -19,8 +19,8 @@ from fitting.trainer import prepare_run_dir
 from pipelines.cli import eval as cli_eval
 from pipelines.cli import fit as cli_fit
 from pipelines.cli.common import run_cli
-from pipelines.evaluation import evaluate_run
-from pipelines.fit_session import start_trainer
+from pipelines.runs.fit import start_run
+from pipelines.runs.subject.evaluation import evaluate_run
 
 
 def _config(root, *extra):
@@ -30,7 +30,7 @@ def _config(root, *extra):
 def _fit(root, out, *extra, resume=False):
     config = _config(root, *extra)
     run = prepare_run_dir(out, config, resume)
-    return start_trainer(config, run, torch.device("cpu"), resume=resume, progress=False)
+    return start_run(run, torch.device("cpu"), config, resume=resume, progress=False)
 
 
 def test_tiny_fit_loss_falls_and_eval_writes_every_artefact(data_root_64, tmp_path):
@@ -140,7 +140,7 @@ def test_metrics_against_scikit_image():
 
 
 def test_video_decodes_to_expected_frames(data_root_64, tmp_path):
-    from pipelines.video import render_video
+    from pipelines.runs.subject.video import render_video
 
     _fit(data_root_64, tmp_path / "run", "train.steps=2").fit()
     for kind in ("orbit", "poses", "bones"):
@@ -314,4 +314,4 @@ def test_eval_takes_several_splits(tiny_run, capsys):
     report = json.loads((tiny_run / "eval" / "metrics.json").read_text())
     assert list(report["splits"]) == ["novel_pose_novel_view", "same_pose_novel_view"]
     assert run_cli("narf-eval", cli_eval.main, [*argv, "--split", "novel_pose", "--split", "cross_dataset"]) == 2
-    assert "'cross_dataset' is an autoencoder split" in capsys.readouterr().err
+    assert "a subject run; 'cross_dataset' is not one of its splits" in capsys.readouterr().err

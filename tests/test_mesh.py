@@ -13,7 +13,7 @@ from narf.fields.common import PoseBatch
 from pipelines.cli import eval as cli_eval
 from pipelines.cli import export_mesh as cli_export
 from pipelines.cli.common import run_cli
-from pipelines.mesh_export import write_mesh
+from pipelines.runs.subject.mesh import write_mesh
 
 RADIUS, RAMP, PEAK = 0.5, 0.01, 200.0
 
@@ -125,8 +125,8 @@ def test_mesh_files_keep_colours_and_parts(tmp_path, suffix):
 def _half_peak(run):
     """Half the peak density of a barely trained run at frame 0 (its level is arbitrary; the plumbing is tested)."""
     from fitting.mesh import density_grid
-    from pipelines.fit_session import load_run
-    from pipelines.mesh_export import _capture_pose
+    from pipelines.runs.subject.mesh import _capture_pose
+    from pipelines.runs.subject.session import load_run
 
     loaded = load_run(run)
     volume, _, _ = density_grid(loaded.field, _capture_pose(loaded, 0, "cpu"), 16)

@@ -51,7 +51,7 @@ def test_pose_features_are_the_log_of_the_normalised_pose():
 
 def test_fit_eval_and_bad_input(rigid_set, tmp_path, capsys):
     run = tmp_path / "run"
-    argv = ["--dataset", "rigid", "--data-root", str(rigid_set), "--config", "rigid_tiny", "--out", str(run)]
+    argv = ["--kind", "rigid", "--data-root", str(rigid_set), "--config", "rigid_tiny", "--out", str(run)]
     assert run_cli("narf-fit", fit.main, [*argv, "--model", "rp_nerf", "--quiet"]) == 0
     assert run_cli("narf-eval", cli_eval.main, ["--run", str(run), "--quiet"]) == 0
     report = json.loads((run / "eval" / "metrics.json").read_text())
@@ -59,7 +59,7 @@ def test_fit_eval_and_bad_input(rigid_set, tmp_path, capsys):
     assert set(report["splits"]["test"]["full"]) == {"mask_l2", "psnr", "ssim"}
     capsys.readouterr()
     assert run_cli("narf-render-video", render_video.main, ["--run", str(run), "--frames", "2"]) == 2
-    assert "a rigid run, not a per-subject fit" in capsys.readouterr().err
+    assert "a rigid run; it renders no videos" in capsys.readouterr().err
     assert run_cli("narf-fit", fit.main, [*argv[:-1], str(tmp_path / "x"), "--model", "narf_d"]) == 2
     assert "'narf_d' is not a rigid-object model" in capsys.readouterr().err
     broken = tmp_path / "broken"

@@ -7,7 +7,7 @@ import spawn
 from pipelines.cli import synth as cli_synth
 from pipelines.cli.common import run_cli
 from pipelines.datasets.zju_mocap import CaptureError
-from pipelines.fit_session import resolve_subject
+from pipelines.runs.subject.session import resolve_subject
 
 
 def test_real_data_wins_over_synthetic(tiny_capture, tmp_path, capsys):

@@ -26,6 +26,15 @@ MODELS = {
     "rt_nerf_no_pose": partial(RtNerf, use_pose=False),
     "rp_nerf": RpNerf,
 }
+#: Model name -> the options (``model.<option>`` of a run's config) its constructor takes: building a model from a
+#: config is ``build_model(name, **{option: config.model.<option> for option in MODEL_OPTIONS[name]})``.
+_FIELD_OPTIONS = ("width", "density_act", "latent_dim")
+MODEL_OPTIONS = {
+    **{name: _FIELD_OPTIONS for name in MODELS},
+    "narf_p": (*_FIELD_OPTIONS, "temperature"),
+    "p_nerf": (*_FIELD_OPTIONS, "pose_in_color"),
+    "cnn": ("image_size", "latent_dim"),
+}
 ARTICULATED = ("narf_d", "narf_d_sigmoid", "narf_h", "narf_p", "p_nerf", "d_narf")
 RIGID = ("rt_nerf", "rt_nerf_no_pose", "rp_nerf")
 
@@ -74,6 +83,7 @@ def paper_presets() -> dict[str, Field]:
 
 __all__ = [
     "MODELS",
+    "MODEL_OPTIONS",
     "IMAGE_MODELS",
     "ARTICULATED",
     "RIGID",

@@ -9,17 +9,17 @@ from pathlib import Path
 
 from pipelines.cli.common import HelpFormatter, run_cli
 
+#: The video kinds of subject and autoencoder runs (``pipelines.runs.kinds``; here so ``--help`` loads no model code).
+VIDEO_KINDS = ("bones", "interpolate", "orbit", "poses")
+
 
 def build_parser() -> argparse.ArgumentParser:
-    from pipelines.autoencoder_video import AUTOENCODER_KINDS
-    from pipelines.video import KINDS
-
     parser = argparse.ArgumentParser(
         prog="narf-render-video",
         description="Render an H.264 mp4 from a fitted run, side by side RGB | depth | part segmentation: 'orbit' "
         "circles a held pose at the rig's distance and height; 'poses' plays the held-out frames (or another "
         "motion capture given with --motion) from one camera; 'bones' grows and shrinks "
-        "the legs (bone-length edit). For an autoencoder run (narf-fit --dataset thuman), --input encodes a person "
+        "the legs (bone-length edit). For an autoencoder run (narf-fit --kind autoencoder), --input encodes a person "
         "(a render_128 color_XXXXXXXX.png with its pose files beside it, or a SURREAL <clip>_info.mat[:FRAME]) and "
         "'orbit' circles that person, 'poses' plays the set's held-out poses on the person's skeleton, "
         "'interpolate' (two --input) morphs z_s and z_a from the first person to the second; frames are "
@@ -27,9 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=HelpFormatter,
     )
     parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")
-    parser.add_argument(
-        "--kind", choices=sorted(set(KINDS) | set(AUTOENCODER_KINDS)), default="orbit", help="what to render"
-    )
+    parser.add_argument("--kind", choices=VIDEO_KINDS, default="orbit", help="what to render")
     parser.add_argument(
         "--input",
         dest="inputs",
@@ -77,9 +75,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     from fitting.checkpoint import load_checkpoint
+    from fitting.fitted import run_config
     from fitting.trainer import auto_device
-    from pipelines.autoencoder_video import render_autoencoder_video
-    from pipelines.video import KINDS, render_video
+    from pipelines.runs.kinds import kind_of
+    from pipelines.runs.requests import VideoRequest, a_run
 
     args = build_parser().parse_args(argv)
     if args.frames < 1 or args.fps < 1:
@@ -89,34 +88,26 @@ def main(argv: list[str] | None = None) -> int:
         raise FileNotFoundError(f"{args.run}: no such run folder")
     if out.is_dir():  # checked before rendering, not after
         raise IsADirectoryError(f"{out}: is a folder; give a .mp4 file name")
-    device = str(auto_device(args.device))
-    if load_checkpoint(args.run).get("kind") == "autoencoder":
-        path = render_autoencoder_video(
-            args.run, args.kind, args.inputs, out, args.frames, args.fps, device, not args.quiet, args.refine_steps
-        )
-        print(f"narf-render-video: wrote {path}")
-        return 0
-    if args.motion is not None and args.kind != "poses":
-        raise ValueError("--motion plays with --kind poses")
-    if args.inputs or args.refine_steps or args.kind not in KINDS:
-        raise ValueError(
-            f"{args.run}: a per-subject fit; --input, --refine-steps and --kind interpolate are for autoencoder runs"
-        )
-    path = render_video(
-        args.run,
-        args.kind,
-        out,
-        args.frames,
-        args.fps,
-        device,
-        args.motion,
-        args.camera,
-        args.scale,
-        not args.quiet,
-        args.start,
-        args.motion_fps,
+    kind = kind_of(run_config(load_checkpoint(args.run), args.run))
+    if kind.render is None or args.kind not in kind.videos:
+        offered = f"--kind {', '.join(kind.videos)}" if kind.videos else "no videos"
+        raise ValueError(f"{args.run}: {a_run(kind.name)}; it renders {offered}, not '{args.kind}'")
+    request = VideoRequest(
+        kind=args.kind,
+        out=out,
+        frames=args.frames,
+        fps=args.fps,
+        device=str(auto_device(args.device)),
+        progress=not args.quiet,
+        inputs=tuple(args.inputs),
+        refine_steps=args.refine_steps,
+        motion=args.motion,
+        camera=args.camera,
+        scale=args.scale,
+        start=args.start,
+        motion_fps=args.motion_fps,
     )
-    print(f"narf-render-video: wrote {path}")
+    print(f"narf-render-video: wrote {kind.render(args.run, request)}")
     return 0
 
 

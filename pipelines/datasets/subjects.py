@@ -3,7 +3,7 @@
 ``--subject taichi`` looks for ``CoreView_315`` under ``$NARF_DATA`` (default ``data/``), in ``<root>``,
 ``<root>/zju_mocap`` and ``<root>/ZJU-MoCap``. A path to a folder holding ``annots.npy`` is used as it is.
 The fallback to the synthetic stand-in (``<root>/synthetic/<name>``) is decided by the glue that opens a
-subject for fitting (``pipelines.fit_session.resolve_subject``).
+subject for fitting (``pipelines.runs.subject.session.resolve_subject``).
 """
 
 from __future__ import annotations

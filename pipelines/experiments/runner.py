@@ -1,5 +1,6 @@
-"""Run a table of the supplement (``narf-experiments run``): fit every row with the real ``narf-fit`` for a time
-budget, evaluate it with the table's protocol, and write the table (Markdown + JSON) with its cost columns.
+"""Run a table of the supplement (``narf-experiments run``): fit every row with ``pipelines.runs.fit.fit`` (what
+``narf-fit`` runs) for a time budget, evaluate it with the table's protocol, and write the table (Markdown + JSON)
+with its cost columns.
 
 Layout under ``OUT/<table>/``: ``<row>/run/`` (the row's run folder), ``<row>/result.json`` (written atomically
 once the row is evaluated: a finished row is never recomputed), ``table.json`` and ``table.md``. A killed row
@@ -18,13 +19,14 @@ import numpy as np
 from fitting.checkpoint import load_checkpoint
 from fitting.config import load_config
 from fitting.evaluate import write_text_atomic
+from fitting.fitted import run_config
 from fitting.trainer import auto_device, make_field
-from pipelines.cli import fit
 from pipelines.experiments.orderings import check_orderings
 from pipelines.experiments.tables import SHORT, Row, Table
+from pipelines.runs.fit import fit
+from pipelines.runs.kinds import KINDS
+from pipelines.runs.requests import EvalRequest, FitRequest
 
-#: Presets per dataset: (CPU budget preset, paper preset); the CNN baseline has its own (cnn; ae_cnn, ae_cnn_paper).
-PRESETS = {"zju": ("cpu", "paper"), "thuman": ("ae_cpu", "ae_paper"), "rigid": ("rigid_cpu", "rigid_paper")}
 #: CPU budget per row in minutes, and views per split evaluated, per table: the budgets of the committed results
 #: (README, "Experiments"), so that the default command reproduces them.
 CPU_BUDGET = {"table-a": 5.0, "table-b": 5.0, "table-c": 3.0}
@@ -43,23 +45,25 @@ class Settings:
     device: str = "auto"
 
 
-def fit_argv(table: Table, row: Row, settings: Settings, run_dir: Path) -> list[str]:
-    """narf-fit arguments of a row (a fresh fit, or ``--resume`` with the rest of its budget)."""
-    budget = [] if settings.budget_minutes is None else ["--max-minutes", f"{settings.budget_minutes:g}"]
-    common = ["--out", str(run_dir), "--device", settings.device, "--quiet"]
+def fit_request(table: Table, row: Row, settings: Settings, run_dir: Path) -> FitRequest:
+    """The fit of a row: a fresh one at the table's preset (``preset`` cpu: the kind's CPU preset, paper: its CUDA
+    one; the CNN baseline has its own), or a resumed one with the rest of its budget."""
+    budget = settings.budget_minutes
+    common = {"out": run_dir, "device": settings.device, "progress": False}
     if (run_dir / "checkpoint.pt").is_file():
-        if settings.budget_minutes is not None:
-            spent = load_checkpoint(run_dir).get("elapsed", 0.0) / 60
-            budget = ["--max-minutes", f"{max(settings.budget_minutes - spent, 0.0):.4f}"]
-        return ["--resume", *common, *budget]
-    paper = settings.preset == "paper"
-    if "cnn" in row.fit_args:  # the CNN's own presets; as an autoencoder, with the image encoder
-        preset = ("ae_cnn", "ae_cnn_paper")[paper] if table.dataset == "thuman" else "cnn"
-    else:
-        preset = PRESETS[table.dataset][paper]
-    dataset = [] if table.dataset == "zju" else ["--dataset", table.dataset]
-    root = [] if settings.data_root is None else ["--data-root", settings.data_root]
-    return [*dataset, *root, "--config", preset, *row.fit_args, *common, *budget]
+        if budget is not None:
+            budget = max(budget - load_checkpoint(run_dir).get("elapsed", 0.0) / 60, 0.0)
+        return FitRequest(resume=True, max_minutes=budget, **common)
+    preset = KINDS[table.kind].preset(row.fit.model, settings.preset == "paper")
+    return FitRequest(
+        preset=preset,
+        kind=table.kind,
+        model=row.fit.model,
+        data_root=settings.data_root,
+        overrides=row.fit.sets,
+        max_minutes=budget,
+        **common,
+    )
 
 
 def _finished(run_dir: Path, settings: Settings) -> bool:
@@ -74,30 +78,15 @@ def _finished(run_dir: Path, settings: Settings) -> bool:
 def run_fit(table: Table, row: Row, settings: Settings, run_dir: Path) -> None:
     """Fit (or resume) a row until its budget is spent; Ctrl-C stops the table with the checkpoint saved."""
     while not _finished(run_dir, settings):
-        code = fit.main(fit_argv(table, row, settings, run_dir))
-        if code == 130:
-            raise KeyboardInterrupt
-        if code != 0:
-            raise RuntimeError(f"{run_dir}: narf-fit exited with {code}")
+        fit(fit_request(table, row, settings, run_dir))
         if settings.budget_minutes is None:
             return
 
 
 def evaluate(table: Table, run_dir: Path, settings: Settings) -> dict:
     """The table's protocol on a fitted row: split -> {mask_l2, psnr, ssim} (full image)."""
-    device = str(auto_device(settings.device))
-    if table.dataset == "rigid":
-        from pipelines.rigid_session import evaluate_rigid_run
-
-        report = evaluate_rigid_run(run_dir, settings.limit, device, progress=False)
-    elif table.dataset == "thuman":
-        from pipelines.autoencoder_evaluation import evaluate_autoencoder_run
-
-        report = evaluate_autoencoder_run(run_dir, list(table.splits), settings.limit, device, progress=False)
-    else:
-        from pipelines.evaluation import evaluate_run
-
-        report = evaluate_run(run_dir, list(table.splits), settings.limit, device, progress=False)
+    request = EvalRequest(tuple(table.splits), settings.limit, str(auto_device(settings.device)), progress=False)
+    report = KINDS[table.kind].evaluate(run_dir, request)
     return {split: report["splits"][split]["full"] for split in table.splits}
 
 
@@ -105,7 +94,7 @@ def row_costs(run_dir: Path) -> dict:
     """#params, FLOPs and activation memory per ray of the fitted model (docs/model.md §8), its training steps,
     seconds and median rays/s from the run's log."""
     state = load_checkpoint(run_dir)
-    model = make_field(load_config(base=state["config"]))
+    model = make_field(run_config(state, run_dir))
     cost = model.cost() if hasattr(model, "cost") else None
     log_path = run_dir / "log.jsonl"  # absent when the fit ran fewer steps than train.log_every
     log = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()] if log_path.is_file() else []
@@ -147,20 +136,9 @@ def run_row(table: Table, row: Row, out_dir: Path, settings: Settings, fitter=ru
 def prepare_data(table: Table, settings: Settings) -> None:
     """Find the table's data before the first row (generating the synthetic stand-in, with its progress bar, when
     it is missing), so that the rows' quiet fits do not wait on it silently."""
+    kind = KINDS[table.kind]
     overrides = [] if settings.data_root is None else [f"data.data_root={settings.data_root}"]
-    config = load_config(PRESETS[table.dataset][0], overrides)
-    if table.dataset == "rigid":
-        from pipelines.rigid_session import resolve_rigid
-
-        resolve_rigid(config)
-    elif table.dataset == "thuman":
-        from pipelines.autoencoder_session import resolve_thuman
-
-        resolve_thuman(config)
-    else:
-        from pipelines.fit_session import resolve_subject
-
-        resolve_subject(config.data.subject, config.data.data_root)
+    kind.data(load_config(kind.presets[0], overrides))
 
 
 def check_settings(out_dir: Path, settings: Settings) -> None:

@@ -18,32 +18,45 @@ SHORT = {
 
 
 @dataclass(frozen=True)
+class RowFit:
+    """How a row is fitted beside its table's preset: the ``model`` and its ``sets`` (``section.key=value``)."""
+
+    model: str
+    sets: tuple[str, ...] = ()
+
+
+@dataclass(frozen=True)
 class Row:
-    """One row: ``name`` (folder and key), ``label`` (as the supplement prints it), ``fit_args`` (narf-fit options
-    besides --out, --max-minutes and the preset), ``paper``: the supplement's cells per split (mask_l2, psnr,
-    ssim), or None where it has none; ``paper_cost``: its (#params, FLOPs/ray, memory/ray) or None."""
+    """One row: ``name`` (folder and key), ``label`` (as the supplement prints it), ``fit`` (model and settings
+    besides the preset), ``paper``: the supplement's cells per split (mask_l2, psnr, ssim), or None where it has
+    none; ``paper_cost``: its (#params, FLOPs/ray, memory/ray) or None."""
 
     name: str
     label: str
-    fit_args: tuple[str, ...]
+    fit: RowFit
     paper: tuple[tuple[float, float, float], ...] | None = None
     paper_cost: tuple[float, float, float] | None = None
+
+    @property
+    def fit_args(self) -> tuple[str, ...]:
+        """The row's fit as ``narf-fit`` flags (what ``--list`` prints and a result records)."""
+        return ("--model", self.fit.model, *(arg for s in self.fit.sets for arg in ("--set", s)))
 
 
 @dataclass(frozen=True)
 class Table:
-    """A table: its dataset (zju, thuman or rigid), the splits it reports and its rows."""
+    """A table: the ``kind`` of its runs (``pipelines.runs.kinds``), the splits it reports and its rows."""
 
     name: str
     title: str
-    dataset: str
+    kind: str
     splits: tuple[str, ...]
     rows: tuple[Row, ...]
     notes: tuple[str, ...] = field(default=())
 
 
-def _model(name: str, *sets: str) -> tuple[str, ...]:
-    return ("--model", name, *(arg for s in sets for arg in ("--set", s)))
+def _model(name: str, *sets: str) -> RowFit:
+    return RowFit(name, sets)
 
 
 _D, _H = (1.10e6, 205e6, 382e3), (1.06e6, 197e6, 344e3)
@@ -193,7 +206,7 @@ _C_ROWS = [
 TABLE_C = Table(
     "table-c",
     "Table C: single articulated subject (synthetic taichi)",
-    "zju",
+    "subject",
     POSE_VIEW_SPLITS,
     tuple(Row(name, label, args, tuple(paper), cost) for name, label, args, paper, cost in _C_ROWS),
     ("NARF_P rows keep the supplement's widths (32-256); every other NeRF-type row uses the preset's width.",),
@@ -246,7 +259,7 @@ _A_ROWS = [
 TABLE_A = Table(
     "table-a",
     "Table A: autoencoder across people (synthetic THUman)",
-    "thuman",
+    "autoencoder",
     POSE_VIEW_SPLITS,
     tuple(Row(name, label, args, tuple(paper), cost) for name, label, args, paper, cost in _A_ROWS),
     (

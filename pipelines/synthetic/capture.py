@@ -29,6 +29,7 @@ from pipelines.datasets.zju_mocap import Camera, SmplParams, write_annots, write
 from pipelines.synthetic.scene import (
     albedo,
     facing_normals,
+    pixel_directions,
     ring_cameras,
     shade,
     studio_background,
@@ -89,18 +90,6 @@ def image_relpath(layout: str, cam: int, frame: int) -> str:
     if layout == "313":
         return f"Camera ({cam + 1})/CoreView_313_Camera_({cam + 1})_{frame + 1:04d}_2019-08-23_16-08-50.592.jpg"
     return f"Camera_B{cam + 1}/{frame:06d}.jpg"
-
-
-def pixel_directions(camera: Camera) -> np.ndarray:
-    """(H, W, 3) unit world directions of the rays through every (distorted) pixel centre."""
-    ys, xs = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
-    pixels = np.stack([xs.ravel(), ys.ravel()], axis=1)[:, None]
-    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
-    normalised = cv2.undistortPoints(pixels, camera.K, camera.dist, None, None, None, criteria)[:, 0]
-    dirs_cam = np.concatenate([normalised, np.ones((len(normalised), 1))], axis=1)
-    dirs_world = dirs_cam @ camera.cam_from_world[:3, :3]
-    dirs_world /= np.linalg.norm(dirs_world, axis=1, keepdims=True)
-    return dirs_world.reshape(camera.height, camera.width, 3).astype(np.float32)
 
 
 _STATE: dict = {}

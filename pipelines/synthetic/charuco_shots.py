@@ -26,7 +26,7 @@ from tqdm import tqdm
 
 from pipelines.calibration.board import BoardSpec
 from pipelines.datasets.zju_mocap import Camera
-from pipelines.synthetic.scene import studio_background
+from pipelines.synthetic.scene import pixel_directions, studio_background
 
 _MARGIN = 0.04  # white panel border around the printed board, metres
 _TEXTURE_PPM = 1000  # texture pixels per metre
@@ -160,8 +160,6 @@ def write_calibration_shots(
 ) -> None:
     """Render ``n_shots`` board poses into every camera, plus ``close_ups`` per-camera close-up shots under
     ``<camera>/intrinsics/``, and write the ``calib/`` folder (module docstring)."""
-    from pipelines.synthetic.capture import pixel_directions
-
     folder = Path(folder)
     width, height = spec.size
     board_px = spec.board().generateImage((round(width * _TEXTURE_PPM), round(height * _TEXTURE_PPM)), marginSize=0)

@@ -6,6 +6,7 @@ about 3 m at z about -1.9 and aim at (0, 0, -0.9). Everything is deterministic u
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 
 from pipelines.datasets.zju_mocap import Camera
@@ -217,3 +218,15 @@ def studio_background(camera: Camera, pixel_dirs_world: np.ndarray) -> np.ndarra
     colour = np.tile(wall[:, None], (1, 3)) * np.array([0.9, 0.95, 1.0])
     colour[on_floor] = (0.45 + 0.12 * checker[on_floor])[:, None] * np.array([0.85, 0.8, 0.7])
     return colour.reshape(camera.height, camera.width, 3)
+
+
+def pixel_directions(camera: Camera) -> np.ndarray:
+    """(H, W, 3) unit world directions of the rays through every (distorted) pixel centre."""
+    ys, xs = np.mgrid[0 : camera.height, 0 : camera.width].astype(np.float64)
+    pixels = np.stack([xs.ravel(), ys.ravel()], axis=1)[:, None]
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10)
+    normalised = cv2.undistortPoints(pixels, camera.K, camera.dist, None, None, None, criteria)[:, 0]
+    dirs_cam = np.concatenate([normalised, np.ones((len(normalised), 1))], axis=1)
+    dirs_world = dirs_cam @ camera.cam_from_world[:3, :3]
+    dirs_world /= np.linalg.norm(dirs_world, axis=1, keepdims=True)
+    return dirs_world.reshape(camera.height, camera.width, 3).astype(np.float32)

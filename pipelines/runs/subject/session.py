@@ -12,11 +12,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from fitting.checkpoint import load_checkpoint
-from fitting.config import FitConfig, load_config
+from fitting.config import FitConfig
 from fitting.data import FitData, TrainingSet
-from fitting.distributed import SINGLE, Processes
-from fitting.trainer import Trainer, make_field
+from fitting.distributed import SINGLE
+from fitting.fitted import load_fitted
+from fitting.trainer import Trainer
 from pipelines.body.model import BodyModel, pose_batch
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.subjects import data_root, find_subject, real_candidates, synthetic_path
@@ -123,23 +123,11 @@ def build_fit_data(config: FitConfig, device, progress: bool = True) -> FitData:
     )
 
 
-def start_trainer(
-    config: FitConfig | None,
-    run_dir: Path,
-    device,
-    resume: bool = False,
-    progress: bool = True,
-    processes: Processes = SINGLE,
-    resume_overrides: list[str] | None = None,
+def start(
+    config: FitConfig, run_dir: Path, device, state: dict | None = None, progress: bool = True, processes=SINGLE
 ) -> Trainer:
-    """A Trainer on the config's capture; with ``resume`` the config, weights and RNG come from the checkpoint
-    (``resume_overrides``: ``key=value`` changes such as a longer ``train.steps``). ``processes``: this process's
-    place in a data-parallel fit (``fitting.distributed``)."""
-    state = load_checkpoint(run_dir, map_location=device) if resume else None
-    if state is not None:
-        config = load_config(base=state["config"], overrides=resume_overrides)
-    if config is None:
-        raise ValueError("start_trainer needs a config unless it resumes a checkpoint")
+    """A Trainer (the CNN baseline: a CnnTrainer) on the config's capture; ``state``: the checkpoint it resumes.
+    ``processes``: this process's place in a data-parallel fit (``fitting.distributed``)."""
     data = build_fit_data(config, device, progress and processes.is_main)
     if config.model.name == "cnn":
         from fitting.cnn_trainer import CnnTrainer
@@ -164,12 +152,7 @@ class LoadedRun:
 
 def load_run(run_dir: Path, device="cpu") -> LoadedRun:
     """Load a run folder written by ``narf-fit --out`` (checkpoint, config, and the capture it was fitted on)."""
-    state = load_checkpoint(run_dir, map_location=device)
-    config = load_config(base=state["config"])
-    if config.data.dataset != "zju":  # checked before anything is read or generated for a subject
-        raise CaptureError(f"{run_dir}: a {config.data.dataset} run, not a per-subject fit; this command needs one")
-    field = make_field(config).to(device)
-    field.load_state_dict(state["model"])
-    field.eval()
-    capture = open_capture(config, quiet=True)
-    return LoadedRun(config, field, capture, capture.protocol(config.data.protocol), BodyModel(), state["step"])
+    fitted = load_fitted(run_dir, device, kind="subject")  # the kind is checked before a capture is read or generated
+    capture = open_capture(fitted.config, quiet=True)
+    protocol = capture.protocol(fitted.config.data.protocol)
+    return LoadedRun(fitted.config, fitted.field, capture, protocol, BodyModel(), fitted.step)

@@ -26,13 +26,13 @@ import torch
 from tqdm import tqdm
 
 from fitting.autoencoder import build_encoder, encode, refine_code
-from fitting.checkpoint import load_checkpoint
-from fitting.config import FitConfig, load_config
+from fitting.config import FitConfig
 from fitting.evaluate import average_metrics, library_versions, render_view, spread, ssim, write_report
 from fitting.plots import grid, save_png, to_numpy
-from fitting.trainer import make_field
+from fitting.fitted import load_fitted, load_weights
 from narf.metrics import mask_l2, psnr_of
-from pipelines.autoencoder_session import ThumanSet, ThumanView, load_views, open_thuman, resolve_thuman
+from pipelines.runs.requests import EvalRequest, refuse_options
+from pipelines.runs.autoencoder.session import ThumanSet, ThumanView, load_views, open_thuman, resolve_thuman
 from pipelines.body.model import BodyModel, pose_batch_from_joints
 from pipelines.body.surreal import pose_surreal
 from pipelines.datasets.subjects import data_root
@@ -68,15 +68,12 @@ class AutoencoderRun:
 
 def load_autoencoder_run(run_dir: Path, device="cpu") -> AutoencoderRun:
     """Load an autoencoder run (refusing a per-subject fit with a clear error)."""
-    state = load_checkpoint(run_dir, map_location=device)
-    if state.get("kind") != "autoencoder":
-        raise CaptureError(f"{run_dir}: holds a per-subject fit, not an autoencoder (its splits are the capture's)")
-    config = load_config(base=state["config"])
-    field, encoder = make_field(config).to(device), build_encoder(config).to(device)
-    field.load_state_dict(state["model"])
-    encoder.load_state_dict(state["encoder"])
+    fitted = load_fitted(run_dir, device, kind="autoencoder")
+    config = fitted.config
+    encoder = build_encoder(config).to(device)
+    load_weights(encoder, fitted.state.get("encoder", {}), Path(run_dir), "the image encoder of its config")
     dataset = open_thuman(resolve_thuman(config, quiet=True, generate=False), config)
-    return AutoencoderRun(config, field.eval(), encoder.eval(), dataset, state["step"])
+    return AutoencoderRun(config, fitted.field, encoder.eval(), dataset, fitted.step)
 
 
 def mean_code(run: AutoencoderRun, device, n_meshes: int = 64) -> torch.Tensor:
@@ -323,3 +320,14 @@ def evaluate_autoencoder_run(
     )
     write_report(out_dir, report, markdown_autoencoder(report))
     return report
+
+
+def evaluate(run_dir: Path, request: EvalRequest) -> dict:
+    """``evaluate_autoencoder_run`` for a request (the kind table's entry point)."""
+    r = request
+    refuse_options(run_dir, "autoencoder", {"--mesh": r.mesh}, "subject runs (an autoencoder run has no true surfaces)")
+    if r.refine_steps and "cross_dataset" not in r.splits:
+        raise ValueError(f"{run_dir}: --refine-steps refines SURREAL codes; it needs --split cross_dataset or all")
+    return evaluate_autoencoder_run(
+        run_dir, list(r.splits), r.limit, r.device, r.progress, r.grids, r.surreal, r.refine_steps
+    )

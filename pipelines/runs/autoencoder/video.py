@@ -22,14 +22,15 @@ from fitting.evaluate import render_view
 from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
 from narf.kinematics import rest_offsets_from_world, retarget
-from pipelines.autoencoder_evaluation import (
+from pipelines.runs.requests import VideoRequest, refuse_options
+from pipelines.runs.autoencoder.evaluation import (
     AutoencoderRun,
     check_refinable,
     load_autoencoder_run,
     refined_code,
     surreal_view,
 )
-from pipelines.autoencoder_session import ThumanView, load_views, view_of_render
+from pipelines.runs.autoencoder.session import ThumanView, load_views, view_of_render
 from pipelines.body.model import BodyModel, pose_batch_from_joints
 from pipelines.datasets.surreal import check_clip
 from pipelines.datasets.thuman import read_render
@@ -159,3 +160,13 @@ def render_autoencoder_video(
             render = to_numpy(render_view(run.field, camera, pose.to(device), run.config, code))
         frames.append(np.concatenate([(np.clip(tile, 0, 1) * 255 + 0.5).astype(np.uint8), video_frame(render)], axis=1))
     return write_mp4(out, frames, fps)
+
+
+def render(run_dir: Path, request: VideoRequest) -> Path:
+    """``render_autoencoder_video`` for a request (the kind table's entry point)."""
+    r = request
+    options = {"--motion": r.motion, "--camera": r.camera is not None, "--start": r.start, "--motion-fps": r.motion_fps}
+    refuse_options(run_dir, "autoencoder", options, "subject runs")
+    return render_autoencoder_video(
+        run_dir, r.kind, list(r.inputs), r.out, r.frames, r.fps, r.device, r.progress, r.refine_steps
+    )

@@ -11,12 +11,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from fitting.checkpoint import load_checkpoint
-from fitting.config import FitConfig, load_config
+from fitting.config import FitConfig
 from fitting.data import FitData, TrainingSet
 from fitting.evaluate import average_metrics, frame_metrics, library_versions, render_view, spread, write_report
 from fitting.plots import grid, save_png, to_numpy
-from fitting.trainer import Trainer, make_field
+from fitting.fitted import load_fitted
+from fitting.trainer import Trainer
+from pipelines.runs.requests import EvalRequest, refuse_options
 from pipelines.datasets.rigid import RigidSet, load_rigid_views, open_rigid
 from pipelines.datasets.subjects import data_root
 from pipelines.synthetic.rigid import RigidSynthConfig, generate_rigid, is_rigid_complete
@@ -57,18 +58,10 @@ def build_rigid_data(config: FitConfig, device, progress: bool = True) -> FitDat
     )
 
 
-def start_rigid(
-    config: FitConfig | None,
-    run_dir: Path,
-    device,
-    resume: bool = False,
-    progress: bool = True,
-    resume_overrides: list[str] | None = None,
+def start(
+    config: FitConfig, run_dir: Path, device, state: dict | None = None, progress: bool = True, processes=None
 ) -> Trainer:
-    """A Trainer of a rigid model; with ``resume`` the config, weights and RNG come from the checkpoint."""
-    state = load_checkpoint(run_dir, map_location=device) if resume else None
-    if state is not None:
-        config = load_config(base=state["config"], overrides=resume_overrides)
+    """A Trainer of a rigid model; ``state``: the checkpoint it resumes. One process."""
     return Trainer(config, run_dir, device, build_rigid_data(config, device, progress), state=state, progress=progress)
 
 
@@ -76,11 +69,8 @@ def evaluate_rigid_run(run_dir: Path, limit: int | None, device, progress: bool 
     """Render the test images of a rigid-object run; write ``RUN/eval/metrics.json`` / ``metrics.md`` (split
     ``test``: full-image Mask L2 x10^4 / PSNR / SSIM) and grids (ground truth | render | depth | error)."""
     run_dir = Path(run_dir)
-    state = load_checkpoint(run_dir, map_location=device)
-    config = load_config(base=state["config"])
-    field = make_field(config).to(device)
-    field.load_state_dict(state["model"])
-    field.eval()
+    fitted = load_fitted(run_dir, device, kind="rigid")
+    config, field = fitted.config, fitted.field
     rigid: RigidSet = open_rigid(resolve_rigid(config, quiet=True, generate=False))
     indices = spread(list(range(rigid.counts["test"])), limit)
     views, poses = load_rigid_views(rigid, "test", indices)
@@ -94,7 +84,7 @@ def evaluate_rigid_run(run_dir: Path, limit: int | None, device, progress: bool 
             save_png(run_dir / "eval" / "grids" / "test" / f"{indices[k]:05d}.png", grid(view.image, render, False))
     report = {
         "run": str(run_dir),
-        "step": state["step"],
+        "step": fitted.step,
         "model": config.model.name,
         "width": config.model.width,
         "dataset": str(rigid.root),
@@ -119,3 +109,11 @@ def markdown_rigid(report: dict) -> str:
             "",
         ]
     )
+
+
+def evaluate(run_dir: Path, request: EvalRequest) -> dict:
+    """``evaluate_rigid_run`` for a request (the kind table's entry point); its one split is ``test``."""
+    r = request
+    options = {"--mesh": r.mesh, "--surreal": r.surreal, "--refine-steps": r.refine_steps}
+    refuse_options(run_dir, "rigid", options, "subject and autoencoder runs")
+    return evaluate_rigid_run(run_dir, r.limit, r.device, r.progress, r.grids)

@@ -15,9 +15,8 @@ import torch
 from tqdm import tqdm
 
 from fitting.autoencoder import AutoencoderData, AutoencoderTrainer
-from fitting.checkpoint import load_checkpoint
 from fitting.cnn_trainer import CnnAutoencoderTrainer
-from fitting.config import FitConfig, load_config
+from fitting.config import FitConfig
 from fitting.data import TrainingSet
 from pipelines.body.model import BodyModel, pose_batch_from_joints
 from pipelines.datasets.subjects import data_root
@@ -133,21 +132,9 @@ def build_autoencoder_data(config: FitConfig, device, progress: bool = True) -> 
     )
 
 
-def start_autoencoder(
-    config: FitConfig | None,
-    run_dir: Path,
-    device,
-    resume: bool = False,
-    progress: bool = True,
-    resume_overrides: list[str] | None = None,
-):
-    """An AutoencoderTrainer on the config's THUman set; with ``resume`` everything comes from the checkpoint
-    (``resume_overrides``: ``key=value`` changes such as a longer ``train.steps``)."""
-    state = load_checkpoint(run_dir, map_location=device) if resume else None
-    if state is not None:
-        if state.get("kind") != "autoencoder":
-            raise CaptureError(f"{run_dir}: holds a per-subject fit, not an autoencoder (resume it without --dataset)")
-        config = load_config(base=state["config"], overrides=resume_overrides)
+def start(config: FitConfig, run_dir: Path, device, state: dict | None = None, progress: bool = True, processes=None):
+    """An AutoencoderTrainer (the CNN baseline: a CnnAutoencoderTrainer) on the config's THUman set; ``state``: the
+    checkpoint it resumes. One process (``processes`` is accepted for the kind table's one signature)."""
     data = build_autoencoder_data(config, device, progress)
     trainer = CnnAutoencoderTrainer if config.model.name == "cnn" else AutoencoderTrainer
     return trainer(config, run_dir, device, data, state=state, progress=progress)

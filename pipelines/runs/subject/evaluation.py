@@ -19,7 +19,8 @@ from fitting.evaluate import (
     write_report,
 )
 from fitting.plots import grid, save_png, to_numpy
-from pipelines.fit_session import load_run, poses_for_frames
+from pipelines.runs.requests import EvalRequest, refuse_options
+from pipelines.runs.subject.session import load_run, poses_for_frames
 
 
 def _view_metrics(run, split: str, items, frames: list[int], out_dir: Path, grids: int, device: str, progress: bool):
@@ -55,7 +56,7 @@ def evaluate_run(
     """Evaluate ``splits`` of the run's protocol; update ``run_dir/eval/metrics.json`` and ``metrics.md``.
 
     With ``mesh``, also the surface of each split frame that has a true surface (``surfaces/<frame>.ply``):
-    ``pipelines.mesh_export.mesh_accuracy``, meshes in ``eval/meshes/<split>/``.
+    ``pipelines.runs.subject.mesh.mesh_accuracy``, meshes in ``eval/meshes/<split>/``.
     """
     run_dir = Path(run_dir)
     run = load_run(run_dir, device)
@@ -78,7 +79,7 @@ def evaluate_run(
         }
         if mesh:
             from fitting.mesh import DEFAULT_LEVEL
-            from pipelines.mesh_export import mesh_accuracy
+            from pipelines.runs.subject.mesh import mesh_accuracy
 
             report["splits"][split]["mesh"] = mesh_accuracy(
                 run, frames, out_dir / "meshes" / split, mesh_resolution, mesh_level or DEFAULT_LEVEL, device, progress
@@ -97,3 +98,13 @@ def evaluate_run(
     )
     write_report(out_dir, report, markdown_table(report))
     return report
+
+
+def evaluate(run_dir: Path, request: EvalRequest) -> dict:
+    """``evaluate_run`` for a request (the kind table's entry point)."""
+    users = "autoencoder runs"
+    refuse_options(run_dir, "subject", {"--surreal": request.surreal, "--refine-steps": request.refine_steps}, users)
+    r = request
+    return evaluate_run(
+        run_dir, list(r.splits), r.limit, r.device, r.progress, r.grids, r.mesh, r.mesh_resolution, r.mesh_level
+    )

@@ -16,10 +16,11 @@ from fitting.evaluate import render_view
 from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
 from narf.kinematics import JOINT_NAMES, PART_JOINTS, SMPL_PARENTS, rigid_from_rotvec_translation
+from pipelines.runs.requests import VideoRequest, refuse_options
 from pipelines.body.model import BodyModel, pose_batch, posed_from_rest_joints
 from pipelines.body.motion import load_motion, place, resample, stage_of
 from pipelines.datasets.smpl_files import atomic_write_bytes
-from pipelines.fit_session import LoadedRun, load_run, poses_for_frames
+from pipelines.runs.subject.session import LoadedRun, load_run, poses_for_frames
 from pipelines.synthetic.scene import look_at
 
 KINDS = ("orbit", "poses", "bones")
@@ -205,3 +206,14 @@ def _pelvis(body_model: BodyModel, params) -> np.ndarray:
             *(torch.as_tensor(v)[None] for v in (params.poses, params.rh, params.th, params.shapes))
         )
     return body.world_from_joint[0, 0, :3, 3].numpy().astype(np.float64)
+
+
+def render(run_dir: Path, request: VideoRequest) -> Path:
+    """``render_video`` for a request (the kind table's entry point)."""
+    r = request
+    refuse_options(run_dir, "subject", {"--input": r.inputs, "--refine-steps": r.refine_steps}, "autoencoder runs")
+    if r.motion is not None and r.kind != "poses":
+        raise ValueError("--motion plays with --kind poses")
+    return render_video(
+        run_dir, r.kind, r.out, r.frames, r.fps, r.device, r.motion, r.camera, r.scale, r.progress, r.start, r.motion_fps
+    )

@@ -17,8 +17,8 @@ from fitting.mesh import DEFAULT_LEVEL, ExtractedMesh, extract_mesh, surface_met
 from pipelines.body.model import pose_batch
 from pipelines.datasets.smpl_files import atomic_write_bytes
 from pipelines.datasets.zju_mocap import CaptureError
-from pipelines.fit_session import LoadedRun, load_run, poses_for_frames
-from pipelines.video import motion_params
+from pipelines.runs.subject.session import LoadedRun, load_run, poses_for_frames
+from pipelines.runs.subject.video import motion_params
 
 MESH_SUFFIXES = (".ply", ".obj", ".glb")
 

@@ -1,0 +1,57 @@
+"""A run folder's checkpoint as a config and a model: the one path from ``checkpoint.pt`` to weights ready to render
+(evaluation, videos, meshes, experiments) or to train on (``--resume``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+
+from fitting.checkpoint import CheckpointError, load_checkpoint
+from fitting.config import ConfigError, FitConfig, load_config, migrate_saved
+from fitting.trainer import make_field
+
+
+def run_config(state: dict, path: Path, overrides: list[str] | None = None) -> FitConfig:
+    """The config a checkpoint was fitted with (older keys migrated, ``fitting.config.migrate_saved``), with
+    ``overrides`` applied; a config that is not one names the file."""
+    try:
+        return load_config(base=migrate_saved(state["config"], state.get("kind")), overrides=overrides)
+    except ConfigError as err:
+        raise CheckpointError(f"{path}: {err}") from err
+
+
+@dataclass
+class Fitted:
+    """A fitted run: its checkpoint ``state``, ``config`` and the ``field`` (eval mode) on the device."""
+
+    state: dict
+    config: FitConfig
+    field: torch.nn.Module
+
+    @property
+    def step(self) -> int:
+        return int(self.state["step"])
+
+
+def load_weights(module: torch.nn.Module, weights: dict, path: Path, what: str) -> None:
+    """``module.load_state_dict(weights)``; weights of another model or size fail with the file and the reason."""
+    try:
+        module.load_state_dict(weights)
+    except (RuntimeError, TypeError, AttributeError) as err:
+        first = str(err).strip().splitlines()
+        detail = first[1].strip() if len(first) > 1 else (first[0] if first else type(err).__name__)
+        raise CheckpointError(f"{path}: its weights do not fit {what} ({detail})") from err
+
+
+def load_fitted(run_dir: Path, device="cpu", kind: str | None = None) -> Fitted:
+    """Load ``run_dir/checkpoint.pt`` and build its model; ``kind`` refuses a run of another kind first."""
+    run_dir = Path(run_dir)
+    state = load_checkpoint(run_dir, map_location=device)
+    config = run_config(state, run_dir)
+    if kind is not None and config.kind != kind:
+        raise CheckpointError(f"{run_dir}: holds a {config.kind} run; this needs a {kind} run")
+    field = make_field(config).to(device)
+    load_weights(field, state["model"], run_dir, f"the {config.model.name} model of its config")
+    return Fitted(state, config, field.eval())

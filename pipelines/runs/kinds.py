@@ -1,0 +1,128 @@
+"""The run kinds, one table: what each kind of run fits, its default presets, and how it starts or resumes,
+evaluates, renders and exports. Commands and experiments look a run's kind up here (``config.kind``) instead of
+branching on it; docs/guides/fitting.md describes the kinds."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+
+from fitting.config import FitConfig
+from fitting.evaluate import ALL_SPLITS, EVAL_SPLITS
+from pipelines.runs.autoencoder import evaluation as autoencoder_evaluation
+from pipelines.runs.autoencoder import session as autoencoder_session
+from pipelines.runs.autoencoder import video as autoencoder_video
+from pipelines.runs.rigid import session as rigid_session
+from pipelines.runs.subject import evaluation as subject_evaluation
+from pipelines.runs.subject import mesh as subject_mesh
+from pipelines.runs.subject import session as subject_session
+from pipelines.runs.requests import a_run
+from pipelines.runs.subject import video as subject_video
+
+
+@dataclass(frozen=True)
+class RunKind:
+    """One kind of run.
+
+    Attributes:
+        name: the kind's one name (``config.kind``, ``narf-fit --kind``).
+        what: what it fits, for messages.
+        presets: default preset (CPU, CUDA); ``cnn_presets`` the same for ``--model cnn``.
+        data: finds (or generates) the data of a config; returns its folder.
+        start: ``(config, run_dir, device, state, progress, processes) -> trainer`` (``state``: a checkpoint to resume).
+        data_parallel: whether torchrun may split its fit over processes.
+        splits: the splits ``narf-eval`` accepts, the default first; ``every``: what ``all`` stands for.
+        evaluate: ``(run_dir, EvalRequest) -> report``; ``markdown``: ``report -> table``.
+        videos: the ``narf-render-video --kind`` values; ``render``: ``(run_dir, VideoRequest) -> mp4 path``.
+        export: ``narf-export-mesh``'s work, or None where the kind has no mesh export.
+    """
+
+    name: str
+    what: str
+    presets: tuple[str, str]
+    cnn_presets: tuple[str, str] | None
+    data: Callable[[FitConfig], Path]
+    start: Callable
+    data_parallel: bool
+    splits: tuple[str, ...]
+    every: tuple[str, ...]
+    evaluate: Callable
+    markdown: Callable[[dict], str]
+    videos: tuple[str, ...] = ()
+    render: Callable | None = None
+    export: Callable | None = None
+
+    def preset(self, model: str | None, gpu: bool) -> str:
+        """The default preset for ``model`` on this device."""
+        presets = self.cnn_presets if model == "cnn" and self.cnn_presets else self.presets
+        return presets[gpu]
+
+    def expand(self, run_dir: Path, requested: list[str] | None) -> tuple[str, ...]:
+        """The splits to evaluate (default: the first of ``splits``): ``all`` stands for ``every``; each split once,
+        in the order first named. A split of another kind is an error naming the run."""
+        requested = requested or [self.splits[0]]
+        for split in requested:
+            if split != "all" and split not in self.splits:
+                choices = ", ".join((*self.splits, "all"))
+                raise ValueError(f"{run_dir}: {a_run(self.name)}; '{split}' is not one of its splits ({choices})")
+        return tuple(dict.fromkeys(n for split in requested for n in (self.every if split == "all" else (split,))))
+
+
+def _subject_data(config: FitConfig) -> Path:
+    return subject_session.resolve_subject(config.data.subject, config.data.data_root)
+
+
+KINDS: dict[str, RunKind] = {
+    "subject": RunKind(
+        name="subject",
+        what="one avatar fitted to one capture (ZJU-MoCap layout)",
+        presets=("cpu", "paper"),
+        cnn_presets=("cnn", "cnn"),
+        data=_subject_data,
+        start=subject_session.start,
+        data_parallel=True,
+        splits=("novel_pose", *(s for s in ALL_SPLITS if s not in ("novel_pose", "all"))),
+        every=EVAL_SPLITS,
+        evaluate=subject_evaluation.evaluate,
+        markdown=subject_evaluation.markdown_table,
+        videos=subject_video.KINDS,
+        render=subject_video.render,
+        export=subject_mesh.export_run_meshes,
+    ),
+    "autoencoder": RunKind(
+        name="autoencoder",
+        what="the autoencoder across the people of a THUman-layout set",
+        presets=("ae_cpu", "ae_paper"),
+        cnn_presets=("ae_cnn", "ae_cnn_paper"),
+        data=autoencoder_session.resolve_thuman,
+        start=autoencoder_session.start,
+        data_parallel=False,
+        splits=(
+            "novel_pose_novel_view",
+            *(s for s in autoencoder_evaluation.AUTOENCODER_SPLITS if "novel_pose_n" not in s),
+        ),
+        every=autoencoder_evaluation.AUTOENCODER_SPLITS,
+        evaluate=autoencoder_evaluation.evaluate,
+        markdown=autoencoder_evaluation.markdown_autoencoder,
+        videos=autoencoder_video.AUTOENCODER_KINDS,
+        render=autoencoder_video.render,
+    ),
+    "rigid": RunKind(
+        name="rigid",
+        what="one rigid object (supplement Table B)",
+        presets=("rigid_cpu", "rigid_paper"),
+        cnn_presets=None,
+        data=rigid_session.resolve_rigid,
+        start=rigid_session.start,
+        data_parallel=False,
+        splits=("test",),
+        every=("test",),
+        evaluate=rigid_session.evaluate,
+        markdown=rigid_session.markdown_rigid,
+    ),
+}
+
+
+def kind_of(config: FitConfig) -> RunKind:
+    return KINDS[config.kind]

@@ -1,0 +1,92 @@
+"""Typed configs: Literal choices, the model-options table, settings of another kind refused, and run folders
+written by older versions (``data.dataset``, ``train.world_size``, the checkpoint's ``kind``) still loading."""
+
+import typing
+
+import pytest
+import torch
+
+from fitting.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from fitting.config import CONFIG_DIR, ConfigError, FitConfig, ModelName, RunKindName, load_config
+from fitting.fitted import load_fitted
+from fitting.trainer import make_field
+from narf.fields import IMAGE_MODELS, MODEL_OPTIONS, MODELS
+from pipelines.runs.kinds import KINDS
+
+
+def test_names_agree_across_the_tables():
+    assert set(typing.get_args(ModelName)) == set(MODELS) | set(IMAGE_MODELS) == set(MODEL_OPTIONS)
+    assert set(typing.get_args(RunKindName)) == set(KINDS)
+    for kind in KINDS.values():  # every default preset exists and is of its kind
+        for preset in (*kind.presets, *(kind.cnn_presets or ())):
+            assert load_config(preset).kind == kind.name
+
+
+def test_every_preset_loads_and_builds_its_model():
+    for path in sorted(CONFIG_DIR.glob("*.yaml")):
+        config = load_config(path.stem)
+        assert sum(p.numel() for p in make_field(config).parameters()) > 0, path.name
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("data.protocol=nb", "expected one of narf, neuralbody, got 'nb'"),
+        ("model.name=narf", "expected one of narf_d,"),
+        ("kind=zju", "expected one of subject, autoencoder, rigid"),
+        ("train.precision=fp16", "expected one of fp32, bf16"),
+        ("model.temperature=5", "model.temperature: narf_d does not take it (only narf_p)"),
+        ("train.encoder_lr=0.01", "train.encoder_lr: only autoencoder runs use it (this is a subject run)"),
+        ("data.ratio=0", "'data.ratio' has an invalid value"),
+    ],
+)
+def test_bad_values_name_their_key(override, message):
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(").replace(")", r"\)")):
+        load_config("tiny", [override])
+
+
+def test_model_options_reach_the_constructor():
+    assert make_field(load_config("tiny", ["model.name=narf_p", "model.temperature=0.5"])).temperature == 0.5
+    assert make_field(load_config("tiny", ["model.name=p_nerf", "model.pose_in_color=false"])).pose_in_color is False
+
+
+@pytest.mark.parametrize("legacy, kind", [("zju", "subject"), ("thuman", "autoencoder"), ("rigid", "rigid")])
+def test_old_run_folders_load(tmp_path, legacy, kind):
+    """A checkpoint as older versions wrote it: the kind in data.dataset, the process count in train.world_size,
+    and (autoencoders) ``kind: autoencoder`` beside the weights."""
+    preset = {"subject": "tiny", "autoencoder": "ae_tiny", "rigid": "rigid_tiny"}[kind]
+    config = load_config(preset)
+    saved = config.to_dict()
+    del saved["kind"]
+    saved["data"]["dataset"] = legacy
+    saved["train"]["world_size"] = 1
+    extra = {"kind": "autoencoder"} if kind == "autoencoder" else {}
+    save_checkpoint(tmp_path, {"config": saved, "step": 3, "model": make_field(config).state_dict(), **extra})
+    fitted = load_fitted(tmp_path, kind=kind)
+    assert fitted.config == config and fitted.step == 3
+
+
+def test_foreign_configs_and_weights_fail_with_the_file(tmp_path):
+    config = load_config("tiny")
+    saved = config.to_dict()
+    del saved["kind"]
+    saved["data"]["dataset"] = "h36m"
+    (tmp_path / "a").mkdir()
+    save_checkpoint(tmp_path / "a", {"config": saved, "step": 0, "model": {}})
+    with pytest.raises(CheckpointError, match="a: saved config: unknown data.dataset 'h36m'"):
+        load_fitted(tmp_path / "a")
+    (tmp_path / "b").mkdir()
+    wrong = make_field(load_config("tiny", ["model.name=narf_h"])).state_dict()
+    save_checkpoint(tmp_path / "b", {"config": config.to_dict(), "step": 0, "model": wrong})
+    with pytest.raises(CheckpointError, match="its weights do not fit the narf_d model of its config"):
+        load_fitted(tmp_path / "b")
+    with pytest.raises(CheckpointError, match="holds a subject run; this needs a rigid run"):
+        load_fitted(tmp_path / "b", kind="rigid")
+    assert isinstance(load_checkpoint(tmp_path / "b")["model"], dict)
+
+
+def test_run_state_is_not_a_setting():
+    assert "world_size" not in FitConfig().to_dict()["train"]
+    with pytest.raises(ConfigError, match="unknown config key 'train.world_size'"):
+        load_config("tiny", ["train.world_size=2"])
+    assert torch.get_default_dtype() == torch.float32
