@@ -1,5 +1,7 @@
 """Detection and per-camera intrinsics on the synthetic rig (ground truth from the generator)."""
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -216,6 +218,42 @@ def test_calibrate_cli_fixes_parameter_groups(small_rig, tmp_path):
         # fixed groups keep their initial values exactly (191.5 = image centre, 0 distortion): allclose's defaults
         assert np.allclose(camera.K[:2, 2], 191.5) and np.allclose(camera.dist[2:], 0.0)
         assert abs(camera.dist[0]) > 1e-4  # k1 is still estimated
+
+
+def test_calibrate_cli_keeps_k3_in_the_colmap_model(small_rig, tmp_path):
+    """With --fix none k3 is estimated; the COLMAP model (pycolmap's writer, read back by pycolmap) carries it
+    as FULL_OPENCV, equal to annots.npy's (both float64 copies of one value: exact)."""
+    from pipelines.cli.calibrate import main
+    from pipelines.datasets.colmap import read_colmap_cameras
+    from pipelines.datasets.zju_mocap import read_annots
+
+    _, capture = small_rig
+    out = tmp_path / "free"
+    assert main([str(capture), "--out", str(out), "--fix", "none", "--quiet"]) == 0
+    solved = read_annots(out / "annots.npy", image_size=(384, 384))[0]
+    assert all(camera.dist[4] != 0 for camera in solved)
+    assert (out / "colmap" / "cameras.txt").read_text().count("FULL_OPENCV") == 7
+    for camera, colmap in zip(solved, read_colmap_cameras(out / "colmap")):
+        assert np.array_equal(colmap.dist, camera.dist) and np.array_equal(colmap.K, camera.K)
+
+
+def test_colmap_model_round_trip(tmp_path):
+    """pycolmap writes and reads the rig: OPENCV where k3 = 0, FULL_OPENCV otherwise. Text stores 17 significant
+    digits, so K and dist come back exactly; the pose goes matrix -> quaternion -> matrix (a few float64 eps)."""
+    from pipelines.datasets.colmap import read_colmap_cameras, write_colmap_model
+
+    cameras = ring_cameras(21, 256, seed=2)[::7]
+    cameras[0] = replace(cameras[0], dist=np.array([0.1, -0.05, 1e-3, -2e-3, 0.02]))
+    cameras[1] = replace(cameras[1], dist=np.array([0.1, -0.05, 1e-3, -2e-3, 0.0]))
+    for binary in (False, True):
+        folder = write_colmap_model(tmp_path / str(binary), cameras, binary=binary)
+        back = read_colmap_cameras(folder)
+        assert [c.name for c in back] == [c.name for c in cameras]
+        for a, b in zip(cameras, back):
+            assert np.array_equal(a.K, b.K) and np.array_equal(a.dist, b.dist)
+            assert np.allclose(a.cam_from_world, b.cam_from_world, atol=1e-12) and (a.width, a.height) == (256, 256)
+    models = [line.split()[1] for line in (tmp_path / "False" / "cameras.txt").read_text().splitlines()[3:]]
+    assert models == ["FULL_OPENCV", "OPENCV", "OPENCV"]
 
 
 def test_compare_cameras_undoes_a_change_of_world_frame():

@@ -13,6 +13,7 @@ from pathlib import Path
 
 from pipelines.calibration.board import BoardSpec
 from pipelines.cli.common import HelpFormatter, run_cli
+from pipelines.datasets.colmap import write_colmap_model
 from pipelines.datasets.easymocap import write_easymocap_cameras
 from pipelines.datasets.zju_mocap import Camera, CaptureError, read_annots, write_annots
 
@@ -114,34 +115,6 @@ def calibrate_capture(
     return cameras, ims, report, figures
 
 
-def write_colmap_text(folder: Path, cameras: list[Camera]) -> None:
-    """COLMAP text model: cameras.txt (OPENCV: fx fy cx cy k1 k2 p1 p2), images.txt (cam_from_world as
-    qw qx qy qz tx ty tz), and an empty points3D.txt."""
-    from scipy.spatial.transform import Rotation
-
-    folder.mkdir(parents=True, exist_ok=True)
-    cam_lines, image_lines = (
-        ["# Camera list: CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]"],
-        ["# Image list: IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME; then POINTS2D (empty)"],
-    )
-    for index, cam in enumerate(cameras, start=1):
-        k, d = cam.K, cam.dist
-        cam_lines.append(
-            f"{index} OPENCV {cam.width} {cam.height} {k[0, 0]:.10g} {k[1, 1]:.10g} {k[0, 2]:.10g} "
-            f"{k[1, 2]:.10g} {d[0]:.10g} {d[1]:.10g} {d[2]:.10g} {d[3]:.10g}"
-        )
-        qx, qy, qz, qw = Rotation.from_matrix(cam.cam_from_world[:3, :3]).as_quat()
-        tx, ty, tz = cam.cam_from_world[:3, 3]
-        image_lines += [
-            f"{index} {qw:.12g} {qx:.12g} {qy:.12g} {qz:.12g} {tx:.12g} {ty:.12g} {tz:.12g} {index} "
-            f"{cam.name.replace(' ', '_')}.jpg",
-            "",
-        ]
-    (folder / "cameras.txt").write_text("\n".join(cam_lines) + "\n")
-    (folder / "images.txt").write_text("\n".join(image_lines) + "\n")
-    (folder / "points3D.txt").write_text("# 3D point list (empty)\n")
-
-
 def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None, report: dict, figures: dict) -> None:
     """Write into a hidden temporary folder, then move the files into ``out`` (nothing partial on failure)."""
     staging = out.parent / f".{out.name}.partial"
@@ -149,7 +122,7 @@ def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None,
     staging.mkdir(parents=True)
     write_annots(staging / "annots.npy", cameras, ims or [])
     write_easymocap_cameras(staging, cameras)
-    write_colmap_text(staging / "colmap", cameras)
+    write_colmap_model(staging / "colmap", cameras)
     from pipelines.calibration.report import draw_residuals, draw_rig
 
     board = report["board"]
@@ -189,7 +162,8 @@ def main(argv: list[str] | None = None) -> int:
         "a graph over shared shots, then one joint bundle adjustment of all cameras and board poses with outlier "
         "corners rejected. The reference shot's board frame is the world (ZJU "
         "convention: board on the floor, z down, metres). Writes annots.npy (T in mm), intri.yml/extri.yml, a "
-        "COLMAP text model (colmap/), report.json, rig.png and residuals.png to --out; only --write-annots "
+        "COLMAP text model (colmap/, written by pycolmap: OPENCV, or FULL_OPENCV when k3 is not 0), report.json, "
+        "rig.png and residuals.png to --out; only --write-annots "
         "touches the capture's own annots.npy (backed up first).",
         formatter_class=HelpFormatter,
     )
