@@ -13,7 +13,7 @@ import torch
 
 from narf.fields.common import PoseBatch
 
-BORDER_PX = 11  # width of the dilation that defines the border band around the silhouette
+BORDER_PX = 11  # side of the square dilation kernel: the border band is the 5-px ring around the silhouette
 
 
 @dataclass

@@ -1,10 +1,11 @@
-"""The se(3) logarithm of the paper's pose features (textbook form, docs/model.md §1) and shape checks.
+"""The se(3) logarithm of the paper's pose features (textbook form, docs/model.md §1), exponentials and shape checks.
 
 Pure torch, batched over leading dimensions. Transforms are 4x4 homogeneous matrices named ``<dst>_from_<src>``.
-The logarithm stays here because it is the paper's definition (tested against kornia's ``Se3.log``). Everything
-kornia provides with the same semantics is kornia's: exponentials (``axis_angle_to_rotation_matrix``, and
-``Se3.exp`` behind ``se3_exp``, which only reorders the twist), skew matrices (``So3.hat`` / ``So3.vee``), rigid
-inverses (``kornia.geometry.linalg.inverse_transformation``) and point transforms (``transform_points``).
+The logarithm stays here because it is the paper's definition (tested against kornia's ``Se3.log``). From kornia
+it uses the skew matrices (``So3.hat`` / ``So3.vee``) and ``Se3.exp`` behind ``se3_exp`` (which only reorders the
+twist). The rest of the code builds rigid transforms with ``narf.kinematics.rigid_from_rotvec_translation`` and
+plain matrix algebra; kornia's ``axis_angle_to_rotation_matrix``, ``inverse_transformation`` and
+``transform_points`` are the tests' references for those, not used by the product.
 """
 
 from __future__ import annotations

@@ -42,7 +42,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--data-root", default=None, help="data root (default: $NARF_DATA or data/)")
     parser.add_argument(
-        "--resolution", type=int, default=None, help="square image size in pixels (zju: 1024, rigid: 200)"
+        "--resolution",
+        type=int,
+        default=None,
+        help="square image size in pixels (default: 512 for a subject, 200 for the rigid object; THUman and SURREAL "
+        "keep their formats' fixed sizes)",
     )
     parser.add_argument(
         "--frames",

@@ -194,6 +194,13 @@ def _si(value: float | None) -> str:
     return f"{value:.0f}"
 
 
+def _preset_names(table: Table, preset: str) -> str:
+    """The presets a table's rows ran with (``preset`` cpu or paper): the kind's, and the CNN's where it has a row."""
+    kind, gpu = KINDS[table.kind], preset == "paper"
+    names = dict.fromkeys(kind.preset(row.fit.model, gpu) for row in table.rows)
+    return " / ".join(names) + f" ({preset})"
+
+
 def markdown_table(table: Table, summary: dict) -> str:
     """Supplement layout: method, cost (#params / FLOPs / memory per ray), training, then a cell per split."""
     s = summary["settings"]
@@ -202,7 +209,8 @@ def markdown_table(table: Table, summary: dict) -> str:
     lines = [
         f"# {table.title}",
         "",
-        f"Preset {s['preset']}, training budget {budget} per row, views per split: {s['limit'] or 'all'}. "
+        f"Preset {_preset_names(table, s['preset'])}, training budget {budget} per row, views per split: "
+        f"{s['limit'] or 'all'}. "
         "Cells: Mask L2 (x10^4) / PSNR (dB) / SSIM, full image.",
         "",
         f"| method | #params / FLOPs / memory per ray | steps (rays/s) | {heads} |",
