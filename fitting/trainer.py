@@ -101,7 +101,7 @@ class FitResult:
 
 class Trainer:
     """Model and optimiser for ``config`` in ``run_dir``, trained on ``data``; ``state`` (a loaded checkpoint)
-    resumes where it stopped. Use ``pipelines.runs.subject.session.start_trainer`` to build one from a capture."""
+    resumes where it stopped. ``pipelines.runs.fit.start_run`` builds one for a run of any kind."""
 
     def __init__(
         self,

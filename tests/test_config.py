@@ -22,6 +22,17 @@ def test_names_agree_across_the_tables():
             assert load_config(preset).kind == kind.name
 
 
+def test_the_commands_offer_every_kind_split_and_video():
+    """narf-fit, narf-eval and narf-render-video list the choices without importing the kinds (fast --help)."""
+    from pipelines.cli import eval as cli_eval
+    from pipelines.cli import fit as cli_fit
+    from pipelines.cli import render_video
+
+    assert set(cli_fit.KIND_NAMES) == set(KINDS)
+    assert set(cli_eval.SPLITS) == {s for k in KINDS.values() for s in k.splits} | {"all"}
+    assert set(render_video.VIDEO_KINDS) == {v for k in KINDS.values() for v in k.videos}
+
+
 def test_every_preset_loads_and_builds_its_model():
     for path in sorted(CONFIG_DIR.glob("*.yaml")):
         config = load_config(path.stem)

@@ -34,7 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
         "novel_pose_novel_view (the encoder sees a _view2 render of the same mesh) and cross_dataset (SURREAL: the "
         "code of a clip's first frame reconstructs it and renders the clip's later poses), next to the mean-code "
         "baseline; grids are encoder input | ground truth | render | depth | segmentation | error. A rigid-object run "
-        "(narf-fit --dataset rigid) is evaluated on its test images (--split test; supplement Table B).",
+        "(narf-fit --kind rigid) is evaluated on its test images (--split test; supplement Table B).",
         formatter_class=HelpFormatter,
     )
     parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")

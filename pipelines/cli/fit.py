@@ -6,13 +6,14 @@ from __future__ import annotations
 
 import argparse
 import sys
+import typing
 from pathlib import Path
 
+from fitting.config import LEGACY_KINDS, RunKindName
 from pipelines.cli.common import HelpFormatter, run_cli
 
-#: The kinds' names (``fitting.config.RunKindName``) and the names older versions took for them (``--dataset``).
-KIND_NAMES = ("subject", "autoencoder", "rigid")
-LEGACY = {"zju": "subject", "thuman": "autoencoder", "rigid": "rigid"}
+#: The run kinds (``--kind``), and the names older versions took for them (``--dataset``, a hidden alias).
+KIND_NAMES = typing.get_args(RunKindName)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -35,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
         "rigid: one rigid object (presets rigid_cpu / rigid_paper; --data-root: the set, default the synthetic "
         "stand-in)",
     )
-    parser.add_argument("--dataset", choices=tuple(LEGACY), default=None, help=argparse.SUPPRESS)  # older name
+    parser.add_argument("--dataset", choices=tuple(LEGACY_KINDS), default=None, help=argparse.SUPPRESS)
     parser.add_argument("--subject", default=None, help="subject name or folder (default from the preset: taichi)")
     parser.add_argument("--data-root", default=None, help="data root (default: $NARF_DATA or data/)")
     parser.add_argument(
@@ -88,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
     request = FitRequest(
         out=args.out,
         preset=args.config,
-        kind=args.kind or LEGACY.get(args.dataset),
+        kind=args.kind or LEGACY_KINDS.get(args.dataset),
         model=args.model,
         subject=args.subject,
         data_root=args.data_root,

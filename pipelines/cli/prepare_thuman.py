@@ -16,7 +16,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Render raw THUman items (<item>/<frame>/ with mesh.obj, smpl_params.txt; listed by "
         "RAW_DIR/data_list.txt when present) into NARF's autoencoder layout: train/, same_view/, novel_view/ "
         "render_128 splits with their _view2 encoder inputs and bone_params, as NARF's render_THUman.py writes "
-        "them (which needs Python 2 and opendr). narf-fit --dataset thuman --data-root OUT trains on the result.",
+        "them (which needs Python 2 and opendr). narf-fit --kind autoencoder --data-root OUT trains on the result.",
         formatter_class=HelpFormatter,
     )
     parser.add_argument("raw_dir", type=Path, help="folder of raw THUman items")
