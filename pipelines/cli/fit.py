@@ -50,9 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--model",
         default=None,
-        help="model name (narf_d, narf_d_sigmoid, narf_h, narf_p, p_nerf, "
-        "d_narf, or cnn: the CNN baseline, trained in image space; , rt_nerf_no_pose, "
-        "rp_nerf with --kind rigid); overrides the preset",
+        help="model name (narf_d, narf_d_sigmoid, narf_h, narf_p, p_nerf, d_narf, or cnn: the CNN baseline, trained "
+        "in image space; with --kind rigid: rt_nerf, rt_nerf_no_pose, rp_nerf); overrides the preset",
     )
     parser.add_argument(
         "--out", type=Path, default=None, help="run folder (default: runs/<subject>-<model>, runs/<kind>-<model>)"
