@@ -110,3 +110,10 @@ def test_narf_does_no_file_io():
         text = path.read_text()
         for call in ("open(", "np.load", "torch.load", "torch.save", "imread", "imwrite"):
             assert call not in text, f"{path.relative_to(ROOT)} calls {call}"
+
+
+def test_every_source_folder_is_a_package():
+    """setuptools' find_packages (pyproject.toml) installs only folders with an ``__init__.py``."""
+    for package in ("narf", "fitting", "pipelines"):
+        for folder in {p.parent for p in (ROOT / package).rglob("*.py")}:
+            assert (folder / "__init__.py").is_file(), f"{folder.relative_to(ROOT)} has no __init__.py"
