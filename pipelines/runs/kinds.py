@@ -13,11 +13,11 @@ from fitting.evaluate import ALL_SPLITS, EVAL_SPLITS
 from pipelines.runs.autoencoder import evaluation as autoencoder_evaluation
 from pipelines.runs.autoencoder import session as autoencoder_session
 from pipelines.runs.autoencoder import video as autoencoder_video
+from pipelines.runs.requests import a_run
 from pipelines.runs.rigid import session as rigid_session
 from pipelines.runs.subject import evaluation as subject_evaluation
 from pipelines.runs.subject import mesh as subject_mesh
 from pipelines.runs.subject import session as subject_session
-from pipelines.runs.requests import a_run
 from pipelines.runs.subject import video as subject_video
 
 

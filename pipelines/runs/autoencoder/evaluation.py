@@ -28,16 +28,16 @@ from tqdm import tqdm
 from fitting.autoencoder import build_encoder, encode, refine_code
 from fitting.config import FitConfig
 from fitting.evaluate import average_metrics, library_versions, render_view, spread, ssim, write_report
-from fitting.plots import grid, save_png, to_numpy
 from fitting.fitted import load_fitted, load_weights
+from fitting.plots import grid, save_png, to_numpy
 from narf.metrics import mask_l2, psnr_of
-from pipelines.runs.requests import EvalRequest, refuse_options
-from pipelines.runs.autoencoder.session import ThumanSet, ThumanView, load_views, open_thuman, resolve_thuman
 from pipelines.body.model import BodyModel, pose_batch_from_joints
 from pipelines.body.surreal import pose_surreal
 from pipelines.datasets.subjects import data_root
 from pipelines.datasets.surreal import check_clip, read_frame_maps, right_handed_view
 from pipelines.datasets.zju_mocap import Camera, CaptureError
+from pipelines.runs.autoencoder.session import ThumanSet, ThumanView, load_views, open_thuman, resolve_thuman
+from pipelines.runs.requests import EvalRequest, refuse_options
 from pipelines.synthetic.surreal import SurrealSynthConfig, generate_surreal, is_surreal_complete
 
 #: the square crop's side over the body's larger side in a SURREAL frame (docs/model.md §4, SURREAL inputs)

@@ -22,7 +22,10 @@ from fitting.evaluate import render_view
 from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
 from narf.kinematics import rest_offsets_from_world, retarget
-from pipelines.runs.requests import VideoRequest, refuse_options
+from pipelines.body.model import BodyModel, pose_batch_from_joints
+from pipelines.datasets.surreal import check_clip
+from pipelines.datasets.thuman import read_render
+from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.runs.autoencoder.evaluation import (
     AutoencoderRun,
     check_refinable,
@@ -31,10 +34,7 @@ from pipelines.runs.autoencoder.evaluation import (
     surreal_view,
 )
 from pipelines.runs.autoencoder.session import ThumanView, load_views, view_of_render
-from pipelines.body.model import BodyModel, pose_batch_from_joints
-from pipelines.datasets.surreal import check_clip
-from pipelines.datasets.thuman import read_render
-from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.runs.requests import VideoRequest, refuse_options
 from pipelines.synthetic.scene import look_at
 
 AUTOENCODER_KINDS = ("orbit", "poses", "interpolate")

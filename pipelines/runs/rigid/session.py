@@ -14,12 +14,12 @@ from tqdm import tqdm
 from fitting.config import FitConfig
 from fitting.data import FitData, TrainingSet
 from fitting.evaluate import average_metrics, frame_metrics, library_versions, render_view, spread, write_report
-from fitting.plots import grid, save_png, to_numpy
 from fitting.fitted import load_fitted
+from fitting.plots import grid, save_png, to_numpy
 from fitting.trainer import Trainer
-from pipelines.runs.requests import EvalRequest, refuse_options
 from pipelines.datasets.rigid import RigidSet, load_rigid_views, open_rigid
 from pipelines.datasets.subjects import data_root
+from pipelines.runs.requests import EvalRequest, refuse_options
 from pipelines.synthetic.rigid import RigidSynthConfig, generate_rigid, is_rigid_complete
 from pipelines.synthetic.staging import use_stand_in
 

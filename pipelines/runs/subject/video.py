@@ -16,10 +16,10 @@ from fitting.evaluate import render_view
 from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
 from narf.kinematics import JOINT_NAMES, PART_JOINTS, SMPL_PARENTS, rigid_from_rotvec_translation
-from pipelines.runs.requests import VideoRequest, refuse_options
 from pipelines.body.model import BodyModel, pose_batch, posed_from_rest_joints
 from pipelines.body.motion import load_motion, place, resample, stage_of
 from pipelines.datasets.smpl_files import atomic_write_bytes
+from pipelines.runs.requests import VideoRequest, refuse_options
 from pipelines.runs.subject.session import LoadedRun, load_run, poses_for_frames
 from pipelines.synthetic.scene import look_at
 
@@ -215,5 +215,16 @@ def render(run_dir: Path, request: VideoRequest) -> Path:
     if r.motion is not None and r.kind != "poses":
         raise ValueError("--motion plays with --kind poses")
     return render_video(
-        run_dir, r.kind, r.out, r.frames, r.fps, r.device, r.motion, r.camera, r.scale, r.progress, r.start, r.motion_fps
+        run_dir,
+        r.kind,
+        r.out,
+        r.frames,
+        r.fps,
+        r.device,
+        r.motion,
+        r.camera,
+        r.scale,
+        r.progress,
+        r.start,
+        r.motion_fps,
     )
