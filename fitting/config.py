@@ -6,6 +6,8 @@ setting and lives in the checkpoint. docs/guides/fitting.md lists the presets.""
 from __future__ import annotations
 
 import dataclasses
+import math
+import re
 import types
 import typing
 from dataclasses import dataclass, field
@@ -21,6 +23,8 @@ class ConfigError(ValueError):
     """A config file or override is malformed (names the key and the problem)."""
 
 
+#: A decimal number as text, exponent with or without a dot (``1e-3``, ``2.5E+4``, ``.5``).
+NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)([eE][+-]?\d+)?")
 #: What a run fits: one avatar per capture, the autoencoder across people, or one rigid object (supplement Table B).
 RunKindName = Literal["subject", "autoencoder", "rigid"]
 ModelName = Literal[
@@ -125,8 +129,12 @@ def _coerce(path: str, value, hint):
             raise ConfigError(f"config key '{path}': expected true/false, got {value!r}")
         return value
     if hint in (int, float):
+        if isinstance(value, str) and NUMBER.fullmatch(value.strip()):
+            value = float(value)  # YAML 1.1 reads 1e-3 (no dot) as a string; it is the form users type most
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise ConfigError(f"config key '{path}': expected a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ConfigError(f"config key '{path}': expected a finite number, got {value!r}")
         if hint is int and float(value) != int(value):
             raise ConfigError(f"config key '{path}': expected an integer, got {value!r}")
         return hint(value)
@@ -207,7 +215,11 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None, b
         cursor = nested
         for part in parts[:-1]:
             cursor = cursor.setdefault(part, {})
-        cursor[parts[-1]] = yaml.safe_load(raw)
+        try:
+            cursor[parts[-1]] = yaml.safe_load(raw)
+        except yaml.YAMLError as err:
+            reason = str(err).strip().splitlines()[0]
+            raise ConfigError(f"override '{item}': the value is not plain YAML ({reason})") from err
         _apply(config, nested)
     validate_config(config)
     return config
@@ -222,27 +234,44 @@ KIND_ONLY = {
     "data.train_meshes": "autoencoder",
     "data.renders_per_mesh": "autoencoder",
 }
-#: Values each setting must satisfy (the message names the key).
+#: The range of each numeric setting, as a test and its words (the message names the key, the range and the value).
 RANGES = {
-    "data.ratio": lambda v: 0 < v <= 1,
-    "data.train_meshes": lambda v: v >= 0,
-    "data.renders_per_mesh": lambda v: v >= 1,
-    "model.width": lambda v: v >= 4,
-    "model.image_size": lambda v: v >= 32 and v % 32 == 0,
-    "model.latent_dim": lambda v: v >= 0,
-    "model.encoder_channels": lambda v: v >= 1,
-    "train.steps": lambda v: v >= 0,
-    "train.images_per_step": lambda v: v >= 1,
-    "train.rays_per_image": lambda v: v >= 1,
-    "train.lr": lambda v: v > 0,
-    "train.encoder_lr": lambda v: v > 0,
-    "train.colour_jitter": lambda v: 0 <= v < 1,
-    "render.train_coarse": lambda v: v >= 2,
-    "render.eval_coarse": lambda v: v >= 2,
-    "render.occupancy_resolution": lambda v: v >= 2,
-    "render.occupancy_threshold": lambda v: v >= 0,
-    "render.occupancy_every": lambda v: v >= 1,
-    "render.occupancy_rounds": lambda v: v >= 1,
+    "data.ratio": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "data.frame_stride": (lambda v: v >= 1, ">= 1"),
+    "data.box_frames": (lambda v: v >= 1, ">= 1"),
+    "data.train_meshes": (lambda v: v >= 0, ">= 0"),
+    "data.renders_per_mesh": (lambda v: v >= 1, ">= 1"),
+    "model.width": (lambda v: v >= 4, ">= 4"),
+    "model.temperature": (lambda v: v > 0, "> 0"),
+    "model.box_scale_pad": (lambda v: v > 0, "> 0"),
+    "model.box_abs_pad": (lambda v: v >= 0, ">= 0"),
+    "model.image_size": (lambda v: v >= 32 and v % 32 == 0, "a multiple of 32, >= 32"),
+    "model.latent_dim": (lambda v: v >= 0, ">= 0"),
+    "model.encoder_channels": (lambda v: v >= 1, ">= 1"),
+    "render.train_coarse": (lambda v: v >= 2, ">= 2"),
+    "render.train_fine": (lambda v: v >= 0, ">= 0"),
+    "render.eval_coarse": (lambda v: v >= 2, ">= 2"),
+    "render.eval_fine": (lambda v: v >= 0, ">= 0"),
+    "render.chunk": (lambda v: v >= 1, ">= 1"),
+    "render.occupancy_resolution": (lambda v: v >= 2, ">= 2"),
+    "render.occupancy_threshold": (lambda v: v >= 0, ">= 0"),
+    "render.occupancy_every": (lambda v: v >= 1, ">= 1"),
+    "render.occupancy_rounds": (lambda v: v >= 1, ">= 1"),
+    "train.steps": (lambda v: v >= 0, ">= 0"),
+    "train.images_per_step": (lambda v: v >= 1, ">= 1"),
+    "train.rays_per_image": (lambda v: v >= 1, ">= 1"),
+    "train.body_fraction": (lambda v: 0 <= v <= 1, "in [0, 1]"),
+    "train.border_fraction": (lambda v: 0 <= v <= 1, "in [0, 1]"),
+    "train.lr": (lambda v: v > 0, "> 0"),
+    "train.encoder_lr": (lambda v: v > 0, "> 0"),
+    "train.colour_jitter": (lambda v: 0 <= v < 1, "in [0, 1)"),
+    "train.lr_decay": (lambda v: 0 < v <= 1, "in (0, 1]"),
+    "train.lr_min": (lambda v: v >= 0, ">= 0"),
+    "train.adam_eps": (lambda v: v > 0, "> 0"),
+    "train.mask_weight": (lambda v: v >= 0, ">= 0"),
+    "train.checkpoint_minutes": (lambda v: v >= 0, ">= 0 (0: after every step)"),
+    "train.validate_every": (lambda v: v >= 0, ">= 0 (0: never)"),
+    "train.log_every": (lambda v: v >= 1, ">= 1"),
 }
 
 
@@ -260,13 +289,15 @@ def validate_config(config: FitConfig) -> None:
     if config.model.name not in allowed:
         kind = "a rigid-object model" if rigid else "a body model"
         raise ConfigError(f"model.name: '{config.model.name}' is not {kind} ({', '.join(allowed)})")
-    for key, ok in RANGES.items():
+    for key, (ok, words) in RANGES.items():
         if not ok(get_value(config, key)):
-            raise ConfigError(f"config key '{key}' has an invalid value")
-    if not 0 <= config.train.lr_min <= config.train.lr:
-        raise ConfigError("config key 'train.lr_min' has an invalid value")
-    if not 0 <= config.train.body_fraction + config.train.border_fraction <= 1:
-        raise ConfigError("config key 'train.body_fraction' has an invalid value")
+            raise ConfigError(f"config key '{key}': must be {words}, got {get_value(config, key)!r}")
+    if config.train.lr_min > config.train.lr:
+        raise ConfigError(
+            f"config key 'train.lr_min': must be <= train.lr ({config.train.lr}), got {config.train.lr_min}"
+        )
+    if config.train.body_fraction + config.train.border_fraction > 1:
+        raise ConfigError("train.body_fraction + train.border_fraction: the shares of body and border rays exceed 1")
     defaults = FitConfig()
     for key, kind in KIND_ONLY.items():
         if config.kind != kind and get_value(config, key) != get_value(defaults, key):

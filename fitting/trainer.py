@@ -99,6 +99,10 @@ class FitResult:
     finished: bool
 
 
+class TrainingDiverged(ValueError):
+    """The training loss stopped being finite; the message names the run folder, the step and the checkpoint kept."""
+
+
 class Trainer:
     """Model and optimiser for ``config`` in ``run_dir``, trained on ``data``; ``state`` (a loaded checkpoint)
     resumes where it stopped. ``pipelines.runs.fit.start_run`` builds one for a run of any kind."""
@@ -152,8 +156,10 @@ class Trainer:
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimiser, lambda step: max(decay**step, floor))
         self.generator = torch.Generator(device="cpu").manual_seed(config.train.seed + 1)
         self.step, self.elapsed = 0, 0.0
+        self._saved_step, self._diverged = None, False  # the step of the last checkpoint written; a finite-loss stop
         if state is not None:
             self._restore(state)
+            self._saved_step = self.step
         if processes.is_main:  # the config as run; resumed runs rewrite it
             (self.run_dir / "config.yaml").write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))
 
@@ -181,7 +187,8 @@ class Trainer:
         self.step, self.elapsed = state["step"], state.get("elapsed", 0.0)
 
     def checkpoint(self) -> None:
-        if not self.processes.is_main:  # every process holds the same weights; one writes them
+        """Save the run's state; never after the loss stopped being finite (the last good checkpoint stays)."""
+        if not self.processes.is_main or self._diverged:  # every process holds the same weights; one writes them
             return
         save_checkpoint(
             self.run_dir,
@@ -198,6 +205,18 @@ class Trainer:
                 **self._extra_state(),
             },
         )
+        self._saved_step = self.step
+
+    def _check_finite(self, loss: float) -> None:
+        """Stop with ``TrainingDiverged`` once the loss is NaN or infinite on any process (its weights are then
+        no longer finite, so nothing more is saved)."""
+        if any_process(not math.isfinite(loss), self.processes, self.device):
+            self._diverged = True
+            saved = self._saved_step
+            kept = "no checkpoint was written" if saved is None else f"kept the checkpoint of step {saved}"
+            raise TrainingDiverged(
+                f"{self.run_dir}: the training loss became {loss} at step {self.step}; {kept}. Try a lower train.lr"
+            )
 
     def train_step(self) -> tuple[float, float]:
         """One step on the global batch; each process renders its share (``fitting.distributed``)."""
@@ -282,6 +301,7 @@ class Trainer:
                 if any_process(out_of_time, self.processes, self.device):
                     break
                 loss, score = self.train_step()
+                self._check_finite(loss)
                 window_rays += self.rays_per_step
                 self.elapsed = elapsed0 + time.perf_counter() - start
                 bar.update()

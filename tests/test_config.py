@@ -48,7 +48,7 @@ def test_every_preset_loads_and_builds_its_model():
         ("train.precision=fp16", "expected one of fp32, bf16"),
         ("model.temperature=5", "model.temperature: narf_d does not take it (only narf_p)"),
         ("train.encoder_lr=0.01", "train.encoder_lr: only autoencoder runs use it (this is a subject run)"),
-        ("data.ratio=0", "'data.ratio' has an invalid value"),
+        ("data.ratio=0", "config key 'data.ratio': must be in (0, 1], got 0.0"),
     ],
 )
 def test_bad_values_name_their_key(override, message):
@@ -101,3 +101,41 @@ def test_run_state_is_not_a_setting():
     with pytest.raises(ConfigError, match="unknown config key 'train.world_size'"):
         load_config("tiny", ["train.world_size=2"])
     assert torch.get_default_dtype() == torch.float32
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("train.lr=[", "override 'train.lr=[': the value is not plain YAML"),
+        ("train.lr=!!python/object/apply:os.system [true]", "the value is not plain YAML"),
+        ("train.steps=.inf", "config key 'train.steps': expected a finite number, got inf"),
+        ("train.steps=.nan", "config key 'train.steps': expected a finite number, got nan"),
+        ("train.lr=.inf", "config key 'train.lr': expected a finite number, got inf"),
+        ("train.log_every=0", "config key 'train.log_every': must be >= 1, got 0"),
+        ("render.chunk=0", "config key 'render.chunk': must be >= 1, got 0"),
+        ("data.frame_stride=0", "config key 'data.frame_stride': must be >= 1, got 0"),
+        ("train.checkpoint_minutes=-1", "config key 'train.checkpoint_minutes': must be >= 0 (0: after every step)"),
+        ("train.lr_decay=1.5", "config key 'train.lr_decay': must be in (0, 1]"),
+        ("train.body_fraction=0.9", "the shares of body and border rays exceed 1"),
+        ("train.steps=2.5", "config key 'train.steps': expected an integer, got 2.5"),
+    ],
+)
+def test_bad_settings_end_in_one_line_before_anything_is_written(override, message, tmp_path, capsys):
+    from pipelines.cli import fit as cli_fit
+    from pipelines.cli.common import run_cli
+
+    out = tmp_path / "run"
+    assert run_cli("narf-fit", cli_fit.main, ["--config", "tiny", "--out", str(out), "--set", override]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("narf-fit: error: ") and message in err and len(err.strip().splitlines()) == 1, err
+    assert not out.exists()
+
+
+@pytest.mark.parametrize("text", ["1e-3", "1E-3", "0.001", ".001", "+1e-3"])
+def test_numbers_as_users_type_them(text, tmp_path):
+    """YAML 1.1 reads 1e-3 (no dot) as a string, in --set and in preset files alike; both mean 0.001."""
+    assert load_config("tiny", [f"train.lr={text}"]).train.lr == 0.001
+    preset = tmp_path / "mine.yaml"
+    preset.write_text(f"train:\n  lr: {text}\n  steps: 1e3\n")
+    config = load_config(str(preset))
+    assert config.train.lr == 0.001 and config.train.steps == 1000 and isinstance(config.train.steps, int)

@@ -315,3 +315,40 @@ def test_eval_takes_several_splits(tiny_run, capsys):
     assert list(report["splits"]) == ["novel_pose_novel_view", "same_pose_novel_view"]
     assert run_cli("narf-eval", cli_eval.main, [*argv, "--split", "novel_pose", "--split", "cross_dataset"]) == 2
     assert "a subject run; 'cross_dataset' is not one of its splits" in capsys.readouterr().err
+
+
+def test_a_diverging_fit_stops_with_its_last_good_checkpoint(data_root_64, tmp_path, capsys, monkeypatch):
+    """A NaN loss at step 4 ends the fit with one line naming the step (exit 2), never 'finished'; the checkpoint
+    of step 3 (written every step here) stays, with finite weights."""
+    import math
+
+    from fitting.trainer import Trainer
+
+    real = Trainer.train_step
+
+    def poisoned(self):
+        loss, score = real(self)
+        return (math.nan, score) if self.step == 4 else (loss, score)
+
+    monkeypatch.setattr(Trainer, "train_step", poisoned)
+    out = tmp_path / "run"
+    argv = ["--config", "tiny", "--data-root", str(data_root_64), "--out", str(out), "--quiet"]
+    argv += ["--set", "data.ratio=1.0", "--set", "train.steps=10", "--set", "train.checkpoint_minutes=0"]
+    assert run_cli("narf-fit", cli_fit.main, argv) == 2
+    captured = capsys.readouterr()
+    last = captured.err.strip().splitlines()[-1]  # (after the data notice and the fit's banner)
+    assert last.startswith("narf-fit: error: ") and "the training loss became nan at step 4" in last
+    assert "kept the checkpoint of step 3" in last and "finished" not in captured.out
+    state = load_checkpoint(out)
+    assert state["step"] == 3 and all(torch.isfinite(v).all() for v in state["model"].values())
+
+
+def test_resume_and_budget_flags_are_checked(tiny_run, capsys):
+    """--resume may lengthen a run, not end it before where it stands; --max-minutes is a finite number > 0."""
+    argv = ["--out", str(tiny_run), "--resume", "--set", "train.steps=1"]
+    assert run_cli("narf-fit", cli_fit.main, argv) == 2
+    assert "the run is at step 2; --set train.steps=1 would end it before where it stands" in capsys.readouterr().err
+    for bad in ("-1", "0", "nan", "inf", "soon"):
+        with pytest.raises(SystemExit) as exit_info:
+            cli_fit.main(["--out", str(tiny_run), "--resume", "--max-minutes", bad])
+        assert exit_info.value.code == 2 and "--max-minutes: expected" in capsys.readouterr().err

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import math
 import os
 import sys
 from collections.abc import Callable
@@ -22,6 +23,17 @@ class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
         if hidden or "default" in text:
             return text
         return super()._get_help_string(action)
+
+
+def positive_number(text: str) -> float:
+    """argparse type: a finite number > 0 (``nan``, ``inf``, 0 and negatives are usage errors)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number > 0, got '{text}'") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got '{text}'")
+    return value
 
 
 KNOWN_ERRORS = (

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, run_cli
+from pipelines.cli.common import HelpFormatter, positive_number, run_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -44,7 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="cpu: the CPU presets (cpu, ae_cpu, rigid_cpu) for a time budget per row; paper: the paper presets "
         "(meant for GPUs) for their full step counts unless --budget-minutes is given",
     )
-    run.add_argument("--budget-minutes", type=float, default=None, help="training minutes per row (default: above)")
+    run.add_argument(
+        "--budget-minutes", type=positive_number, default=None, help="training minutes per row (default: above)"
+    )
     run.add_argument("--rows", default=None, help="comma-separated row names (default: all; see --list)")
     run.add_argument("--limit", type=int, default=None, help="views per split to evaluate (default: above)")
     run.add_argument("--data-root", default=None, help="data root or set folder passed to narf-fit")
@@ -76,8 +78,6 @@ def main(argv: list[str] | None = None) -> int:
         raise ValueError(
             f"{args.table} has no row {', '.join(unknown)} (rows: {', '.join(r.name for r in table.rows)})"
         )
-    if args.budget_minutes is not None and args.budget_minutes <= 0:
-        raise ValueError("--budget-minutes must be positive")
     cpu = args.preset == "cpu"
     budget = args.budget_minutes if args.budget_minutes is not None else CPU_BUDGET[table.name] if cpu else None
     limit = args.limit if args.limit is not None else CPU_VIEWS[table.name] if cpu else None

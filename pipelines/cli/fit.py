@@ -10,7 +10,7 @@ import typing
 from pathlib import Path
 
 from fitting.config import LEGACY_KINDS, RunKindName
-from pipelines.cli.common import HelpFormatter, run_cli
+from pipelines.cli.common import HelpFormatter, positive_number, run_cli
 
 #: The run kinds (``--kind``), and the names older versions took for them (``--dataset``, a hidden alias).
 KIND_NAMES = typing.get_args(RunKindName)
@@ -70,7 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
         action="store_true",
         help="continue the checkpoint in --out (--set may raise train.steps or change how often it writes)",
     )
-    parser.add_argument("--max-minutes", type=float, default=None, help="stop (and checkpoint) after this long")
+    parser.add_argument(
+        "--max-minutes", type=positive_number, default=None, help="stop (and checkpoint) after this many minutes"
+    )
     parser.add_argument(
         "--smpl-dir",
         default=None,

@@ -35,6 +35,11 @@ def start_run(
     if resume:
         state = load_checkpoint(run_dir, map_location=device)
         config = run_config(state, Path(run_dir), list(overrides))
+        if config.train.steps < state["step"]:
+            raise ValueError(
+                f"{run_dir}: the run is at step {state['step']}; --set train.steps={config.train.steps} would end it "
+                "before where it stands (give more steps, or leave train.steps as it is)"
+            )
     if config is None:
         raise ValueError("start_run needs a config unless it resumes a checkpoint")
     kind = KINDS[config.kind]
