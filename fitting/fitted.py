@@ -54,4 +54,7 @@ def load_fitted(run_dir: Path, device="cpu", kind: str | None = None) -> Fitted:
         raise CheckpointError(f"{run_dir}: holds a {config.kind} run; this needs a {kind} run")
     field = make_field(config).to(device)
     load_weights(field, state["model"], run_dir, f"the {config.model.name} model of its config")
+    bad = next((name for name, value in field.state_dict().items() if not torch.isfinite(value).all()), None)
+    if bad is not None:
+        raise CheckpointError(f"{run_dir}: its weights are not finite ({bad}); nothing to render from a diverged fit")
     return Fitted(state, config, field.eval())

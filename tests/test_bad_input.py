@@ -34,6 +34,16 @@ MAINS = {
 }
 
 
+def expect_usage_error(capsys, prog: str, argv: list[str], message: str) -> str:
+    """A flag out of its range is argparse's usage error: exit code 2, the usage line and one error line."""
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exit_info:
+        MAINS[prog]([str(a) for a in argv])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert exit_info.value.code == 2 and err[-1].startswith(f"{prog}: error: ") and message in err[-1], err
+    return err[-1]
+
+
 def expect_error(capsys, prog: str, argv: list[str], message: str) -> str:
     """Run a command in-process: exit code 2 and exactly one stderr line naming the problem."""
     capsys.readouterr()
@@ -253,7 +263,9 @@ def test_video_and_mesh_bad_arguments(tiny_run, tmp_path, capsys):
     before = good.read_bytes()
     base = ["--run", tiny_run, "--quiet", "--out", good]
     expect_error(capsys, "narf-render-video", [*base, "--camera", "9"], "camera 9 out of range")
-    expect_error(capsys, "narf-render-video", [*base, "--frames", "0"], "must be positive")
+    expect_usage_error(capsys, "narf-render-video", [*base, "--frames", "0"], "expected a whole number >= 1, got '0'")
+    expect_error(capsys, "narf-render-video", [*base[:-1], tmp_path / "v.avi"], "v.avi: the video is an H.264 MP4")
+    assert not (tmp_path / "v.avi").exists()
     (tmp_path / "notes.txt").write_text("hello")
     expect_error(
         capsys, "narf-render-video", [*base, "--kind", "poses", "--motion", tmp_path / "notes.txt"], "not a motion"
@@ -401,3 +413,45 @@ def test_ctrl_c_during_synth_calibrate_and_eval_leaves_nothing_that_looks_finish
     done = _interrupt_after([*_cli("eval"), "--run", str(run), "--split", "all"], lambda err: "eval same_pose" in err)
     assert done.returncode == 130 and "Traceback" not in done.stderr
     assert not (run / "eval" / "metrics.json").exists() and not (run / "eval" / "metrics.md").exists()
+
+
+@pytest.mark.parametrize(
+    "prog, flags, message",
+    [
+        ("narf-eval", ["--limit", "0"], "argument --limit: expected a whole number >= 1, got '0'"),
+        ("narf-eval", ["--limit", "-1"], "argument --limit: expected a whole number >= 1, got '-1'"),
+        ("narf-eval", ["--grids", "-2"], "argument --grids: expected a whole number >= 0"),
+        ("narf-eval", ["--refine-steps", "-5"], "argument --refine-steps: expected a whole number >= 0"),
+        ("narf-eval", ["--mesh-resolution", "2"], "argument --mesh-resolution: expected a whole number >= 8"),
+        ("narf-render-video", ["--scale", "nan"], "argument --scale: expected a finite number > 0, got 'nan'"),
+        ("narf-render-video", ["--scale", "-1"], "argument --scale: expected a finite number > 0, got '-1'"),
+        ("narf-render-video", ["--fps", "0"], "argument --fps: expected a whole number >= 1"),
+        ("narf-render-video", ["--camera", "-1"], "argument --camera: expected a whole number >= 0"),
+        ("narf-export-mesh", ["--frame", "0", "--out", "m.ply", "--resolution", "0"], "argument --resolution"),
+    ],
+)
+def test_numeric_flags_have_ranges(tiny_run, capsys, prog, flags, message):
+    expect_usage_error(capsys, prog, ["--run", tiny_run, *flags], message)
+
+
+@pytest.mark.parametrize(
+    "mutate, message",
+    [
+        (lambda s: s.update(step="abc"), "'step' must be a whole number >= 0, got 'abc'"),
+        (lambda s: s.update(config="cpu"), "'config' must be a mapping, got str"),
+        (lambda s: s["model"].update({k: v * float("nan") for k, v in s["model"].items()}), "weights are not finite"),
+        (lambda s: s.update(model={"trunk.weight": s["model"][next(iter(s["model"]))][:1]}), "do not fit the narf_d"),
+    ],
+)
+def test_damaged_checkpoint_contents_name_the_file(tiny_run, tmp_path, capsys, mutate, message):
+    import torch
+
+    from fitting.checkpoint import save_checkpoint
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    mutate(state)
+    save_checkpoint(run, {k: v for k, v in state.items() if k != "format"})
+    line = expect_error(capsys, "narf-eval", ["--run", run, "--limit", "1"], message)
+    assert str(run) in line and "weights_only" not in line

@@ -305,9 +305,15 @@ def test_allocator_keeps_freed_memory_unless_the_user_chose(user_env):
     assert done.stdout.strip() == str(expected)
 
 
-def test_eval_takes_several_splits(tiny_run, capsys):
+def test_eval_takes_several_splits(tiny_run, tmp_path, capsys):
     """--split repeats: every named split is evaluated once, in the order given ('all' expands in place); one wrong
-    name fails the whole call before anything is rendered."""
+    name fails the whole call before anything is rendered. (A copy of the shared run: its report accumulates the
+    splits other tests evaluate.)"""
+    import shutil
+
+    shutil.copytree(tiny_run, tmp_path / "run")
+    tiny_run = tmp_path / "run"
+    shutil.rmtree(tiny_run / "eval", ignore_errors=True)
     argv = ["--run", str(tiny_run), "--limit", "1", "--grids", "0", "--quiet"]
     twice = ["--split", "novel_pose_novel_view", "--split", "same_pose_novel_view", "--split", "novel_pose_novel_view"]
     assert run_cli("narf-eval", cli_eval.main, [*argv, *twice]) == 0

@@ -56,6 +56,9 @@ def test_checkpoint_with_a_payload_is_refused(tmp_path):
     save_checkpoint(tmp_path, {"config": {}, "step": 1, "model": {"w": torch.zeros(2)}})
     assert load_checkpoint(tmp_path)["step"] == 1  # a real checkpoint: tensors and plain values
     torch.save({"format": 1, "config": {}, "step": 1, "model": _Payload(marker)}, tmp_path / "checkpoint.pt")
-    with pytest.raises(CheckpointError, match="checkpoint.pt: corrupt or unreadable checkpoint"):
+    with pytest.raises(CheckpointError, match="checkpoint.pt: corrupt or unreadable checkpoint") as refused:
         load_checkpoint(tmp_path)
     assert not marker.exists()
+    # the message names the global it refused and never points the user at torch.load(weights_only=False)
+    assert "GLOBAL" in str(refused.value) and "could run code" in str(refused.value)
+    assert "weights_only" not in str(refused.value)

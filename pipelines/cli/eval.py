@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, run_cli
+from pipelines.cli.common import HelpFormatter, at_least, run_cli
 
 #: Every split name of every run kind (``pipelines.runs.kinds``; kept here so that ``--help`` loads no model code).
 SPLITS = (
@@ -50,7 +50,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--surreal", default=None, help="cross_dataset: SURREAL folder (default: the stand-in)")
     parser.add_argument(
         "--refine-steps",
-        type=int,
+        type=at_least(0),
         metavar="N",
         default=0,
         help="cross_dataset: also refine each encoded code on its input frame for N steps of the training loss "
@@ -58,8 +58,10 @@ def build_parser() -> argparse.ArgumentParser:
         "row; its novel-pose cells are the fair measure, since the reconstruction is scored on the image it "
         "was refined on; 0 turns it off",
     )
-    parser.add_argument("--limit", type=int, default=None, help="evaluate at most N views per split, evenly spread")
-    parser.add_argument("--grids", type=int, default=4, help="image grids to write per split")
+    parser.add_argument(
+        "--limit", type=at_least(1), default=None, help="evaluate at most N views per split, evenly spread"
+    )
+    parser.add_argument("--grids", type=at_least(0), default=4, help="image grids to write per split")
     parser.add_argument(
         "--mesh",
         action="store_true",
@@ -67,7 +69,9 @@ def build_parser() -> argparse.ArgumentParser:
         "written by narf-synth) and report the symmetric surface distance (mean, 95th percentile, mm) and normal "
         "consistency; meshes in RUN/eval/meshes/<split>/",
     )
-    parser.add_argument("--mesh-resolution", type=int, default=256, help="--mesh: grid samples along the longest side")
+    parser.add_argument(
+        "--mesh-resolution", type=at_least(8), default=256, help="--mesh: grid samples along the longest side"
+    )
     parser.add_argument(
         "--mesh-level", type=float, default=None, help="--mesh: density iso-level (default: as narf-export-mesh)"
     )
@@ -84,8 +88,6 @@ def main(argv: list[str] | None = None) -> int:
     from pipelines.runs.requests import EvalRequest
 
     args = build_parser().parse_args(argv)
-    if args.refine_steps < 0:
-        raise ValueError(f"--refine-steps must be >= 0, got {args.refine_steps}")
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
     kind = kind_of(run_config(load_checkpoint(args.run), args.run))

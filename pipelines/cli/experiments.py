@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, positive_number, run_cli
+from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -48,7 +48,7 @@ def build_parser() -> argparse.ArgumentParser:
         "--budget-minutes", type=positive_number, default=None, help="training minutes per row (default: above)"
     )
     run.add_argument("--rows", default=None, help="comma-separated row names (default: all; see --list)")
-    run.add_argument("--limit", type=int, default=None, help="views per split to evaluate (default: above)")
+    run.add_argument("--limit", type=at_least(1), default=None, help="views per split to evaluate (default: above)")
     run.add_argument("--data-root", default=None, help="data root or set folder passed to narf-fit")
     run.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     run.add_argument("--list", action="store_true", help="list the table's rows and exit")

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, run_cli
+from pipelines.cli.common import HelpFormatter, at_least, run_cli
 
 
 def frame_window(text: str) -> tuple[int, int]:
@@ -40,7 +40,7 @@ def main(argv: list[str] | None = None) -> int:
     which.add_argument("--motion", type=Path, help="an AMASS .npz, ZJU params/ folder or SURREAL _info.mat")
     parser.add_argument("--frames", type=frame_window, default=None, help="--motion: frames A:B (B excluded)")
     parser.add_argument("--out", type=Path, required=True, help="output .ply, .obj or .glb")
-    parser.add_argument("--resolution", type=int, default=256, help="grid samples along the longest side")
+    parser.add_argument("--resolution", type=at_least(8), default=256, help="grid samples along the longest side")
     parser.add_argument("--level", type=float, default=DEFAULT_LEVEL, help="density iso-level (1/m)")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")

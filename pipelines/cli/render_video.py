@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, run_cli
+from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
 
 #: The video kinds of subject and autoencoder runs (``pipelines.runs.kinds``; here so ``--help`` loads no model code).
 VIDEO_KINDS = ("bones", "interpolate", "orbit", "poses")
@@ -37,7 +37,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--refine-steps",
-        type=int,
+        type=at_least(0),
         metavar="N",
         default=0,
         help="autoencoder runs: refine each input's code for N steps of the training loss on that input before "
@@ -45,12 +45,15 @@ def build_parser() -> argparse.ArgumentParser:
         "section 4); 0 renders the encoder's code as it is",
     )
     parser.add_argument("--out", type=Path, default=None, help="output .mp4 (default: RUN/videos/<kind>.mp4)")
-    parser.add_argument("--frames", type=int, default=60, help="number of video frames (at most)")
+    parser.add_argument("--frames", type=at_least(1), default=60, help="number of video frames (at most)")
     parser.add_argument(
-        "--fps", type=int, default=24, help="frames per second; a --motion is resampled to it (slerp) from its own rate"
+        "--fps",
+        type=at_least(1),
+        default=24,
+        help="frames per second; a --motion is resampled to it (slerp) from its own rate",
     )
     parser.add_argument(
-        "--camera", type=int, default=None, help="camera index for poses/bones (default: first test view)"
+        "--camera", type=at_least(0), default=None, help="camera index for poses/bones (default: first test view)"
     )
     parser.add_argument(
         "--motion",
@@ -67,7 +70,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--motion-fps", type=float, default=None, help="--motion: its frame rate when the file has none (ZJU: 30)"
     )
-    parser.add_argument("--scale", type=float, default=1.3, help="bones: largest leg-length factor")
+    parser.add_argument("--scale", type=positive_number, default=1.3, help="bones: largest leg-length factor")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -81,13 +84,13 @@ def main(argv: list[str] | None = None) -> int:
     from pipelines.runs.requests import VideoRequest, a_run
 
     args = build_parser().parse_args(argv)
-    if args.frames < 1 or args.fps < 1:
-        raise ValueError("--frames and --fps must be positive")
     out = args.out or args.run / "videos" / f"{args.kind}.mp4"
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
     if out.is_dir():  # checked before rendering, not after
         raise IsADirectoryError(f"{out}: is a folder; give a .mp4 file name")
+    if out.suffix.lower() != ".mp4":  # the writer makes H.264 in an MP4 container, whatever the name says
+        raise ValueError(f"{out}: the video is an H.264 MP4; give a .mp4 file name")
     kind = kind_of(run_config(load_checkpoint(args.run), args.run))
     if kind.render is None or args.kind not in kind.videos:
         offered = f"--kind {', '.join(kind.videos)}" if kind.videos else "no videos"
