@@ -81,16 +81,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fitting.checkpoint import load_checkpoint
-    from fitting.fitted import run_config
     from fitting.trainer import auto_device
-    from pipelines.runs.kinds import kind_of
+    from pipelines.runs.kinds import kind_of_run
     from pipelines.runs.requests import EvalRequest
 
     args = build_parser().parse_args(argv)
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
-    kind = kind_of(run_config(load_checkpoint(args.run), args.run))
+    kind = kind_of_run(args.run)
     request = EvalRequest(
         splits=kind.expand(args.run, args.split),
         limit=args.limit,

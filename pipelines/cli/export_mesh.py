@@ -18,11 +18,9 @@ def frame_window(text: str) -> tuple[int, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fitting.checkpoint import load_checkpoint
-    from fitting.fitted import run_config
     from fitting.mesh import DEFAULT_LEVEL
     from fitting.trainer import auto_device
-    from pipelines.runs.kinds import kind_of
+    from pipelines.runs.kinds import kind_of_run
     from pipelines.runs.requests import a_run
 
     parser = argparse.ArgumentParser(
@@ -49,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
         raise ValueError("--frames A:B picks frames of a --motion; use --frame N for a capture frame")
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
-    kind = kind_of(run_config(load_checkpoint(args.run), args.run))
+    kind = kind_of_run(args.run)
     if kind.export is None:
         raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-export-mesh exports subject runs")
     written = kind.export(

@@ -77,10 +77,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fitting.checkpoint import load_checkpoint
-    from fitting.fitted import run_config
     from fitting.trainer import auto_device
-    from pipelines.runs.kinds import kind_of
+    from pipelines.runs.kinds import kind_of_run
     from pipelines.runs.requests import VideoRequest, a_run
 
     args = build_parser().parse_args(argv)
@@ -91,7 +89,7 @@ def main(argv: list[str] | None = None) -> int:
         raise IsADirectoryError(f"{out}: is a folder; give a .mp4 file name")
     if out.suffix.lower() != ".mp4":  # the writer makes H.264 in an MP4 container, whatever the name says
         raise ValueError(f"{out}: the video is an H.264 MP4; give a .mp4 file name")
-    kind = kind_of(run_config(load_checkpoint(args.run), args.run))
+    kind = kind_of_run(args.run)
     if kind.render is None or args.kind not in kind.videos:
         offered = f"--kind {', '.join(kind.videos)}" if kind.videos else "no videos"
         raise ValueError(f"{args.run}: {a_run(kind.name)}; it renders {offered}, not '{args.kind}'")

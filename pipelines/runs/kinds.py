@@ -8,8 +8,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
+from fitting.checkpoint import load_checkpoint
 from fitting.config import FitConfig
 from fitting.evaluate import ALL_SPLITS, EVAL_SPLITS
+from fitting.fitted import run_config
 from pipelines.runs.autoencoder import evaluation as autoencoder_evaluation
 from pipelines.runs.autoencoder import session as autoencoder_session
 from pipelines.runs.autoencoder import video as autoencoder_video
@@ -27,25 +29,25 @@ class RunKind:
 
     Attributes:
         name: the kind's one name (``config.kind``, ``narf-fit --kind``).
-        what: what it fits, for messages.
         presets: default preset (CPU, CUDA); ``cnn_presets`` the same for ``--model cnn``.
         data: finds (or generates) the data of a config; returns its folder.
         start: ``(config, run_dir, device, state, progress, processes) -> trainer`` (``state``: a checkpoint to resume).
         data_parallel: whether torchrun may split its fit over processes.
-        splits: the splits ``narf-eval`` accepts, the default first; ``every``: what ``all`` stands for.
+        splits: the splits ``narf-eval`` accepts; ``default_split`` the one without ``--split``; ``every``: what
+            ``all`` stands for.
         evaluate: ``(run_dir, EvalRequest) -> report``; ``markdown``: ``report -> table``.
         videos: the ``narf-render-video --kind`` values; ``render``: ``(run_dir, VideoRequest) -> mp4 path``.
         export: ``narf-export-mesh``'s work, or None where the kind has no mesh export.
     """
 
     name: str
-    what: str
     presets: tuple[str, str]
     cnn_presets: tuple[str, str] | None
     data: Callable[[FitConfig], Path]
     start: Callable
     data_parallel: bool
     splits: tuple[str, ...]
+    default_split: str
     every: tuple[str, ...]
     evaluate: Callable
     markdown: Callable[[dict], str]
@@ -59,9 +61,9 @@ class RunKind:
         return presets[gpu]
 
     def expand(self, run_dir: Path, requested: list[str] | None) -> tuple[str, ...]:
-        """The splits to evaluate (default: the first of ``splits``): ``all`` stands for ``every``; each split once,
-        in the order first named. A split of another kind is an error naming the run."""
-        requested = requested or [self.splits[0]]
+        """The splits to evaluate (default: ``default_split``): ``all`` stands for ``every``; each split once, in the
+        order first named. A split of another kind is an error naming the run."""
+        requested = requested or [self.default_split]
         for split in requested:
             if split != "all" and split not in self.splits:
                 choices = ", ".join((*self.splits, "all"))
@@ -76,13 +78,13 @@ def _subject_data(config: FitConfig) -> Path:
 KINDS: dict[str, RunKind] = {
     "subject": RunKind(
         name="subject",
-        what="one avatar fitted to one capture (ZJU-MoCap layout)",
         presets=("cpu", "paper"),
         cnn_presets=("cnn", "cnn"),
         data=_subject_data,
         start=subject_session.start,
         data_parallel=True,
-        splits=("novel_pose", *(s for s in ALL_SPLITS if s not in ("novel_pose", "all"))),
+        splits=tuple(s for s in ALL_SPLITS if s != "all"),
+        default_split="novel_pose",
         every=EVAL_SPLITS,
         evaluate=subject_evaluation.evaluate,
         markdown=subject_evaluation.markdown_table,
@@ -92,16 +94,13 @@ KINDS: dict[str, RunKind] = {
     ),
     "autoencoder": RunKind(
         name="autoencoder",
-        what="the autoencoder across the people of a THUman-layout set",
         presets=("ae_cpu", "ae_paper"),
         cnn_presets=("ae_cnn", "ae_cnn_paper"),
         data=autoencoder_session.resolve_thuman,
         start=autoencoder_session.start,
         data_parallel=False,
-        splits=(
-            "novel_pose_novel_view",
-            *(s for s in autoencoder_evaluation.AUTOENCODER_SPLITS if "novel_pose_n" not in s),
-        ),
+        splits=autoencoder_evaluation.AUTOENCODER_SPLITS,
+        default_split="novel_pose_novel_view",
         every=autoencoder_evaluation.AUTOENCODER_SPLITS,
         evaluate=autoencoder_evaluation.evaluate,
         markdown=autoencoder_evaluation.markdown_autoencoder,
@@ -110,13 +109,13 @@ KINDS: dict[str, RunKind] = {
     ),
     "rigid": RunKind(
         name="rigid",
-        what="one rigid object (supplement Table B)",
         presets=("rigid_cpu", "rigid_paper"),
         cnn_presets=None,
         data=rigid_session.resolve_rigid,
         start=rigid_session.start,
         data_parallel=False,
         splits=("test",),
+        default_split="test",
         every=("test",),
         evaluate=rigid_session.evaluate,
         markdown=rigid_session.markdown_rigid,
@@ -124,5 +123,6 @@ KINDS: dict[str, RunKind] = {
 }
 
 
-def kind_of(config: FitConfig) -> RunKind:
-    return KINDS[config.kind]
+def kind_of_run(run_dir: Path) -> RunKind:
+    """The kind of the run in ``run_dir``, from its checkpoint's config (older runs' keys migrated)."""
+    return KINDS[run_config(load_checkpoint(run_dir), Path(run_dir)).kind]
