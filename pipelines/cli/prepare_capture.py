@@ -1,0 +1,116 @@
+"""``narf-prepare-capture``: a multi-camera recording (videos or image folders) and its calibration in, a
+ZJU-MoCap-layout capture out, with a fitted body per frame, splits, overlays and a report."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
+
+
+def _frames(text: str) -> tuple[int, int | None]:
+    """``A:B`` (B exclusive, either may be empty) -> (start, stop)."""
+    start, sep, stop = text.partition(":")
+    try:
+        first = int(start) if start else 0
+        last = int(stop) if stop else None
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected A:B with whole numbers (e.g. 0:100), got '{text}'") from None
+    if not sep or first < 0 or (last is not None and last <= first):
+        raise argparse.ArgumentTypeError(f"expected A:B with 0 <= A < B (e.g. 0:100 or 20:), got '{text}'")
+    return first, last
+
+
+def _camera_map(text: str) -> dict[str, str]:
+    pairs = [item.split("=", 1) for item in text.split(",") if item.strip()]
+    if not pairs or any(len(p) != 2 or not p[0] or not p[1] for p in pairs):
+        raise argparse.ArgumentTypeError(f"expected CAM=RECORDING[,CAM=RECORDING...], got '{text}'")
+    return {k.strip(): v.strip() for k, v in pairs}
+
+
+def _fraction(text: str) -> float:
+    value = positive_number(text)
+    if value >= 1:
+        raise argparse.ArgumentTypeError(f"expected a fraction in (0, 1), got '{text}'")
+    return value
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="narf-prepare-capture",
+        description="Turn a synchronised multi-camera recording into a capture in the ZJU-MoCap layout that narf-fit "
+        "--subject DIR, narf-eval and the Neural Body loaders read: frames, person masks, keypoints triangulated per "
+        "joint, a body fitted to them per frame (params/, vertices/), splits.json (novel poses: the last frames; "
+        "novel view: one held-out camera), overlay/ (the body drawn over every view, and overlay.mp4) and "
+        "report.json (reprojection error and body-vs-mask IoU per camera, cameras that disagree, dropped frames). "
+        "Keypoints and masks come from mediapipe (make venv-real) unless given.",
+        formatter_class=HelpFormatter,
+    )
+    parser.add_argument("recording", type=Path, help="folder of per-camera videos (or videos/), or of per-camera image folders")
+    parser.add_argument("--out", type=Path, required=True, help="capture folder to write (must not exist, see --overwrite)")
+    parser.add_argument(
+        "--calibration",
+        type=Path,
+        default=None,
+        help="Qualisys .qca.txt, Pose2Sim/Anipose .toml, EasyMocap folder (intri.yml + extri.yml), ZJU annots.npy, or "
+        "a narf-calibrate output folder (default: the one found in RECORDING/calibration/ or RECORDING/)",
+    )
+    parser.add_argument("--camera-map", type=_camera_map, default=None, help="CAM=RECORDING,... when names and order do not match")
+    parser.add_argument("--frames", type=_frames, default=(0, None), help="frame range A:B of the recording (B exclusive; default all)")
+    parser.add_argument("--stride", type=at_least(1), default=1, help="keep every N-th frame")
+    parser.add_argument("--resolution", type=at_least(64), default=None, help="longest image side in pixels (default: as recorded; never enlarged)")
+    parser.add_argument("--keypoints", type=Path, default=None, help="OpenPose BODY_25/COCO JSON, one sub-folder per camera (default: mediapipe)")
+    parser.add_argument("--masks", type=Path, default=None, help="person mask images, one sub-folder per camera (default: mediapipe)")
+    parser.add_argument("--holdout-camera", default=None, help="camera kept out of training for novel_view ('none': train on all; default: the last of 3 or more)")
+    parser.add_argument("--novel-fraction", type=_fraction, default=0.3, help="last fraction of the frames kept for novel_pose")
+    parser.add_argument("--max-error", type=positive_number, default=3.0, help="a view disagrees beyond this reprojection error, in %% of the image height")
+    parser.add_argument("--fit-iterations", type=at_least(1), default=500, help="body-fit iterations (after 100 for the global placement)")
+    parser.add_argument("--smpl-dir", type=Path, default=None, help="SMPL model file or folder (default: $NARF_SMPL_DIR, else the stand-in)")
+    parser.add_argument("--overwrite", action="store_true", help="replace a capture this tool prepared before")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    from pipelines.prepare.body_fit import FitSettings
+    from pipelines.prepare.run import PrepareRequest, prepare_capture
+
+    args = build_parser().parse_args(argv)
+    request = PrepareRequest(
+        recording=args.recording,
+        out=args.out,
+        calibration=args.calibration,
+        start=args.frames[0],
+        stop=args.frames[1],
+        stride=args.stride,
+        longest_side=args.resolution,
+        keypoints=args.keypoints,
+        masks=args.masks,
+        camera_map=args.camera_map,
+        holdout_camera=args.holdout_camera,
+        novel_fraction=args.novel_fraction,
+        threshold=args.max_error / 100,
+        smpl_dir=args.smpl_dir,
+        fit=FitSettings(iterations=args.fit_iterations),
+        overwrite=args.overwrite,
+        progress=not args.quiet,
+    )
+    report = prepare_capture(request)
+    summary, frames = report["summary"], report["frames"]
+    print(
+        f"narf-prepare-capture: {frames['kept']} of {frames['common']} frames kept, {len(report['cameras'])} cameras; "
+        f"median reprojection {summary['median_reprojection_pct_height']:.2f} % of the image height, lowest camera "
+        f"IoU {summary['min_camera_iou']:.2f}; wrote {args.out}"
+    )
+    for name, camera in report["cameras"].items():
+        print(
+            f"  {name}: reprojection {camera['body_reprojection_px']:.1f} px ({camera['body_reprojection_pct_height']:.2f} %), "
+            f"IoU {camera['iou_mean']:.2f}, views used {camera['views_used']}" + (f"  FLAGGED: {camera['flag']}" if "flag" in camera else "")
+        )
+    return 0
+
+
+def entrypoint() -> None:
+    sys.exit(run_cli("narf-prepare-capture", main))

@@ -1,0 +1,200 @@
+"""Multi-view body fit: the body model's joints to triangulated targets and 2D keypoints, as EasyMocap's
+multi-view SMPL fit does (docs/guides/real-captures.md, "Body fit").
+
+Minimised over per-frame ``Rh, Th, poses`` (ZJU convention ``V = R(Rh) X + Th``, ``poses[:3] = 0``), one shape for
+the sequence, and one learned offset per detector point that is not a joint centre (hips, shoulders, neck, head,
+feet; mirrored left/right, in the joint's frame):
+
+``E = w3 sum rho(|J - X| / s3) + w2 sum c rho(|pi(J) - x| / (s2 h)) + wp |theta|^2_W + ws (|d theta|^2 + |d Th|^2)
++ wb |beta|^2 + wo |offset|^2``
+
+with ``rho(r) = r^2 / (r^2 + 1)`` (Geman-McClure), ``c`` the detector confidence, ``h`` the image height, ``W`` heavier
+on joints that no target observes (wrists, hands, feet, head), and ``d`` the frame-to-frame difference. Joints
+need no vertices (they are regressed from the shaped rest mesh, before pose blend shapes), so each step is one
+forward kinematics pass.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from narf.kinematics import N_JOINTS, rigid_from_rotvec_translation, world_from_joints
+from pipelines.body.model import BodyModel
+from pipelines.datasets.keypoints import TARGET_JOINTS, TARGETS, mirror_index
+
+#: joints whose rotation moves no target: held near rest by a stronger prior
+UNOBSERVED_JOINTS = (10, 11, 15, 20, 21, 22, 23)
+TORSO_TARGETS = ("l_hip", "r_hip", "l_shoulder", "r_shoulder", "pelvis", "neck")
+
+
+@dataclass(frozen=True)
+class FitSettings:
+    """Weights and scales of the body fit (module docstring)."""
+
+    iterations: int = 500
+    global_iterations: int = 100
+    lr: float = 0.03
+    scale_3d: float = 0.05  # metres: residuals beyond ~5 cm count less and less (robust)
+    scale_2d: float = 0.02  # fraction of the image height
+    weight_3d: float = 1.0
+    weight_2d: float = 1.0
+    pose_prior: float = 2e-3
+    unobserved_prior: float = 0.1
+    smooth: float = 0.5
+    shape_prior: float = 1e-3
+    offset_prior: float = 5.0
+
+
+@dataclass
+class BodyFit:
+    """Fitted parameters: poses (F, 72), rh (F, 3), th (F, 3), shapes (10,), offsets (T, 3) metres, and the fitted
+    targets (F, T, 3) in the world."""
+
+    poses: np.ndarray
+    rh: np.ndarray
+    th: np.ndarray
+    shapes: np.ndarray
+    offsets: np.ndarray
+    targets: np.ndarray
+
+
+def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation R and translation t minimising ``|R source + t - target|`` over (N, 3) point pairs."""
+    mean_s, mean_t = source.mean(0), target.mean(0)
+    u, _, vt = np.linalg.svd((target - mean_t).T @ (source - mean_s))
+    fix = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = u @ fix @ vt
+    return rotation, mean_t - rotation @ mean_s
+
+
+def initial_global(rest_targets: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame Rh (rotation vectors) and Th from the torso targets (Kabsch), carried over frames that lack them.
+
+    Args:
+        rest_targets: (T, 3) targets of the rest body (SMPL frame). points: (F, T, 3) triangulated, NaN if missing.
+    """
+    import cv2
+
+    torso = [TARGETS.index(next(t for t in TARGETS if t.name == n)) for n in TORSO_TARGETS]
+    rh, th = np.zeros((len(points), 3)), np.full((len(points), 3), np.nan)
+    for f, frame in enumerate(points):
+        seen = [t for t in torso if np.isfinite(frame[t]).all()]
+        if len(seen) < 3:
+            continue
+        rotation, translation = _kabsch(rest_targets[seen], frame[seen])
+        rh[f], th[f] = cv2.Rodrigues(rotation)[0][:, 0], translation
+    known = np.flatnonzero(np.isfinite(th[:, 0]))
+    if known.size == 0:
+        raise ValueError("no frame has three torso joints (hips, shoulders) triangulated: the body cannot be placed")
+    nearest = known[np.abs(np.arange(len(points))[:, None] - known[None]).argmin(axis=1)]
+    return rh[nearest], th[nearest]
+
+
+class _Problem:
+    def __init__(self, body: BodyModel, P, heights, keypoints, points, settings: FitSettings):
+        dtype = torch.float32
+        self.body, self.settings = body, settings
+        self.P = torch.as_tensor(P, dtype=dtype)
+        self.heights = torch.as_tensor(heights, dtype=dtype)
+        self.xy = torch.as_tensor(np.nan_to_num(keypoints[..., :2]), dtype=dtype)  # (F, V, T, 2)
+        weights = np.array([t.weight for t in TARGETS])
+        self.conf = torch.as_tensor(keypoints[..., 2] * weights, dtype=dtype)
+        self.points = torch.as_tensor(np.nan_to_num(points), dtype=dtype)
+        self.seen = torch.as_tensor(np.isfinite(points).all(-1) * weights, dtype=dtype)
+        self.joints = list(TARGET_JOINTS)
+        sign = np.zeros((len(TARGETS), 3))
+        for t, target in enumerate(TARGETS):
+            if target.offset:
+                mirrored = mirror_index(t) != t
+                sign[t] = (-1.0 if target.name.startswith("r_") else 1.0, 1, 1) if mirrored else (0, 1, 1)
+        self.offset_sign = torch.as_tensor(sign, dtype=dtype)
+        self.offset_source = [mirror_index(t) if TARGETS[t].name.startswith("r_") else t for t in range(len(TARGETS))]
+        prior = torch.full((N_JOINTS, 3), settings.pose_prior)
+        prior[list(UNOBSERVED_JOINTS)] = settings.unobserved_prior
+        self.prior = prior[1:].reshape(-1)
+
+    def targets(self, poses, rh, th, shapes, offsets) -> torch.Tensor:
+        """(F, T, 3) world positions of the targets."""
+        rest = self.body.rest_joints(shapes.expand(poses.shape[0], -1))
+        world_from_joint = world_from_joints(poses.reshape(-1, N_JOINTS, 3), rest, rigid_from_rotvec_translation(rh, th))
+        frames = world_from_joint[:, self.joints]  # (F, T, 4, 4)
+        local = offsets[self.offset_source] * self.offset_sign
+        return frames[..., :3, 3] + (frames[..., :3, :3] @ local[..., None])[..., 0]
+
+    def energy(self, poses, rh, th, shapes, offsets) -> torch.Tensor:
+        s = self.settings
+        targets = self.targets(poses, rh, th, shapes, offsets)
+        robust = lambda r: r**2 / (r**2 + 1)  # noqa: E731
+        r3 = (targets - self.points).norm(dim=-1) / s.scale_3d
+        e3 = (self.seen * robust(r3)).sum() / self.seen.sum().clamp(min=1)
+        homogeneous = torch.cat([targets, torch.ones_like(targets[..., :1])], dim=-1)
+        image = torch.einsum("vij,ftj->fvti", self.P, homogeneous)
+        projected = image[..., :2] / image[..., 2:].clamp(min=1e-3)
+        r2 = (projected - self.xy).norm(dim=-1) / (self.heights[None, :, None] * s.scale_2d)
+        e2 = (self.conf * robust(r2)).sum() / self.conf.sum().clamp(min=1)
+        body = poses[:, 3:]
+        prior = (body**2 * self.prior).sum(-1).mean()
+        smooth = torch.zeros(())
+        if len(poses) > 1:  # th in metres weighs 10x: 1 cm of jitter costs as much as 0.1 rad
+            step = lambda x: ((x[1:] - x[:-1]) ** 2).sum(-1).mean()  # noqa: E731
+            smooth = step(body) + step(rh) + 10 * step(th)
+        return (
+            s.weight_3d * e3
+            + s.weight_2d * e2
+            + prior
+            + s.smooth * smooth
+            + s.shape_prior * (shapes**2).sum()
+            + s.offset_prior * (offsets**2).sum()
+        )
+
+
+def fit_body(
+    body: BodyModel, P, heights, keypoints, points, settings: FitSettings = FitSettings(), progress=None
+) -> BodyFit:
+    """Fit the body model to a sequence (module docstring).
+
+    Args:
+        body: the body model. P: (V, 3, 4) undistorted projections. heights: (V,) image heights (px).
+        keypoints: (F, V, T, 3) undistorted target pixels and confidences (0: not used).
+        points: (F, T, 3) triangulated targets (NaN: missing).
+        progress: optional callable(step, total) for a progress bar.
+    """
+    problem = _Problem(body, P, heights, keypoints, points, settings)
+    n_frames = points.shape[0]
+    with torch.no_grad():
+        rest = body.rest_joints(torch.zeros(1, 10))[0, list(TARGET_JOINTS)].numpy()
+    rh0, th0 = initial_global(rest, points)
+    poses = torch.zeros(n_frames, N_JOINTS * 3, requires_grad=True)
+    rh = torch.as_tensor(rh0, dtype=torch.float32).requires_grad_()
+    th = torch.as_tensor(th0, dtype=torch.float32).requires_grad_()
+    shapes = torch.zeros(1, 10, requires_grad=True)
+    offsets = torch.zeros(len(TARGETS), 3, requires_grad=True)
+    mask = torch.ones(N_JOINTS * 3)
+    mask[:3] = 0  # poses[:3] stays 0: the global rotation is Rh
+    stages = [([rh, th], settings.global_iterations), ([poses, rh, th, shapes, offsets], settings.iterations)]
+    total, done = sum(n for _, n in stages), 0
+    for variables, iterations in stages:
+        optimiser = torch.optim.Adam(variables, lr=settings.lr)
+        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, iterations, eta_min=settings.lr * 0.05)
+        for _ in range(iterations):
+            optimiser.zero_grad()
+            problem.energy(poses * mask, rh, th, shapes, offsets).backward()
+            optimiser.step()
+            schedule.step()
+            done += 1
+            if progress is not None:
+                progress(done, total)
+    with torch.no_grad():
+        final = poses * mask
+        targets = problem.targets(final, rh, th, shapes, offsets)
+    return BodyFit(
+        poses=final.detach().numpy().astype(np.float32),
+        rh=rh.detach().numpy().astype(np.float32),
+        th=th.detach().numpy().astype(np.float32),
+        shapes=shapes.detach().numpy()[0].astype(np.float32),
+        offsets=(offsets[problem.offset_source] * problem.offset_sign).detach().numpy(),
+        targets=targets.numpy(),
+    )

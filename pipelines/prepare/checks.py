@@ -1,0 +1,93 @@
+"""What a user checks before training: the fitted body drawn over every camera's frames, its silhouette against
+the person mask (IoU), and the reprojection errors per camera and per joint, with cameras that disagree flagged.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from pipelines.datasets.zju_mocap import Camera
+
+#: a camera is flagged when its median reprojection error exceeds this fraction of the image height ...
+FLAG_ERROR = 0.015
+#: ... or this many times the median of the other cameras
+FLAG_RATIO = 2.5
+#: and when its body-vs-mask IoU is below this
+FLAG_IOU = 0.6
+
+
+def project_distorted(camera: Camera, points: np.ndarray) -> np.ndarray:
+    """(N, 3) world points -> (N, 2) pixels of the camera with its distortion (OpenCV model)."""
+    rvec, _ = cv2.Rodrigues(camera.cam_from_world[:3, :3])
+    pixels, _ = cv2.projectPoints(
+        np.ascontiguousarray(points, np.float64), rvec, camera.cam_from_world[:3, 3], camera.K, camera.dist
+    )
+    return pixels[:, 0]
+
+
+def silhouette(camera: Camera, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels covered by the mesh's projected triangles (triangles behind the camera skipped)."""
+    depth = vertices @ camera.cam_from_world[2, :3] + camera.cam_from_world[2, 3]
+    pixels = project_distorted(camera, vertices)
+    front = faces[(depth[faces] > 1e-3).all(axis=1)]
+    image = np.zeros((camera.height, camera.width), np.uint8)
+    inside = np.isfinite(pixels).all(-1) & (np.abs(pixels) < 1e5).all(-1)
+    front = front[inside[front].all(axis=1)]
+    polygons = np.round(pixels[front] * 4).astype(np.int32)  # 2 bits of sub-pixel precision
+    for polygon in polygons:  # one call per triangle: fillPoly's even-odd rule would cancel overlaps
+        cv2.fillConvexPoly(image, polygon, 1, lineType=cv2.LINE_8, shift=2)
+    return image > 0
+
+
+def mask_near_body(mask: np.ndarray, body: np.ndarray, margin_fraction: float = 0.04) -> np.ndarray:
+    """The person mask limited to the fitted body's neighbourhood (a dilation by a fraction of the image height),
+    which removes other people and clutter that the segmenter took for a person."""
+    radius = max(1.0, margin_fraction * mask.shape[0])
+    if not body.any():
+        return np.zeros_like(mask)
+    distance = cv2.distanceTransform((~body).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return mask & (distance <= radius)
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    union = np.logical_or(a, b).sum()
+    return float(np.logical_and(a, b).sum() / union) if union else 1.0
+
+
+def draw_overlay(
+    bgr: np.ndarray, body: np.ndarray, detected: np.ndarray | None, fitted: np.ndarray, seen: bool
+) -> np.ndarray:
+    """The frame with the body's silhouette tinted, detected keypoints (green; grey where the view was not used)
+    and the fitted targets (red) drawn."""
+    out = bgr.copy()
+    tint = np.array([40, 40, 220] if seen else [160, 160, 160], np.float32)
+    out[body] = (0.55 * out[body] + 0.45 * tint).astype(np.uint8)
+    radius = max(2, bgr.shape[0] // 200)
+    if detected is not None:
+        for x, y, c in detected:
+            if c > 0 and np.isfinite([x, y]).all():
+                cv2.circle(out, (int(x), int(y)), radius + 1, (0, 200, 0) if seen else (128, 128, 128), -1)
+    for x, y in fitted:
+        if np.isfinite([x, y]).all():
+            cv2.circle(out, (int(x), int(y)), radius, (0, 0, 255), -1)
+    return out
+
+
+def flag_cameras(names: list[str], errors: dict[str, float], ious: dict[str, float]) -> dict[str, str]:
+    """Cameras that disagree with the others, with the reason (module constants)."""
+    flags = {}
+    for name in names:
+        others = [errors[n] for n in names if n != name and np.isfinite(errors[n])]
+        typical = float(np.median(others)) if others else np.nan
+        error = errors[name]
+        if not np.isfinite(error):
+            flags[name] = "the body was never reprojected into this camera (no usable view)"
+        elif error > FLAG_ERROR or (np.isfinite(typical) and error > FLAG_RATIO * typical):
+            flags[name] = (
+                f"median reprojection {100 * error:.2f} % of the image height against {100 * typical:.2f} % for the "
+                "other cameras: check this camera's calibration and synchronisation"
+            )
+        elif ious.get(name, 1.0) < FLAG_IOU:
+            flags[name] = f"body-vs-mask IoU {ious[name]:.2f}: the mask or the calibration is off"
+    return flags

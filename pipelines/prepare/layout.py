@@ -1,0 +1,161 @@
+"""Writing the prepared capture in the ZJU-MoCap layout (docs/formats.md §1), with its splits, overlays and report.
+
+``<camera>/<i:06d>.jpg`` (i: 0-based index of the kept frames), ``mask/`` and ``mask_cihp/`` (binary: 1 on the
+person), ``params/<i>.npy`` and ``vertices/<i>.npy`` (with pose blend shapes, in the calibration's world),
+``annots.npy`` (cameras with their distortion ``D``: the loader undistorts), ``intri.yml`` / ``extri.yml``,
+``splits.json``, ``keypoints3d.npy``, ``overlay/`` and ``report.json``.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipelines.datasets.easymocap import write_easymocap_cameras
+from pipelines.datasets.keypoints import TARGET_NAMES
+from pipelines.datasets.zju_mocap import SmplParams, write_annots, write_params
+from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, mask_near_body, project_distorted, silhouette
+from pipelines.prepare.triangulate import projection_matrix, relative_errors
+
+OVERLAY_HEIGHT = 480  # rows of each camera's tile in overlay.mp4
+
+
+def write_sequence(root: Path, cameras, found, fitted, vertices: np.ndarray) -> None:
+    """Frames renumbered 0..F-1 (images moved from ``.frames``), params, vertices, annots and camera files."""
+    frames = root / ".frames"
+    for i, source in enumerate(found.frames):
+        for cam in cameras:
+            (root / cam.name).mkdir(parents=True, exist_ok=True)
+            (frames / cam.name / f"{source:06d}.jpg").replace(root / cam.name / f"{i:06d}.jpg")
+        params = SmplParams(fitted.poses[i], fitted.rh[i], fitted.th[i], fitted.shapes)
+        write_params(root / "params" / f"{i}.npy", params)
+        (root / "vertices").mkdir(exist_ok=True)
+        np.save(root / "vertices" / f"{i}.npy", vertices[i].astype(np.float32))
+    ims = [[f"{cam.name}/{i:06d}.jpg" for cam in cameras] for i in range(len(found.frames))]
+    write_annots(root / "annots.npy", cameras, ims)
+    write_easymocap_cameras(root, cameras)
+    np.save(root / "keypoints3d.npy", found.points.astype(np.float32))
+
+
+def splits(n_frames: int, names: list[str], holdout: str | None, novel_fraction: float, excluded) -> dict:
+    """Training / novel-pose frames (the last ``novel_fraction``) and training / novel-view cameras."""
+    n_novel = int(round(novel_fraction * n_frames)) if n_frames > 1 else 0
+    n_train = n_frames - n_novel
+    test_views = [names.index(holdout)] if holdout else []
+    return {
+        "train_frames": list(range(n_train)),
+        "novel_frames": list(range(n_train, n_frames)),
+        "train_views": [v for v in range(len(names)) if v not in test_views],
+        "test_views": test_views,
+        "excluded": sorted(excluded),
+    }
+
+
+def _check_pass(root: Path, seen, found, fitted, vertices, faces) -> tuple[dict, list]:
+    """Final masks (the raw ones limited to the body's neighbourhood), overlays and IoU per (frame, view); returns
+    per-camera IoU lists and the tiles of overlay.mp4."""
+    cameras = seen.cameras
+    ious = {c.name: [] for c in cameras}
+    tiles = [[] for _ in found.frames]
+    for v, cam in enumerate(cameras):
+        for folder in ("mask", "mask_cihp", "overlay"):
+            (root / folder / cam.name).mkdir(parents=True, exist_ok=True)
+        for i, source in enumerate(found.frames):
+            raw = cv2.imread(str(root / ".frames" / "mask_raw" / cam.name / f"{source:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
+            body = silhouette(cam, vertices[i], faces)
+            mask = mask_near_body(raw, body)
+            for folder in ("mask", "mask_cihp"):
+                cv2.imwrite(str(root / folder / cam.name / f"{i:06d}.png"), mask.astype(np.uint8))
+            if found.used[i, v]:
+                ious[cam.name].append(iou(body, mask))
+            image = cv2.imread(str(root / cam.name / f"{i:06d}.jpg"))
+            targets = project_distorted(cam, fitted.targets[i])
+            overlay = draw_overlay(image, body, found.distorted[i, v], targets, bool(found.used[i, v]))
+            cv2.imwrite(str(root / "overlay" / cam.name / f"{i:06d}.jpg"), overlay, [cv2.IMWRITE_JPEG_QUALITY, 85])
+            width = int(round(overlay.shape[1] * OVERLAY_HEIGHT / overlay.shape[0])) // 2 * 2
+            tiles[i].append(cv2.resize(overlay, (width, OVERLAY_HEIGHT), interpolation=cv2.INTER_AREA))
+    return ious, tiles
+
+
+def _errors(cameras, found, fitted) -> tuple[np.ndarray, np.ndarray]:
+    """(F, T, V) reprojection errors (fraction of the height; NaN where unused) of the triangulated targets and of
+    the fitted body's targets, against the undistorted detections."""
+    P = np.stack([projection_matrix(c) for c in cameras])
+    heights = np.array([c.height for c in cameras], np.float64)
+    xy = found.keypoints[..., :2].transpose(0, 2, 1, 3)
+    used = found.keypoints[..., 2].transpose(0, 2, 1) > 0
+    triangulated = np.where(used, relative_errors(P, found.points, xy, heights), np.nan)
+    body = np.where(used, relative_errors(P, fitted.targets, xy, heights), np.nan)
+    return triangulated, body
+
+
+def _median(values) -> float:
+    values = np.asarray(values, np.float64)
+    values = values[np.isfinite(values)]
+    return float(np.median(values)) if values.size else float("nan")
+
+
+def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, request, calibration) -> dict:
+    """Masks, overlays, splits and the report (returned, and written to ``report.json``)."""
+    from fitting.video import write_mp4
+
+    cameras, names = seen.cameras, [c.name for c in seen.cameras]
+    ious, tiles = _check_pass(root, seen, found, fitted, vertices, faces)
+    write_mp4(root / "overlay" / "overlay.mp4", [np.concatenate(t, axis=1)[..., ::-1] for t in tiles], fps=15)
+    shutil.rmtree(root / ".frames")
+    triangulated, body = _errors(cameras, found, fitted)
+    excluded = [[i, v] for i in range(len(found.frames)) for v in range(len(cameras)) if not found.used[i, v]]
+    split = splits(len(found.frames), names, holdout, request.novel_fraction, excluded)
+    (root / "splits.json").write_text(json.dumps(split, indent=1))
+    per_camera = {}
+    for v, cam in enumerate(cameras):
+        height = cam.height
+        per_camera[cam.name] = {
+            "size": [cam.width, cam.height],
+            "notes": seen.notes.get(cam.name, []),
+            "views_used": int(found.used[:, v].sum()),
+            "views_without_person": found.view_notes[v]["no_person"],
+            "views_disagreeing": found.view_notes[v]["disagreed"],
+            "triangulation_reprojection_px": _median(triangulated[..., v]) * height,
+            "body_reprojection_px": _median(body[..., v]) * height,
+            "body_reprojection_pct_height": 100 * _median(body[..., v]),
+            "iou_mean": float(np.mean(ious[cam.name])) if ious[cam.name] else float("nan"),
+            "iou_min": float(np.min(ious[cam.name])) if ious[cam.name] else float("nan"),
+        }
+    flags = flag_cameras(names, {n: _median(body[..., v]) for v, n in enumerate(names)}, {n: per_camera[n]["iou_mean"] for n in names})
+    for name, reason in flags.items():
+        per_camera[name]["flag"] = reason
+    distance = np.linalg.norm(fitted.targets - found.points, axis=-1)
+    report = {
+        "recording": str(request.recording),
+        "calibration": str(calibration),
+        "cameras": per_camera,
+        "flagged_cameras": flags,
+        "frames": {
+            "read": len(set().union(*map(set, seen.frames))),
+            "common": len(set.intersection(*map(set, seen.frames))),
+            "kept": len(found.frames),
+            "source_frames": found.frames,
+            "dropped": {str(k): v for k, v in found.dropped.items()},
+        },
+        "joints": {
+            name: {
+                "triangulation_pct_height": 100 * _median(triangulated[:, t]),
+                "body_to_triangulated_cm": 100 * _median(distance[:, t]),
+            }
+            for t, name in enumerate(TARGET_NAMES)
+        },
+        "summary": {
+            "median_reprojection_pct_height": 100 * _median(body),
+            "median_triangulation_pct_height": 100 * _median(triangulated),
+            "min_camera_iou": min((p["iou_mean"] for p in per_camera.values()), default=float("nan")),
+            "body_to_triangulated_cm": 100 * _median(distance),
+        },
+        "splits": {k: v for k, v in split.items() if k != "excluded"} | {"excluded_views": len(excluded)},
+    }
+    (root / "report.json").write_text(json.dumps(report, indent=1))
+    return report

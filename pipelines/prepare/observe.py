@@ -1,0 +1,156 @@
+"""One pass over every camera's recording: frames are resized, written into the capture being built, and their
+people (keypoint targets, in the written image's pixels) and person masks are collected.
+
+Keypoints come from BlazePose (``pipelines.prepare.detect``) or from OpenPose JSON files (``--keypoints``); masks
+from the segmenter or from mask images (``--masks``), one sub-folder per camera, numbered like the frames.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipelines.datasets.keypoints import frame_number, read_openpose, to_targets
+from pipelines.datasets.rig_files import natural_key
+from pipelines.datasets.zju_mocap import Camera, CaptureError
+from pipelines.prepare.sources import IMAGE_SUFFIXES, Source, read_frames, recording_size
+
+#: a video narrower or wider than its calibration window by at most this fraction is taken as the window cropped
+#: at its right or bottom edge (the demo's 1080-px videos of a 1088-px window): K is kept
+CROP_TOLERANCE = 0.02
+
+
+@dataclass
+class Observations:
+    """What the pass found, per camera ``v`` and source frame ``f``.
+
+    Attributes:
+        cameras: the output cameras (sizes of the written images, K scaled with them).
+        frames: per camera, the source frame indices that were read.
+        people: ``people[v][f]`` a list of (T, 3) target arrays (x, y, confidence) in output pixels.
+        notes: per camera, lines for the report (size mismatches, resizing).
+    """
+
+    cameras: list[Camera]
+    frames: list[list[int]]
+    people: list[dict[int, list[np.ndarray]]]
+    notes: dict[str, list[str]] = field(default_factory=dict)
+
+
+def fit_camera_to_recording(camera: Camera, size: tuple[int, int], source: Source) -> tuple[Camera, str | None]:
+    """The camera with the recording's image size: equal sizes, a crop within :data:`CROP_TOLERANCE` (K kept) or
+    the same aspect ratio (K scaled); anything else is an error naming the recording."""
+    width, height = size
+    if camera.width == 0 or (camera.width, camera.height) == size:
+        return replace(camera, width=width, height=height), None
+    if abs(width - camera.width) <= CROP_TOLERANCE * camera.width and height == camera.height:
+        note = f"video is {width}x{height}, the calibration's window {camera.width}x{camera.height}: taken as cropped"
+        return replace(camera, width=width, height=height), note
+    ratio = width / camera.width
+    if abs(height / camera.height - ratio) < 1e-3:
+        scaled = camera.scaled(ratio)
+        return replace(scaled, width=width, height=height), f"video is {ratio:.3g}x the calibration's size: K scaled"
+    raise CaptureError(
+        f"{source.path}: frames are {width}x{height} but camera '{camera.name}' of the calibration is "
+        f"{camera.width}x{camera.height} (neither a crop nor a scale of it)"
+    )
+
+
+def _numbered_files(folder: Path, suffixes: tuple[str, ...]) -> dict[int, Path]:
+    files = sorted((p for p in folder.iterdir() if p.suffix.lower() in suffixes), key=lambda p: natural_key(p.name))
+    return {frame_number(p) if suffixes == (".json",) else i: p for i, p in enumerate(files)}
+
+
+def camera_folder(root: Path, name: str) -> Path:
+    """The sub-folder of ``root`` for camera ``name``: ``name``, or the one whose name starts with it (``cam01_json``)."""
+    exact = root / name
+    if exact.is_dir():
+        return exact
+    found = sorted(p for p in root.iterdir() if p.is_dir() and p.name.startswith(name)) if root.is_dir() else []
+    if not found:
+        raise CaptureError(f"{root}: no sub-folder for camera '{name}'")
+    return found[0]
+
+
+class _Keypoints:
+    """Keypoint targets of one camera, from OpenPose files or the detector."""
+
+    def __init__(self, folder: Path | None, camera: str, detector):
+        self.detector, self.files = detector, None
+        if folder is not None:
+            self.files = _numbered_files(camera_folder(folder, camera), (".json",))
+            if not self.files:
+                raise CaptureError(f"{camera_folder(folder, camera)}: no OpenPose *_keypoints.json files")
+
+    def __call__(self, frame: int, rgb: np.ndarray, scale: float) -> tuple[list[np.ndarray], np.ndarray | None]:
+        if self.files is None:
+            keypoints, mask = self.detector(rgb)
+            return ([] if keypoints is None else [to_targets(keypoints, "blazepose")]), mask
+        path = self.files.get(frame)
+        if path is None:
+            return [], None
+        people, layout = read_openpose(path)
+        targets = [to_targets(p, layout) for p in people]
+        for t in targets:
+            t[:, :2] *= scale
+        return targets, None
+
+
+def observe(
+    pairs: list[tuple[Camera, Source]],
+    wanted: range,
+    out: Path,
+    longest_side: int | None,
+    keypoints: Path | None,
+    masks: Path | None,
+    detector,
+    progress,
+) -> Observations:
+    """Read every camera, write ``<camera>/<frame:06d>.jpg`` and ``mask_raw/<camera>/<frame:06d>.png`` under
+    ``out`` (named by source frame index; renumbered later), and collect people (module docstring)."""
+    cameras, frames, people, notes = [], [], [], {}
+    for camera, source in pairs:
+        size = recording_size(source)
+        camera, note = fit_camera_to_recording(camera, size, source)
+        notes[camera.name] = [note] if note else []
+        scale = min(1.0, longest_side / max(size)) if longest_side else 1.0
+        if scale < 1:
+            camera = camera.scaled(scale)
+            notes[camera.name].append(f"frames resized by {scale:.4g} to {camera.width}x{camera.height}")
+        found = _Keypoints(keypoints, source.name, detector)
+        mask_files = _numbered_files(camera_folder(masks, source.name), IMAGE_SUFFIXES) if masks else None
+        (out / camera.name).mkdir(parents=True, exist_ok=True)
+        (out / "mask_raw" / camera.name).mkdir(parents=True, exist_ok=True)
+        seen, by_frame = [], {}
+        for index, bgr in read_frames(source, wanted):
+            if scale < 1:
+                bgr = cv2.resize(bgr, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
+            rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+            by_frame[index], mask = found(index, rgb, scale)
+            if mask_files is not None:
+                mask = _given_mask(mask_files, index, camera)
+            if mask is None:
+                mask = np.zeros(bgr.shape[:2], bool)
+            cv2.imwrite(str(out / camera.name / f"{index:06d}.jpg"), bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+            cv2.imwrite(str(out / "mask_raw" / camera.name / f"{index:06d}.png"), mask.astype(np.uint8))
+            seen.append(index)
+            progress()
+        cameras.append(camera)
+        frames.append(seen)
+        people.append(by_frame)
+    return Observations(cameras, frames, people, notes)
+
+
+def _given_mask(files: dict[int, Path], index: int, camera: Camera) -> np.ndarray:
+    path = files.get(index)
+    if path is None:
+        raise CaptureError(f"no mask for frame {index} of camera '{camera.name}' (--masks lists {len(files)} files)")
+    raw = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
+    if raw is None:
+        raise CaptureError(f"{path}: unreadable mask image")
+    if raw.shape != (camera.height, camera.width):
+        raw = cv2.resize(raw, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
+    return raw > 0

@@ -1,0 +1,131 @@
+"""``prepare_capture``: a multi-camera recording and its calibration in, a ZJU-MoCap-layout capture out
+(docs/guides/real-captures.md).
+
+Everything is written into a hidden ``.<out>.partial`` folder beside ``out`` and renamed at the end, so an
+interrupted run leaves nothing that looks finished.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from pipelines.datasets.rig_files import read_rig
+from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.prepare.body_fit import FitSettings, fit_body
+from pipelines.prepare.layout import finish_capture, write_sequence
+from pipelines.prepare.observe import observe
+from pipelines.prepare.sources import find_sources, match_cameras
+from pipelines.prepare.triangulation import triangulate_people
+
+CALIBRATION_PATTERNS = ("*.qca.txt", "*.toml", "intri.yml", "annots.npy")
+MARKER = "prepared.json"
+
+
+@dataclass(frozen=True)
+class PrepareRequest:
+    """What ``narf-prepare-capture`` was asked (its ``--help`` says each)."""
+
+    recording: Path
+    out: Path
+    calibration: Path | None = None
+    start: int = 0
+    stop: int | None = None
+    stride: int = 1
+    longest_side: int | None = None
+    keypoints: Path | None = None
+    masks: Path | None = None
+    camera_map: dict[str, str] | None = None
+    holdout_camera: str | None = None
+    novel_fraction: float = 0.3
+    threshold: float = 0.03
+    smpl_dir: Path | None = None
+    fit: FitSettings = field(default_factory=FitSettings)
+    overwrite: bool = False
+    progress: bool = True
+
+
+def find_calibration(recording: Path) -> Path:
+    """The one calibration file in ``recording/calibration/`` or ``recording/`` (error if none or several)."""
+    for place in (recording / "calibration", recording):
+        found = sorted({p for pattern in CALIBRATION_PATTERNS for p in place.glob(pattern)}) if place.is_dir() else []
+        if len(found) == 1:
+            return found[0].parent if found[0].name == "intri.yml" else found[0]
+        if len(found) > 1:
+            raise CaptureError(f"{place}: several calibrations ({', '.join(p.name for p in found)}); pick one with --calibration")
+    raise CaptureError(f"{recording}: no calibration found in calibration/ or beside the videos; give --calibration")
+
+
+def _check_out(out: Path, overwrite: bool) -> None:
+    if out.exists() and not (out / MARKER).is_file():
+        raise CaptureError(f"{out}: exists and is not a capture prepared by this tool; choose a new --out")
+    if out.exists() and not overwrite:
+        raise CaptureError(f"{out}: already prepared; pass --overwrite to replace it")
+
+
+def prepare_capture(request: PrepareRequest) -> dict:
+    """Run every step (module docstring); returns the report."""
+    from tqdm import tqdm
+
+    from pipelines.body.model import BodyModel
+
+    out = Path(request.out)
+    _check_out(out, request.overwrite)
+    calibration = request.calibration or find_calibration(Path(request.recording))
+    pairs = match_cameras(read_rig(calibration), find_sources(request.recording), request.camera_map)
+    if len({c.name for c, _ in pairs}) != len(pairs) or any("/" in c.name for c, _ in pairs):
+        raise CaptureError(f"{calibration}: camera names must be distinct folder names, got {[c.name for c, _ in pairs]}")
+    holdout = _holdout(request.holdout_camera, [c.name for c, _ in pairs])
+    detector = None
+    if request.keypoints is None or request.masks is None:
+        from pipelines.prepare.detect import BlazePose
+
+        detector = BlazePose()
+    body = BodyModel(request.smpl_dir)  # a bad --smpl-dir fails before any frame is read
+    staging = out.parent / f".{out.name}.partial"
+    shutil.rmtree(staging, ignore_errors=True)
+    wanted = range(request.start, request.stop if request.stop is not None else 10**9, request.stride)
+    total = len(pairs) * len(wanted) if request.stop is not None else None
+    with tqdm(total=total, desc="reading frames", unit="view", disable=not request.progress) as bar:
+        seen = observe(pairs, wanted, staging / ".frames", request.longest_side, request.keypoints, request.masks, detector, bar.update)
+    common = sorted(set.intersection(*(set(f) for f in seen.frames)))
+    if not common:
+        raise CaptureError(f"{request.recording}: the cameras share no frame in {wanted.start}:{wanted.stop}")
+    found = triangulate_people(seen.cameras, seen.people, common, request.threshold)
+    if not found.frames:
+        raise CaptureError(f"{request.recording}: no person is seen by two agreeing views in any frame of the range")
+    with tqdm(total=request.fit.global_iterations + request.fit.iterations, desc="fitting the body", disable=not request.progress) as bar:
+        fitted = fit_body(body, *_fit_inputs(seen.cameras, found), request.fit, lambda done, total: bar.update(1))
+    with torch.no_grad():
+        vertices = body.pose_zju(fitted.poses, fitted.rh, fitted.th, np.repeat(fitted.shapes[None], len(fitted.poses), 0)).vertices.numpy()
+    write_sequence(staging, seen.cameras, found, fitted, vertices)
+    report = finish_capture(staging, seen, found, fitted, vertices, body.faces, holdout, request, calibration)
+    (staging / MARKER).write_text(json.dumps({"recording": str(request.recording), "calibration": str(calibration)}))
+    if out.exists():
+        shutil.rmtree(out)
+    staging.rename(out)
+    return report
+
+
+def _fit_inputs(cameras, found):
+    from pipelines.prepare.triangulate import projection_matrix
+
+    P = np.stack([projection_matrix(c) for c in cameras])
+    heights = np.array([c.height for c in cameras], np.float64)
+    return P, heights, found.keypoints.transpose(0, 1, 2, 3), found.points
+
+
+def _holdout(name: str | None, names: list[str]) -> str | None:
+    """The novel-view camera: ``name``, ``none``, or by default the last camera when there are at least three."""
+    if name is None:
+        return names[-1] if len(names) >= 3 else None
+    if name.lower() == "none":
+        return None
+    if name not in names:
+        raise CaptureError(f"--holdout-camera {name}: not one of the cameras {names}")
+    return name

@@ -1,0 +1,118 @@
+"""The recording's cameras: one video file or one image folder per camera, matched to the calibration's cameras.
+
+Frames are synchronised by index: frame ``i`` of every camera shows the same instant. Videos are decoded frame by
+frame (their container's frame count and duration are not trusted: one demo video reports a longer duration than
+its 100 frames), image folders are read in natural order of their file names.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from pipelines.datasets.rig_files import natural_key
+from pipelines.datasets.zju_mocap import Camera, CaptureError
+
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")
+
+
+@dataclass(frozen=True)
+class Source:
+    """One camera's recording: a video file or a folder of images (``is_video``)."""
+
+    name: str
+    path: Path
+    is_video: bool
+
+
+def find_sources(folder: Path) -> list[Source]:
+    """Videos in ``folder`` (or ``folder/videos``), else its sub-folders holding images, in natural order."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise CaptureError(f"{folder}: no such folder of videos or per-camera image folders")
+    for place in (folder, folder / "videos"):
+        videos = [p for p in place.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES] if place.is_dir() else []
+        if videos:
+            return [Source(p.stem, p, True) for p in sorted(videos, key=lambda p: natural_key(p.name))]
+        folders = [p for p in place.iterdir() if p.is_dir() and _images(p)] if place.is_dir() else []
+        if folders:
+            return [Source(p.name, p, False) for p in sorted(folders, key=lambda p: natural_key(p.name))]
+    raise CaptureError(
+        f"{folder}: no videos ({', '.join(VIDEO_SUFFIXES)}) and no per-camera image folders in it or in its videos/"
+    )
+
+
+def _images(folder: Path) -> list[Path]:
+    return sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=lambda p: natural_key(p.name))
+
+
+def match_cameras(
+    cameras: list[Camera], sources: list[Source], mapping: dict[str, str] | None = None
+) -> list[tuple[Camera, Source]]:
+    """Pair calibration cameras with recordings: an explicit ``{camera: source}`` mapping, else equal names, else
+    natural order when the counts agree (Pose2Sim's rule). Cameras without a recording are left out."""
+    by_name = {s.name: s for s in sources}
+    if mapping:
+        cams = {c.name: c for c in cameras}
+        unknown = [k for k in mapping if k not in cams] + [v for v in mapping.values() if v not in by_name]
+        if unknown:
+            raise CaptureError(
+                f"--camera-map names {unknown} that are not calibration cameras ({sorted(cams)}) or recordings "
+                f"({sorted(by_name)})"
+            )
+        return [(cams[k], by_name[v]) for k, v in mapping.items()]
+    named = [(c, by_name[c.name]) for c in cameras if c.name in by_name]
+    if len(named) >= 2:
+        return named
+    if len(cameras) == len(sources):
+        return list(zip(cameras, sources))
+    raise CaptureError(
+        f"the calibration's cameras {[c.name for c in cameras]} match none of the recordings "
+        f"{[s.name for s in sources]} by name, and their counts differ ({len(cameras)} vs {len(sources)}); "
+        "give --camera-map CAM=RECORDING,..."
+    )
+
+
+def read_frames(source: Source, wanted: range) -> Iterator[tuple[int, np.ndarray]]:
+    """Yield (frame index, BGR uint8 image) for the frames of ``wanted`` that the recording has, in order.
+
+    An undecodable video or image is an error naming the file; a recording shorter than ``wanted`` just ends.
+    """
+    if not source.is_video:
+        files = _images(source.path)
+        for index in wanted:
+            if index >= len(files):
+                return
+            image = cv2.imread(str(files[index]), cv2.IMREAD_COLOR)
+            if image is None:
+                raise CaptureError(f"{files[index]}: unreadable image")
+            yield index, image
+        return
+    video = cv2.VideoCapture(str(source.path))
+    try:
+        if not video.isOpened():
+            raise CaptureError(f"{source.path}: cannot be decoded as a video")
+        index = -1
+        while index + 1 < wanted.stop:
+            ok, image = video.read()
+            if not ok:
+                if index < 0:
+                    raise CaptureError(f"{source.path}: cannot be decoded as a video (no frame could be read)")
+                return
+            index += 1
+            if index in wanted:
+                yield index, image
+    finally:
+        video.release()
+
+
+def recording_size(source: Source) -> tuple[int, int]:
+    """(width, height) of a recording's first frame."""
+    for _, image in read_frames(source, range(1)):
+        return image.shape[1], image.shape[0]
+    raise CaptureError(f"{source.path}: no frames")

@@ -1,0 +1,158 @@
+"""Multi-view triangulation of keypoints: confidence-weighted DLT, a per-frame consensus of views (which views
+show the same person) and per-joint rejection of views by reprojection error.
+
+All pixel coordinates here are undistorted (``undistort_points``), so that a camera is its 3x4 projection
+``P = K [R | t]``. Errors are measured as a fraction of the image height, so that one threshold fits every camera.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from itertools import combinations
+
+import cv2
+import numpy as np
+
+from pipelines.datasets.zju_mocap import Camera
+
+#: fewest joints two views must share for a consensus hypothesis
+MIN_SHARED_JOINTS = 6
+
+
+def projection_matrix(camera: Camera) -> np.ndarray:
+    """(3, 4) ``K [R | t]`` of an undistorted camera."""
+    return camera.K @ camera.cam_from_world[:3]
+
+
+def undistort_points(camera: Camera, xy: np.ndarray) -> np.ndarray:
+    """(..., 2) distorted pixels -> the pixels an undistorted camera with the same K would see (OpenCV model)."""
+    flat = np.ascontiguousarray(xy, np.float64).reshape(-1, 1, 2)
+    if not np.any(camera.dist) or flat.size == 0:
+        return np.asarray(xy, np.float64).copy()
+    return cv2.undistortPoints(flat, camera.K, camera.dist, P=camera.K).reshape(np.shape(xy))
+
+
+def triangulate(P: np.ndarray, xy: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """Weighted DLT: the X minimising ``sum_v w_v^2 |x_v P3_v - P1_v, y_v P3_v - P2_v| . X~`` (Hartley & Zisserman
+    §12.2), solved by SVD of the stacked rows.
+
+    Args:
+        P: (V, 3, 4) projections. xy: (..., V, 2) pixels. weights: (..., V) >= 0 (0 = view not used).
+
+    Returns:
+        (..., 3) points; NaN where fewer than two views have weight > 0.
+    """
+    rows_x = xy[..., 0, None] * P[:, 2] - P[:, 0]  # (..., V, 4)
+    rows_y = xy[..., 1, None] * P[:, 2] - P[:, 1]
+    A = np.concatenate([rows_x, rows_y], axis=-2) * np.concatenate([weights, weights], axis=-1)[..., None]
+    scale = np.linalg.norm(A, axis=-1, keepdims=True)
+    A = A / np.where(scale > 0, scale, 1)  # row equilibration: DLT is badly conditioned in raw pixels
+    _, _, vt = np.linalg.svd(A)
+    homogeneous = vt[..., -1, :]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        points = homogeneous[..., :3] / homogeneous[..., 3:]
+    enough = (weights > 0).sum(axis=-1) >= 2
+    return np.where(enough[..., None], points, np.nan)
+
+
+def project(P: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """(V, 3, 4) projections, (..., 3) points -> (..., V, 2) pixels (NaN behind a camera)."""
+    homogeneous = np.concatenate([points, np.ones_like(points[..., :1])], axis=-1)
+    image = np.einsum("vij,...j->...vi", P, homogeneous)
+    depth = image[..., 2:]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(depth > 0, image[..., :2] / depth, np.nan)
+
+
+def relative_errors(P: np.ndarray, points: np.ndarray, xy: np.ndarray, heights: np.ndarray) -> np.ndarray:
+    """(..., V) reprojection error of ``points`` (..., 3) against ``xy`` (..., V, 2), as a fraction of the height."""
+    return np.linalg.norm(project(P, points) - xy, axis=-1) / heights
+
+
+@dataclass
+class Consensus:
+    """Which detection each view keeps in one frame: ``person[v]`` (index into that view's people, -1: none)."""
+
+    person: list[int]
+    error: float
+
+
+def consensus(
+    P: np.ndarray, people: list[list[np.ndarray]], heights: np.ndarray, threshold: float, previous=None
+) -> Consensus:
+    """The views that see one person, found as RANSAC does over pairs of detections from two views.
+
+    Each pair is triangulated; a view agrees when one of its detections reprojects within ``threshold`` (median
+    over the shared joints, fraction of the height). The hypothesis with most agreeing views wins; ties go to the
+    one nearest ``previous`` (the last frame's targets, (T, 3)), then to the smaller error. A view whose detections
+    all disagree (nobody, or somebody else) keeps none.
+
+    Args:
+        P: (V, 3, 4). people: per view, a list of (T, 3) detections (x, y, confidence). heights: (V,) pixels.
+    """
+    candidates = [(v, p) for v, found in enumerate(people) for p in range(len(found))]
+    best, best_key = Consensus([-1] * len(people), np.inf), None
+    for (v1, p1), (v2, p2) in combinations(candidates, 2):
+        if v1 == v2:
+            continue
+        a, b = people[v1][p1], people[v2][p2]
+        shared = (a[:, 2] > 0) & (b[:, 2] > 0)
+        if shared.sum() < MIN_SHARED_JOINTS:
+            continue
+        xy = np.zeros((len(a), len(people), 2))
+        weights = np.zeros((len(a), len(people)))
+        xy[:, v1], xy[:, v2] = a[:, :2], b[:, :2]
+        weights[:, v1], weights[:, v2] = a[:, 2] * shared, b[:, 2] * shared
+        points = triangulate(P, xy, weights)
+        choice, errors = _agreeing(P, people, heights, points, threshold)
+        agreeing = sum(c >= 0 for c in choice)
+        distance = 0.0 if previous is None else float(np.nanmedian(np.linalg.norm(points - previous, axis=-1)))
+        key = (-agreeing, np.nan_to_num(distance, nan=np.inf), float(np.mean(errors)) if errors else np.inf)
+        if best_key is None or key < best_key:
+            best, best_key = Consensus(choice, key[2]), key
+    return best
+
+
+def _agreeing(P, people, heights, points, threshold) -> tuple[list[int], list[float]]:
+    choice, errors = [], []
+    for v, found in enumerate(people):
+        best, best_error = -1, threshold
+        for p, detection in enumerate(found):
+            seen = (detection[:, 2] > 0) & np.isfinite(points).all(axis=-1)
+            if seen.sum() < MIN_SHARED_JOINTS // 2:
+                continue
+            error = np.linalg.norm(project(P[v : v + 1], points[seen])[:, 0] - detection[seen, :2], axis=-1)
+            error = float(np.median(error)) / heights[v]
+            if error < best_error:
+                best, best_error = p, error
+        choice.append(best)
+        if best >= 0:
+            errors.append(best_error)
+    return choice, errors
+
+
+def triangulate_robust(
+    P: np.ndarray, xy: np.ndarray, confidence: np.ndarray, heights: np.ndarray, threshold: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per-joint triangulation that drops the worst view while its error exceeds ``threshold`` and > 2 remain.
+
+    Args:
+        P: (V, 3, 4). xy: (..., V, 2). confidence: (..., V) (0 = not seen). heights: (V,).
+
+    Returns:
+        points (..., 3) (NaN where under two views remain) and the weights used (..., V).
+    """
+    weights = confidence.astype(np.float64).copy()
+    for _ in range(P.shape[0]):
+        points = triangulate(P, xy, weights)
+        errors = np.where(weights > 0, relative_errors(P, points, xy, heights), -np.inf)
+        worst = np.nanargmax(np.where(np.isnan(errors), np.inf, errors), axis=-1)
+        worst_error = np.take_along_axis(errors, worst[..., None], axis=-1)[..., 0]
+        drop = (worst_error > threshold) & ((weights > 0).sum(axis=-1) > 2)
+        if not drop.any():
+            break
+        np.put_along_axis(weights, worst[..., None], np.where(drop[..., None], 0.0, np.take_along_axis(weights, worst[..., None], -1)), -1)
+    points = triangulate(P, xy, weights)
+    errors = relative_errors(P, points, xy, heights)
+    bad = ~np.all(np.where(weights > 0, errors <= threshold, True), axis=-1)  # two views that disagree
+    return np.where(bad[..., None], np.nan, points), np.where(bad[..., None], 0.0, weights)

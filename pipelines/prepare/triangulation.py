@@ -1,0 +1,106 @@
+"""From per-view people to one person's 3D targets per frame: the consensus of views, then robust triangulation.
+Frames where fewer than two views agree on a person, or the torso cannot be placed, are dropped with a reason."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from pipelines.datasets.keypoints import TARGETS
+from pipelines.datasets.zju_mocap import Camera
+from pipelines.prepare.triangulate import consensus, projection_matrix, triangulate_robust, undistort_points
+
+#: least detector confidence of a keypoint that is used
+MIN_CONFIDENCE = 0.3
+#: fewest targets a kept frame has triangulated
+MIN_TARGETS = 8
+
+
+@dataclass
+class Triangulated:
+    """One person per kept frame.
+
+    Attributes:
+        frames: kept source frame indices (ascending).
+        points: (F, T, 3) triangulated targets (NaN: not triangulated).
+        keypoints: (F, V, T, 3) undistorted pixels and confidence of the chosen person (0 where not used).
+        used: (F, V) bool, the views that agreed on the person.
+        distorted: (F, V, T, 3) the chosen person's keypoints as detected (for drawing).
+        dropped: source frame -> reason.
+        view_notes: per view, counts of views with nobody seen and views that disagreed.
+    """
+
+    frames: list[int]
+    points: np.ndarray
+    keypoints: np.ndarray
+    used: np.ndarray
+    distorted: np.ndarray
+    dropped: dict[int, str]
+    view_notes: list[dict[str, int]]
+
+
+def _undistorted_people(cameras: list[Camera], people: list[list[np.ndarray]]) -> list[list[np.ndarray]]:
+    out = []
+    for camera, found in zip(cameras, people):
+        converted = []
+        for person in found:
+            person = person.copy()
+            person[:, 2] = np.where(person[:, 2] >= MIN_CONFIDENCE, person[:, 2], 0.0)
+            person[:, :2] = undistort_points(camera, person[:, :2])
+            converted.append(person)
+        out.append(converted)
+    return out
+
+
+def triangulate_people(cameras: list[Camera], people, frames: list[int], threshold: float) -> Triangulated:
+    """Consensus and triangulation of every frame (module docstring).
+
+    Args:
+        people: ``people[v][frame]`` lists of (T, 3) targets (distorted pixels). frames: source frames to use.
+        threshold: reprojection error (fraction of the image height) beyond which a view disagrees.
+    """
+    P = np.stack([projection_matrix(c) for c in cameras])
+    heights = np.array([c.height for c in cameras], np.float64)
+    n_views, n_targets = len(cameras), len(TARGETS)
+    kept, points, keypoints, used, distorted, dropped = [], [], [], [], [], {}
+    notes = [{"no_person": 0, "disagreed": 0} for _ in cameras]
+    previous = None
+    for frame in frames:
+        raw = [people[v].get(frame, []) for v in range(n_views)]
+        undistorted = _undistorted_people(cameras, raw)
+        choice = consensus(P, undistorted, heights, threshold, previous)
+        for v in range(n_views):
+            if choice.person[v] < 0:
+                notes[v]["no_person" if not raw[v] else "disagreed"] += 1
+        frame_xy = np.zeros((n_views, n_targets, 3))
+        frame_raw = np.zeros((n_views, n_targets, 3))
+        for v, p in enumerate(choice.person):
+            if p >= 0:
+                frame_xy[v], frame_raw[v] = undistorted[v][p], raw[v][p]
+        if sum(p >= 0 for p in choice.person) < 2:
+            dropped[frame] = "fewer than two views see the same person"
+            continue
+        xyz, weights = triangulate_robust(
+            P, frame_xy[..., :2].transpose(1, 0, 2), frame_xy[..., 2].T, heights, threshold
+        )
+        if np.isfinite(xyz).all(-1).sum() < MIN_TARGETS:
+            dropped[frame] = f"fewer than {MIN_TARGETS} joints triangulated"
+            continue
+        frame_xy[..., 2] = weights.T * (frame_xy[..., 2] > 0)
+        kept.append(frame)
+        points.append(xyz)
+        keypoints.append(frame_xy)
+        used.append(np.array(choice.person) >= 0)
+        distorted.append(frame_raw)
+        previous = xyz
+    shape = (-1, n_views, n_targets, 3)
+    return Triangulated(
+        kept,
+        np.array(points).reshape(-1, n_targets, 3),
+        np.array(keypoints).reshape(shape),
+        np.array(used, bool).reshape(-1, n_views),
+        np.array(distorted).reshape(shape),
+        dropped,
+        notes,
+    )
