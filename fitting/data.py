@@ -47,10 +47,14 @@ class TrainingSet:
     def __init__(self, views: list, frame_of_view: list[int], poses: PoseBatch, device):
         self.device = device
         self.poses = poses.to(device)
-        self.height, self.width = views[0].image.shape[:2]
-        self.images = torch.as_tensor(np.stack([(v.image * 255 + 0.5).astype(np.uint8) for v in views])).to(device)
-        self.masks = torch.as_tensor(np.stack([v.mask > 0.5 for v in views])).to(device)
-        self.bands = torch.as_tensor(np.stack([v.band for v in views])).to(device)
+        # Cameras may differ in image size: every view is stored at the largest size, padded at the bottom and
+        # right, and its sampling pools stay inside its own pixels.
+        self.height = max(v.image.shape[0] for v in views)
+        self.width = max(v.image.shape[1] for v in views)
+        self.images = torch.as_tensor(np.stack([self._padded((v.image * 255 + 0.5).astype(np.uint8)) for v in views]))
+        self.images = self.images.to(device)
+        self.masks = torch.as_tensor(np.stack([self._padded(v.mask > 0.5) for v in views])).to(device)
+        self.bands = torch.as_tensor(np.stack([self._padded(v.band) for v in views])).to(device)
         self.Ks = torch.as_tensor(np.stack([v.camera.K for v in views]), dtype=torch.float32).to(device)
         self.cam_from_world = torch.as_tensor(
             np.stack([v.camera.cam_from_world for v in views]), dtype=torch.float32
@@ -61,18 +65,27 @@ class TrainingSet:
     def __len__(self) -> int:
         return self.images.shape[0]
 
+    def _padded(self, array: np.ndarray) -> np.ndarray:
+        """``array`` (h, w, ...) zero-padded to (height, width, ...)."""
+        pad = [(0, self.height - array.shape[0]), (0, self.width - array.shape[1])] + [(0, 0)] * (array.ndim - 2)
+        return np.pad(array, pad) if any(p[1] for p in pad) else array
+
     def _pools(self, mask: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Flat pixel indices of body, border band and background inside the padded silhouette box."""
+        own_height, own_width = mask.shape
+        mask = self._padded(mask)
         mask_u8 = mask.astype(np.uint8)
         dilated = cv2.dilate(mask_u8, np.ones((BORDER_PX, BORDER_PX), np.uint8)) > 0
+        dilated[own_height:], dilated[:, own_width:] = False, False
         border = dilated & ~mask
         if dilated.any():
             ys, xs = np.nonzero(dilated)
         else:  # an empty mask: the whole image is background
-            ys, xs = np.array([0, self.height - 1]), np.array([0, self.width - 1])
+            ys, xs = np.array([0, own_height - 1]), np.array([0, own_width - 1])
         pad_y, pad_x = int(0.1 * (ys.max() - ys.min() + 1)), int(0.1 * (xs.max() - xs.min() + 1))
         box = np.zeros_like(mask)
         box[max(ys.min() - pad_y, 0) : ys.max() + pad_y + 1, max(xs.min() - pad_x, 0) : xs.max() + pad_x + 1] = True
+        box[own_height:], box[:, own_width:] = False, False
         background = box & ~dilated
         as_index = lambda m: torch.as_tensor(np.flatnonzero(m), dtype=torch.long, device=self.device)  # noqa: E731
         body = as_index(mask)

@@ -56,6 +56,8 @@ class Protocol:
         train_views / test_views: camera indices.
         train_frames / novel_frames: frame indices (training poses, held-out poses).
         interval: evaluation uses every ``interval``-th frame of a range (30; less for short captures).
+        excluded: (frame, camera) views that neither train nor test (a prepared capture's views where the person
+            was not found or was somebody else, docs/formats.md §1.8).
     """
 
     name: str
@@ -64,6 +66,7 @@ class Protocol:
     train_frames: tuple[int, ...]
     novel_frames: tuple[int, ...]
     interval: int = 30
+    excluded: frozenset = frozenset()
 
     def split(self, name: str) -> list[tuple[int, int]]:
         """(frame, camera) pairs of a split. ``novel_pose`` = novel poses x test views (Neural Body);
@@ -71,12 +74,16 @@ class Protocol:
         if name not in SPLITS:
             raise ValueError(f"unknown split '{name}'; choose from {', '.join(SPLITS)}")
         if name == "train":
-            return [(f, c) for f in self.train_frames for c in self.train_views]
+            return self.usable(self.train_frames, self.train_views)
         alias = {"novel_pose": "novel_pose_novel_view", "novel_view": "same_pose_novel_view"}
         pose, view = alias.get(name, name).split("_pose_")
         frames = (self.train_frames if pose == "same" else self.novel_frames)[:: self.interval]
         views = self.train_views if view == "same_view" else self.test_views
-        return [(f, c) for f in frames for c in views]
+        return self.usable(frames, views)
+
+    def usable(self, frames, views) -> list[tuple[int, int]]:
+        """(frame, camera) pairs of ``frames`` x ``views`` that are not excluded."""
+        return [(f, c) for f in frames for c in views if (f, c) not in self.excluded]
 
 
 def make_protocol(name: str, n_frames: int, n_cameras: int, subject_id: int | None = None) -> Protocol:
@@ -98,6 +105,37 @@ def make_protocol(name: str, n_frames: int, n_cameras: int, subject_id: int | No
     # Every 30th frame, as the protocols; shorter captures keep at least ~5 evaluation frames per range.
     interval = 30 if len(novel) >= 150 else max(1, len(novel) // 5)
     return Protocol(name, train_views, test_views, tuple(train), tuple(novel), interval)
+
+
+def _indices(path: Path, data: dict, key: str, count: int) -> tuple[int, ...]:
+    values = data.get(key)
+    if not isinstance(values, list) or not all(isinstance(v, int) and 0 <= v < count for v in values):
+        raise CaptureError(f"{path}: '{key}' must be a list of whole numbers in [0, {count})")
+    return tuple(values)
+
+
+def read_splits(path: Path, n_frames: int, n_cameras: int) -> Protocol:
+    """A capture's own splits (docs/formats.md §1.8): train/novel frames, train/test views, excluded views."""
+    import json
+
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise CaptureError(f"{path}: not a splits file ({err})") from None
+    if not isinstance(data, dict):
+        raise CaptureError(f"{path}: expected a JSON object")
+    frames = {k: _indices(path, data, k, n_frames) for k in ("train_frames", "novel_frames")}
+    views = {k: _indices(path, data, k, n_cameras) for k in ("train_views", "test_views")}
+    if not frames["train_frames"] or not views["train_views"]:
+        raise CaptureError(f"{path}: no training frame or no training view")
+    excluded = data.get("excluded", [])
+    if not isinstance(excluded, list) or not all(
+        isinstance(e, list) and len(e) == 2 and all(isinstance(i, int) for i in e) for e in excluded
+    ):
+        raise CaptureError(f"{path}: 'excluded' must be a list of [frame, camera] pairs")
+    novel = frames["novel_frames"]
+    interval = 30 if len(novel) >= 150 else max(1, len(novel) // 5)
+    return Protocol("capture", views["train_views"], views["test_views"], frames["train_frames"], novel, interval, frozenset(map(tuple, excluded)))
 
 
 class ZjuCapture:
@@ -149,6 +187,10 @@ class ZjuCapture:
         return int(digits) if digits else None
 
     def protocol(self, name: str = "neuralbody") -> Protocol:
+        """The capture's own ``splits.json`` when it has one (written by narf-prepare-capture), else the named
+        protocol."""
+        if (self.root / "splits.json").is_file():
+            return read_splits(self.root / "splits.json", self.n_frames, self.n_cameras)
         return make_protocol(name, self.n_frames, self.n_cameras, self.subject_id)
 
     def params(self, frame: int) -> SmplParams:

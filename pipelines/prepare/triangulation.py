@@ -7,7 +7,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipelines.datasets.keypoints import TARGETS
+from pipelines.datasets.keypoints import TARGETS, mirror_index
 from pipelines.datasets.zju_mocap import Camera
 from pipelines.prepare.triangulate import consensus, projection_matrix, triangulate_robust, undistort_points
 
@@ -53,6 +53,12 @@ def _undistorted_people(cameras: list[Camera], people: list[list[np.ndarray]]) -
     return out
 
 
+def _with_mirrored(found: list[np.ndarray]) -> list[np.ndarray]:
+    """The detections and their left/right mirrors: detectors swap the sides of a person seen from the back."""
+    order = [mirror_index(t) for t in range(len(TARGETS))]
+    return list(found) + [person[order] for person in found]
+
+
 def triangulate_people(cameras: list[Camera], people, frames: list[int], threshold: float) -> Triangulated:
     """Consensus and triangulation of every frame (module docstring).
 
@@ -67,7 +73,7 @@ def triangulate_people(cameras: list[Camera], people, frames: list[int], thresho
     notes = [{"no_person": 0, "disagreed": 0} for _ in cameras]
     previous = None
     for frame in frames:
-        raw = [people[v].get(frame, []) for v in range(n_views)]
+        raw = [_with_mirrored(people[v].get(frame, [])) for v in range(n_views)]
         undistorted = _undistorted_people(cameras, raw)
         choice = consensus(P, undistorted, heights, threshold, previous)
         for v in range(n_views):

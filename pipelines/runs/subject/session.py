@@ -95,7 +95,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True) -> FitData:
     boxes = fit_boxes(
         body_model, bodies, shapes, config.data.box_frames, config.model.box_scale_pad, config.model.box_abs_pad
     )
-    items = [(i, f, c) for i, f in enumerate(frames) for c in protocol.train_views]
+    items = [(i, f, c) for i, f in enumerate(frames) for _, c in protocol.usable([f], protocol.train_views)]
     with ThreadPoolExecutor(2) as pool:
         views = list(
             tqdm(
