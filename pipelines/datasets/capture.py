@@ -135,7 +135,15 @@ def read_splits(path: Path, n_frames: int, n_cameras: int) -> Protocol:
         raise CaptureError(f"{path}: 'excluded' must be a list of [frame, camera] pairs")
     novel = frames["novel_frames"]
     interval = 30 if len(novel) >= 150 else max(1, len(novel) // 5)
-    return Protocol("capture", views["train_views"], views["test_views"], frames["train_frames"], novel, interval, frozenset(map(tuple, excluded)))
+    return Protocol(
+        "capture",
+        views["train_views"],
+        views["test_views"],
+        frames["train_frames"],
+        novel,
+        interval,
+        frozenset(map(tuple, excluded)),
+    )
 
 
 class ZjuCapture:

@@ -80,7 +80,9 @@ def _qualisys_camera(path: Path, camera) -> Camera:
         ]
     )
     keys = ("radialDistortion1", "radialDistortion2", "tangentalDistortion1", "tangentalDistortion2")
-    dist = np.array([value(k) for k in keys] + [value("radialDistortion3") if intrinsic.get("radialDistortion3") else 0])
+    dist = np.array(
+        [value(k) for k in keys] + [value("radialDistortion3") if intrinsic.get("radialDistortion3") else 0]
+    )
     listed = np.array([_number(path, transform, f"r{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]).reshape(3, 3)
     rotation = _rotation(path, name, QUALISYS_TO_OPENCV @ listed)
     centre = np.array([_number(path, transform, k) for k in "xyz"]) / 1000.0
@@ -116,17 +118,17 @@ def write_qualisys(path: Path, cameras: list[Camera]) -> None:
     for cam in cameras:
         listed = QUALISYS_TO_OPENCV @ cam.cam_from_world[:3, :3]
         r = {f"r{i + 1}{j + 1}": repr(float(listed[i, j])) for i in range(3) for j in range(3)}
-        centre = cam.centre * 1000.0
-        k = cam.K * QUALISYS_SUBPIXELS
-        d = np.asarray(cam.dist, float) * QUALISYS_SUBPIXELS
+        centre = [float(v) for v in cam.centre * 1000.0]
+        k = (cam.K * QUALISYS_SUBPIXELS).tolist()
+        d = [float(v) for v in np.asarray(cam.dist, float) * QUALISYS_SUBPIXELS]
         window = f'left="0" top="0" right="{cam.width - 1}" bottom="{cam.height - 1}"'
         rotation = " ".join(f'{key}="{value}"' for key, value in r.items())
         lines += [
             f'    <camera active="1" model="none" serial="{cam.name}">',
             f"      <fov_video {window}/>",
             f'      <transform {rotation} x="{centre[0]!r}" y="{centre[1]!r}" z="{centre[2]!r}"/>',
-            f'      <intrinsic focalLengthU="{k[0, 0]!r}" focalLengthV="{k[1, 1]!r}" centerPointU="{k[0, 2]!r}" '
-            f'centerPointV="{k[1, 2]!r}" radialDistortion1="{d[0]!r}" radialDistortion2="{d[1]!r}" '
+            f'      <intrinsic focalLengthU="{k[0][0]!r}" focalLengthV="{k[1][1]!r}" centerPointU="{k[0][2]!r}" '
+            f'centerPointV="{k[1][2]!r}" radialDistortion1="{d[0]!r}" radialDistortion2="{d[1]!r}" '
             f'radialDistortion3="{d[4]!r}" tangentalDistortion1="{d[2]!r}" tangentalDistortion2="{d[3]!r}"/>',
             "    </camera>",
         ]

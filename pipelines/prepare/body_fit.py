@@ -119,7 +119,9 @@ class _Problem:
     def targets(self, poses, rh, th, shapes, offsets) -> torch.Tensor:
         """(F, T, 3) world positions of the targets."""
         rest = self.body.rest_joints(shapes.expand(poses.shape[0], -1))
-        world_from_joint = world_from_joints(poses.reshape(-1, N_JOINTS, 3), rest, rigid_from_rotvec_translation(rh, th))
+        world_from_joint = world_from_joints(
+            poses.reshape(-1, N_JOINTS, 3), rest, rigid_from_rotvec_translation(rh, th)
+        )
         frames = world_from_joint[:, self.joints]  # (F, T, 4, 4)
         local = offsets[self.offset_source] * self.offset_sign
         return frames[..., :3, 3] + (frames[..., :3, :3] @ local[..., None])[..., 0]

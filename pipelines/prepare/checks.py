@@ -15,6 +15,8 @@ FLAG_ERROR = 0.015
 FLAG_RATIO = 2.5
 #: and when its body-vs-mask IoU is below this
 FLAG_IOU = 0.6
+#: or when its person disagrees with the other cameras in more than this fraction of the frames
+FLAG_DISAGREED = 0.2
 
 
 def project_distorted(camera: Camera, points: np.ndarray) -> np.ndarray:
@@ -74,10 +76,19 @@ def draw_overlay(
     return out
 
 
-def flag_cameras(names: list[str], errors: dict[str, float], ious: dict[str, float]) -> dict[str, str]:
-    """Cameras that disagree with the others, with the reason (module constants)."""
+def flag_cameras(
+    names: list[str], errors: dict[str, float], ious: dict[str, float], disagreed: dict[str, float]
+) -> dict[str, str]:
+    """Cameras that disagree with the others, with the reason (module constants; ``disagreed``: the fraction of
+    frames where the camera's person did not match the others' beyond the view threshold)."""
     flags = {}
     for name in names:
+        if disagreed.get(name, 0.0) > FLAG_DISAGREED:
+            flags[name] = (
+                f"its person disagrees with the other cameras in {100 * disagreed[name]:.0f} % of the frames: check "
+                "this camera's calibration and synchronisation"
+            )
+            continue
         others = [errors[n] for n in names if n != name and np.isfinite(errors[n])]
         typical = float(np.median(others)) if others else np.nan
         error = errors[name]

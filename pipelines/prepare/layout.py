@@ -65,7 +65,10 @@ def _check_pass(root: Path, seen, found, fitted, vertices, faces) -> tuple[dict,
         for folder in ("mask", "mask_cihp", "overlay"):
             (root / folder / cam.name).mkdir(parents=True, exist_ok=True)
         for i, source in enumerate(found.frames):
-            raw = cv2.imread(str(root / ".frames" / "mask_raw" / cam.name / f"{source:06d}.png"), cv2.IMREAD_GRAYSCALE) > 0
+            raw = (
+                cv2.imread(str(root / ".frames" / "mask_raw" / cam.name / f"{source:06d}.png"), cv2.IMREAD_GRAYSCALE)
+                > 0
+            )
             body = silhouette(cam, vertices[i], faces)
             mask = mask_near_body(raw, body)
             for folder in ("mask", "mask_cihp"):
@@ -82,12 +85,12 @@ def _check_pass(root: Path, seen, found, fitted, vertices, faces) -> tuple[dict,
 
 
 def _errors(cameras, found, fitted) -> tuple[np.ndarray, np.ndarray]:
-    """(F, T, V) reprojection errors (fraction of the height; NaN where unused) of the triangulated targets and of
-    the fitted body's targets, against the undistorted detections."""
+    """(F, T, V) reprojection errors (fraction of the height; NaN where nothing was detected) of the triangulated
+    targets and of the fitted body's targets, against every camera's detection (used in the fit or not)."""
     P = np.stack([projection_matrix(c) for c in cameras])
     heights = np.array([c.height for c in cameras], np.float64)
-    xy = found.keypoints[..., :2].transpose(0, 2, 1, 3)
-    used = found.keypoints[..., 2].transpose(0, 2, 1) > 0
+    xy = found.detected[..., :2].transpose(0, 2, 1, 3)
+    used = found.detected[..., 2].transpose(0, 2, 1) > 0
     triangulated = np.where(used, relative_errors(P, found.points, xy, heights), np.nan)
     body = np.where(used, relative_errors(P, fitted.targets, xy, heights), np.nan)
     return triangulated, body
@@ -126,7 +129,9 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
             "iou_mean": float(np.mean(ious[cam.name])) if ious[cam.name] else float("nan"),
             "iou_min": float(np.min(ious[cam.name])) if ious[cam.name] else float("nan"),
         }
-    flags = flag_cameras(names, {n: _median(body[..., v]) for v, n in enumerate(names)}, {n: per_camera[n]["iou_mean"] for n in names})
+    errors = {n: _median(body[..., v]) for v, n in enumerate(names)}
+    disagreed = {n: found.view_notes[v]["disagreed"] / max(1, len(seen.frames[v])) for v, n in enumerate(names)}
+    flags = flag_cameras(names, errors, {n: per_camera[n]["iou_mean"] for n in names}, disagreed)
     for name, reason in flags.items():
         per_camera[name]["flag"] = reason
     distance = np.linalg.norm(fitted.targets - found.points, axis=-1)

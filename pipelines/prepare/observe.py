@@ -65,7 +65,7 @@ def _numbered_files(folder: Path, suffixes: tuple[str, ...]) -> dict[int, Path]:
 
 
 def camera_folder(root: Path, name: str) -> Path:
-    """The sub-folder of ``root`` for camera ``name``: ``name``, or the one whose name starts with it (``cam01_json``)."""
+    """The sub-folder of ``root`` for camera ``name``: ``name``, or one whose name starts with it (``cam01_json``)."""
     exact = root / name
     if exact.is_dir():
         return exact

@@ -57,7 +57,9 @@ def find_calibration(recording: Path) -> Path:
         if len(found) == 1:
             return found[0].parent if found[0].name == "intri.yml" else found[0]
         if len(found) > 1:
-            raise CaptureError(f"{place}: several calibrations ({', '.join(p.name for p in found)}); pick one with --calibration")
+            raise CaptureError(
+                f"{place}: several calibrations ({', '.join(p.name for p in found)}); pick one with --calibration"
+            )
     raise CaptureError(f"{recording}: no calibration found in calibration/ or beside the videos; give --calibration")
 
 
@@ -69,18 +71,17 @@ def _check_out(out: Path, overwrite: bool) -> None:
 
 
 def prepare_capture(request: PrepareRequest) -> dict:
-    """Run every step (module docstring); returns the report."""
-    from tqdm import tqdm
-
+    """Run every step (module docstring); returns the report. On any error or Ctrl-C the partial folder is removed."""
     from pipelines.body.model import BodyModel
 
     out = Path(request.out)
     _check_out(out, request.overwrite)
     calibration = request.calibration or find_calibration(Path(request.recording))
     pairs = match_cameras(read_rig(calibration), find_sources(request.recording), request.camera_map)
-    if len({c.name for c, _ in pairs}) != len(pairs) or any("/" in c.name for c, _ in pairs):
-        raise CaptureError(f"{calibration}: camera names must be distinct folder names, got {[c.name for c, _ in pairs]}")
-    holdout = _holdout(request.holdout_camera, [c.name for c, _ in pairs])
+    names = [c.name for c, _ in pairs]
+    if len(set(names)) != len(names) or any("/" in n or n.startswith(".") for n in names):
+        raise CaptureError(f"{calibration}: camera names must be distinct folder names, got {names}")
+    holdout = _holdout(request.holdout_camera, names)
     detector = None
     if request.keypoints is None or request.masks is None:
         from pipelines.prepare.detect import BlazePose
@@ -89,27 +90,52 @@ def prepare_capture(request: PrepareRequest) -> dict:
     body = BodyModel(request.smpl_dir)  # a bad --smpl-dir fails before any frame is read
     staging = out.parent / f".{out.name}.partial"
     shutil.rmtree(staging, ignore_errors=True)
-    wanted = range(request.start, request.stop if request.stop is not None else 10**9, request.stride)
-    total = len(pairs) * len(wanted) if request.stop is not None else None
-    with tqdm(total=total, desc="reading frames", unit="view", disable=not request.progress) as bar:
-        seen = observe(pairs, wanted, staging / ".frames", request.longest_side, request.keypoints, request.masks, detector, bar.update)
-    common = sorted(set.intersection(*(set(f) for f in seen.frames)))
-    if not common:
-        raise CaptureError(f"{request.recording}: the cameras share no frame in {wanted.start}:{wanted.stop}")
-    found = triangulate_people(seen.cameras, seen.people, common, request.threshold)
-    if not found.frames:
-        raise CaptureError(f"{request.recording}: no person is seen by two agreeing views in any frame of the range")
-    with tqdm(total=request.fit.global_iterations + request.fit.iterations, desc="fitting the body", disable=not request.progress) as bar:
-        fitted = fit_body(body, *_fit_inputs(seen.cameras, found), request.fit, lambda done, total: bar.update(1))
-    with torch.no_grad():
-        vertices = body.pose_zju(fitted.poses, fitted.rh, fitted.th, np.repeat(fitted.shapes[None], len(fitted.poses), 0)).vertices.numpy()
-    write_sequence(staging, seen.cameras, found, fitted, vertices)
-    report = finish_capture(staging, seen, found, fitted, vertices, body.faces, holdout, request, calibration)
-    (staging / MARKER).write_text(json.dumps({"recording": str(request.recording), "calibration": str(calibration)}))
+    try:
+        report = _build(staging, pairs, detector, body, holdout, calibration, request)
+        (staging / MARKER).write_text(
+            json.dumps({"recording": str(request.recording), "calibration": str(calibration)})
+        )
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        raise
     if out.exists():
         shutil.rmtree(out)
     staging.rename(out)
     return report
+
+
+def _build(staging: Path, pairs, detector, body, holdout, calibration, request: PrepareRequest) -> dict:
+    from tqdm import tqdm
+
+    wanted = range(request.start, request.stop if request.stop is not None else 10**9, request.stride)
+    total = len(pairs) * len(wanted) if request.stop is not None else None
+    with tqdm(total=total, desc="reading frames", unit="view", disable=not request.progress) as bar:
+        seen = observe(
+            pairs,
+            wanted,
+            staging / ".frames",
+            request.longest_side,
+            request.keypoints,
+            request.masks,
+            detector,
+            bar.update,
+        )
+    common = sorted(set.intersection(*(set(f) for f in seen.frames)))
+    if not common:
+        raise CaptureError(f"{request.recording}: the cameras share no frame in {wanted.start}:{request.stop or ''}")
+    found = triangulate_people(seen.cameras, seen.people, common, request.threshold)
+    if not found.frames:
+        raise CaptureError(
+            f"{request.recording}: no person is seen by two agreeing views in any of the {len(common)} frames read"
+        )
+    steps = request.fit.global_iterations + request.fit.iterations
+    with tqdm(total=steps, desc="fitting the body", disable=not request.progress) as bar:
+        fitted = fit_body(body, *_fit_inputs(seen.cameras, found), request.fit, lambda done, total: bar.update(1))
+    shapes = np.repeat(fitted.shapes[None], len(fitted.poses), 0)
+    with torch.no_grad():
+        vertices = body.pose_zju(fitted.poses, fitted.rh, fitted.th, shapes).vertices.numpy()
+    write_sequence(staging, seen.cameras, found, fitted, vertices)
+    return finish_capture(staging, seen, found, fitted, vertices, body.faces, holdout, request, calibration)
 
 
 def _fit_inputs(cameras, found):
@@ -117,7 +143,7 @@ def _fit_inputs(cameras, found):
 
     P = np.stack([projection_matrix(c) for c in cameras])
     heights = np.array([c.height for c in cameras], np.float64)
-    return P, heights, found.keypoints.transpose(0, 1, 2, 3), found.points
+    return P, heights, found.keypoints, found.points
 
 
 def _holdout(name: str | None, names: list[str]) -> str | None:

@@ -36,7 +36,9 @@ def find_sources(folder: Path) -> list[Source]:
     if not folder.is_dir():
         raise CaptureError(f"{folder}: no such folder of videos or per-camera image folders")
     for place in (folder, folder / "videos"):
-        videos = [p for p in place.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES] if place.is_dir() else []
+        videos = (
+            [p for p in place.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES] if place.is_dir() else []
+        )
         if videos:
             return [Source(p.stem, p, True) for p in sorted(videos, key=lambda p: natural_key(p.name))]
         folders = [p for p in place.iterdir() if p.is_dir() and _images(p)] if place.is_dir() else []
@@ -48,7 +50,9 @@ def find_sources(folder: Path) -> list[Source]:
 
 
 def _images(folder: Path) -> list[Path]:
-    return sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=lambda p: natural_key(p.name))
+    return sorted(
+        (p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES), key=lambda p: natural_key(p.name)
+    )
 
 
 def match_cameras(

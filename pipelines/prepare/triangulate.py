@@ -151,7 +151,12 @@ def triangulate_robust(
         drop = (worst_error > threshold) & ((weights > 0).sum(axis=-1) > 2)
         if not drop.any():
             break
-        np.put_along_axis(weights, worst[..., None], np.where(drop[..., None], 0.0, np.take_along_axis(weights, worst[..., None], -1)), -1)
+        np.put_along_axis(
+            weights,
+            worst[..., None],
+            np.where(drop[..., None], 0.0, np.take_along_axis(weights, worst[..., None], -1)),
+            -1,
+        )
     points = triangulate(P, xy, weights)
     errors = relative_errors(P, points, xy, heights)
     bad = ~np.all(np.where(weights > 0, errors <= threshold, True), axis=-1)  # two views that disagree

@@ -9,7 +9,7 @@ import numpy as np
 
 from pipelines.datasets.keypoints import TARGETS, mirror_index
 from pipelines.datasets.zju_mocap import Camera
-from pipelines.prepare.triangulate import consensus, projection_matrix, triangulate_robust, undistort_points
+from pipelines.prepare.triangulate import consensus, project, projection_matrix, triangulate_robust, undistort_points
 
 #: least detector confidence of a keypoint that is used
 MIN_CONFIDENCE = 0.3
@@ -27,6 +27,8 @@ class Triangulated:
         keypoints: (F, V, T, 3) undistorted pixels and confidence of the chosen person (0 where not used).
         used: (F, V) bool, the views that agreed on the person.
         distorted: (F, V, T, 3) the chosen person's keypoints as detected (for drawing).
+        detected: (F, V, T, 3) undistorted, with the detector's confidence: the chosen person, or in a view that
+            disagreed the detection nearest to the triangulated one (the report measures every camera on it).
         dropped: source frame -> reason.
         view_notes: per view, counts of views with nobody seen and views that disagreed.
     """
@@ -36,6 +38,7 @@ class Triangulated:
     keypoints: np.ndarray
     used: np.ndarray
     distorted: np.ndarray
+    detected: np.ndarray
     dropped: dict[int, str]
     view_notes: list[dict[str, int]]
 
@@ -59,6 +62,21 @@ def _with_mirrored(found: list[np.ndarray]) -> list[np.ndarray]:
     return list(found) + [person[order] for person in found]
 
 
+def _nearest(P, undistorted, person, chosen, xyz) -> np.ndarray:
+    """(V, T, 3): the chosen detections, and in views without one the detection nearest to ``xyz``."""
+    out = chosen.copy()
+    seen = np.isfinite(xyz).all(-1)
+    for v, found in enumerate(undistorted):
+        if person[v] >= 0 or not found:
+            continue
+        errors = [
+            np.nanmedian(np.linalg.norm(project(P[0][v : v + 1], xyz[seen])[:, 0] - d[seen, :2], axis=-1))
+            for d in found
+        ]
+        out[v] = found[int(np.nanargmin(errors))] if np.isfinite(errors).any() else found[0]
+    return out
+
+
 def triangulate_people(cameras: list[Camera], people, frames: list[int], threshold: float) -> Triangulated:
     """Consensus and triangulation of every frame (module docstring).
 
@@ -69,7 +87,7 @@ def triangulate_people(cameras: list[Camera], people, frames: list[int], thresho
     P = np.stack([projection_matrix(c) for c in cameras])
     heights = np.array([c.height for c in cameras], np.float64)
     n_views, n_targets = len(cameras), len(TARGETS)
-    kept, points, keypoints, used, distorted, dropped = [], [], [], [], [], {}
+    kept, points, keypoints, used, distorted, detected, dropped = [], [], [], [], [], [], {}
     notes = [{"no_person": 0, "disagreed": 0} for _ in cameras]
     previous = None
     for frame in frames:
@@ -93,6 +111,7 @@ def triangulate_people(cameras: list[Camera], people, frames: list[int], thresho
         if np.isfinite(xyz).all(-1).sum() < MIN_TARGETS:
             dropped[frame] = f"fewer than {MIN_TARGETS} joints triangulated"
             continue
+        detected.append(_nearest(P[None], undistorted, choice.person, frame_xy, xyz))
         frame_xy[..., 2] = weights.T * (frame_xy[..., 2] > 0)
         kept.append(frame)
         points.append(xyz)
@@ -107,6 +126,7 @@ def triangulate_people(cameras: list[Camera], people, frames: list[int], thresho
         np.array(keypoints).reshape(shape),
         np.array(used, bool).reshape(-1, n_views),
         np.array(distorted).reshape(shape),
+        np.array(detected).reshape(shape),
         dropped,
         notes,
     )

@@ -1,0 +1,182 @@
+"""narf-prepare-capture on the synthetic capture written back as a raw recording (videos, a Qualisys file of the
+true cameras, OpenPose JSON projected from the true joints with 1 px of noise, the true masks): the prepared
+capture's cameras, joints and body must match the truth; a camera turned by 5 degrees is flagged; bad input is one
+line and exit 2 with nothing written. The readers are checked against hand-computed conversions."""
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from pipelines.body.model import BodyModel
+from pipelines.cli import prepare_capture
+from pipelines.cli.common import run_cli
+from pipelines.datasets.capture import ZjuCapture
+from pipelines.datasets.keypoints import TARGET_JOINTS, to_targets, write_openpose
+from pipelines.datasets.rig_files import read_qualisys, read_rig, read_toml, write_qualisys
+from pipelines.prepare.triangulate import project, triangulate, triangulate_robust
+from pipelines.synthetic.capture import SynthConfig, generate_capture
+from pipelines.synthetic.recording import true_joints, write_recording
+
+NOISE_PX = 1.0
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    root = tmp_path_factory.mktemp("recording")
+    config = SynthConfig(resolution=256, frames=10, cameras=4, calib_shots=0, calib_close_ups=0, workers=1)
+    generate_capture(root / "truth", config, progress=False)
+    write_recording(root / "truth", root / "rec", noise_px=NOISE_PX)
+    return root
+
+
+def _prepare(rec: Path, out: Path, *extra) -> int:
+    argv = [str(rec), "--out", str(out), "--keypoints", str(rec / "keypoints"), "--masks", str(rec / "masks")]
+    return run_cli("narf-prepare-capture", prepare_capture.main, [*argv, "--quiet", *extra])
+
+
+@pytest.fixture(scope="module")
+def prepared(recording):
+    assert _prepare(recording / "rec", recording / "out") == 0
+    return recording / "out"
+
+
+def test_prepared_capture_matches_the_truth(recording, prepared):
+    truth, out = ZjuCapture(recording / "truth"), ZjuCapture(prepared)
+    for true_cam, cam in zip(truth.cameras, out.cameras):
+        # qca text (repr floats) -> mm -> m and annots' T in mm: a few ulps of metres
+        assert cam.name == true_cam.name and (cam.width, cam.height) == (true_cam.width, true_cam.height)
+        np.testing.assert_allclose(cam.K, true_cam.K, rtol=1e-12)
+        np.testing.assert_allclose(cam.cam_from_world, true_cam.cam_from_world, atol=1e-9)
+        np.testing.assert_allclose(cam.dist, true_cam.dist, atol=1e-12)
+    joints = true_joints(truth, BodyModel())[:, list(TARGET_JOINTS)]
+    error_cm = 100 * np.linalg.norm(np.load(prepared / "keypoints3d.npy") - joints, axis=-1)
+    # 1 px of noise is about 1 cm at these cameras (f ~ 280 px at ~3 m): the median stays near it, no joint is far
+    assert np.median(error_cm) < 2.0 and error_cm.max() < 6.0, error_cm
+    vertices = np.stack([truth.vertices(f) for f in range(truth.n_frames)])
+    fitted = np.stack([out.vertices(f) for f in range(out.n_frames)])
+    # joints leave limb twist and girth to the priors: a few cm on the surface, never a wrong limb
+    distance_cm = 100 * np.linalg.norm(vertices - fitted, axis=-1)
+    assert np.median(distance_cm) < 3.0 and np.percentile(distance_cm, 95) < 10.0
+    report = json.loads((prepared / "report.json").read_text())
+    assert report["frames"]["kept"] == 10 and not report["flagged_cameras"]
+    for camera in report["cameras"].values():
+        # median 2D error of 1-px Gaussian noise is 1.18 px; the fit adds little
+        assert camera["body_reprojection_px"] < 2.5 and camera["iou_mean"] > 0.75
+    splits = json.loads((prepared / "splits.json").read_text())
+    assert splits["novel_frames"] == [7, 8, 9] and splits["test_views"] == [3] and splits["train_views"] == [0, 1, 2]
+    protocol = out.protocol("neuralbody")
+    assert protocol.split("novel_pose") == [(f, 3) for f in (7, 8, 9)]
+    frame = out.load_frame(0, 0)
+    assert frame.image.shape == (128, 128, 3) and frame.mask.sum() > 100
+    assert (prepared / "overlay" / "overlay.mp4").is_file() and len(
+        list((prepared / "overlay" / "Camera_B1").glob("*.jpg"))
+    ) == 10
+
+
+def test_a_turned_camera_is_flagged(recording, tmp_path):
+    rec = tmp_path / "rec"
+    shutil.copytree(recording / "rec", rec)
+    cameras = read_qualisys(rec / "calibration" / "Calib.qca.txt")
+    turn = cv2.Rodrigues(np.array([0.0, np.deg2rad(5.0), 0.0]))[0]
+    pose = cameras[1].cam_from_world.copy()
+    pose[:3, :3] = turn @ pose[:3, :3]  # turned about its own centre (which stays where it is)
+    pose[:3, 3] = -pose[:3, :3] @ cameras[1].centre
+    cameras[1] = type(cameras[1])(**{**cameras[1].__dict__, "cam_from_world": pose})
+    write_qualisys(rec / "calibration" / "Calib.qca.txt", cameras)
+    assert _prepare(rec, tmp_path / "out") == 0
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert list(report["flagged_cameras"]) == ["Camera_B2"], report["flagged_cameras"]
+
+
+def test_qualisys_conversion_by_hand(tmp_path):
+    text = (
+        '<calibration><cameras><camera model="none" serial="cam2"><fov_video left="8" top="0" right="1087" '
+        'bottom="1919"/><transform r11="1" r12="0" r13="0" r21="0" r22="0" r23="1" r31="0" r32="-1" r33="0" x="1000" '
+        'y="-2000" z="1500"/><intrinsic focalLengthU="64000" focalLengthV="64064" centerPointU="35200" '
+        'centerPointV="61440" radialDistortion1="-3.2" radialDistortion2="6.4" tangentalDistortion1="0.064" '
+        'tangentalDistortion2="0" radialDistortion3="0"/></camera><camera model="Oqus" serial="marker"/></cameras>'
+        "</calibration>"
+    )
+    (tmp_path / "c.qca.txt").write_text(text)
+    (camera,) = read_rig(tmp_path / "c.qca.txt")  # the marker-only camera is skipped, as Pose2Sim does
+    # fx = 64000/64, cx = 35200/64 - left 8, k1 = -3.2/64; R = diag(1,-1,-1) . rows r11..r33; t = -R . centre (m)
+    np.testing.assert_allclose(camera.K, [[1000, 0, 542], [0, 1001, 960], [0, 0, 1]])
+    np.testing.assert_allclose(camera.dist, [-0.05, 0.1, 0.001, 0, 0])
+    rotation = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]])
+    np.testing.assert_allclose(camera.cam_from_world[:3, :3], rotation)
+    np.testing.assert_allclose(camera.cam_from_world[:3, 3], -rotation @ [1.0, -2.0, 1.5])
+    assert (camera.width, camera.height) == (1080, 1920)
+
+
+def test_toml_reader_by_hand(tmp_path):
+    (tmp_path / "calib.toml").write_text(
+        '[cam_01]\nname = "cam01"\nsize = [ 640.0, 480.0]\nmatrix = [ [ 500.0, 0.0, 320.0], [ 0.0, 500.0, 240.0], '
+        "[ 0.0, 0.0, 1.0]]\ndistortions = [ -0.1, 0.01, 0.0, 0.0]\nrotation = [ 0.0, 0.0, 1.5707963267948966]\n"
+        "translation = [ 0.1, 0.2, 3.0]\nfisheye = false\n\n[metadata]\nadjusted = false\nerror = 0.0\n"
+    )
+    (camera,) = read_toml(tmp_path / "calib.toml")
+    np.testing.assert_allclose(camera.cam_from_world[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
+    np.testing.assert_allclose(camera.cam_from_world[:3, 3], [0.1, 0.2, 3.0])
+    assert camera.name == "cam01" and (camera.width, camera.height) == (640, 480) and camera.dist[0] == -0.1
+
+
+def test_triangulation_against_opencv():
+    rng = np.random.default_rng(1)
+    K = np.array([[800.0, 0, 320], [0, 800, 240], [0, 0, 1]])
+    # three cameras 4 m from the origin, 60 degrees apart around the y axis, looking at it
+    poses = [cv2.Rodrigues(np.array([0.0, angle, 0.0]))[0] for angle in np.deg2rad([-60.0, 0.0, 60.0])]
+    P = np.stack([K @ np.hstack([R, np.array([[0.0], [0.0], [4.0]])]) for R in poses])
+    points = rng.normal(0, 0.5, (20, 3))
+    xy = project(P, points)  # (20, 3, 2)
+    reference = cv2.triangulatePoints(P[0], P[1], xy[:, 0].T, xy[:, 1].T)
+    two_views = triangulate(P, xy, np.array([1.0, 1.0, 0.0])[None].repeat(20, 0))
+    # noise-free projections: both solve the same null space in float64
+    np.testing.assert_allclose(two_views, (reference[:3] / reference[3]).T, atol=1e-9)
+    xy[:5, 2] += 40.0  # a wrong view for five points: dropped, the two others agree exactly
+    robust, weights = triangulate_robust(P, xy, np.ones((20, 3)), np.full(3, 480.0), threshold=0.01)
+    np.testing.assert_allclose(robust, points, atol=1e-9)
+    assert (weights[:5, 2] == 0).all() and (weights[5:] > 0).all()
+
+
+def test_keypoint_layouts_map_to_the_same_targets():
+    body25 = np.zeros((25, 3))
+    body25[17], body25[18] = (10, 20, 0.9), (30, 40, 0.8)  # ears -> head = their midpoint, least confidence
+    head = to_targets(body25, "body25")[list(TARGET_JOINTS).index(15)]
+    np.testing.assert_allclose(head, [20, 30, 0.8])
+
+
+def _error(capsys, argv) -> str:
+    capsys.readouterr()
+    assert run_cli("narf-prepare-capture", prepare_capture.main, [str(a) for a in argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("narf-prepare-capture: error: "), err
+    return err[0]
+
+
+def test_bad_recordings_are_one_line(recording, tmp_path, capsys):
+    rec = tmp_path / "rec"
+    shutil.copytree(recording / "rec", rec)
+    out = tmp_path / "out"
+    flags = ["--out", out, "--keypoints", rec / "keypoints", "--masks", rec / "masks", "--quiet"]
+    (rec / "calibration" / "rig.txt").write_text("hello")
+    assert "unknown calibration format" in _error(
+        capsys, [rec, *flags, "--calibration", rec / "calibration" / "rig.txt"]
+    )
+    other = [c for c in read_qualisys(rec / "calibration" / "Calib.qca.txt")[:3]]
+    write_qualisys(
+        tmp_path / "three.qca.txt", [type(c)(**{**c.__dict__, "name": f"x{i}"}) for i, c in enumerate(other)]
+    )
+    assert "match none of the recordings" in _error(capsys, [rec, *flags, "--calibration", tmp_path / "three.qca.txt"])
+    bad_json = rec / "keypoints" / "Camera_B1_json" / "Camera_B1_000000000003_keypoints.json"
+    write_openpose(bad_json, [np.zeros((20, 3))])
+    assert "Camera_B1_000000000003_keypoints.json" in _error(capsys, [rec, *flags])
+    for path in (rec / "keypoints").rglob("*.json"):
+        write_openpose(path, [])
+    assert "no person is seen" in _error(capsys, [rec, *flags])
+    (rec / "videos" / "Camera_B2.mp4").write_bytes(b"\x00" * 4096)
+    assert "Camera_B2.mp4: cannot be decoded" in _error(capsys, [rec, *flags])
+    assert not out.exists() and not list(tmp_path.glob(".out*")), "nothing half-written"
