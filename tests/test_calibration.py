@@ -289,3 +289,44 @@ def test_projection_matches_opencv():
     # float64 projection of the same polynomial model as OpenCV's: pixel values ~500, so rounding is ~1e-13 px;
     # 1e-9 px allows a different evaluation order of the distortion polynomial
     assert np.allclose(_project(points, params), expected, atol=1e-9)
+
+
+def _checkerboard_shot(K: np.ndarray, rvec, tvec, corners=(4, 7), square=0.06, size=(640, 480)) -> np.ndarray:
+    """A synthetic photo of a checkerboard with ``corners`` inner corners, warped by the plane homography
+    ``K [r1 r2 t] A`` (A: texture pixels -> board metres, the first inner corner at the origin)."""
+    cols, rows = corners
+    side, margin = 40, 40
+    texture = np.full(((rows + 1) * side + 2 * margin, (cols + 1) * side + 2 * margin), 255, np.uint8)
+    for r in range(rows + 1):
+        for c in range(cols + 1):
+            if (r + c) % 2 == 0:
+                texture[margin + r * side : margin + (r + 1) * side, margin + c * side : margin + (c + 1) * side] = 0
+    to_board = np.array(
+        [
+            [square / side, 0, -(margin + side) * square / side],
+            [0, square / side, -(margin + side) * square / side],
+            [0, 0, 1],
+        ]
+    )
+    rotation = cv2.Rodrigues(np.asarray(rvec, float))[0]
+    homography = K @ np.column_stack([rotation[:, 0], rotation[:, 1], tvec]) @ to_board
+    return cv2.warpPerspective(texture, homography, size, flags=cv2.INTER_AREA, borderValue=128)
+
+
+def test_checkerboard_intrinsics_recover_the_focal_length(tmp_path):
+    from pipelines.calibration.checkerboard import calibrate_checkerboard_shots
+
+    K = np.array([[520.0, 0, 322], [0, 520.0, 238], [0, 0, 1]])
+    rng = np.random.default_rng(3)
+    folder = tmp_path / "int_cam01_img"
+    folder.mkdir()
+    for i in range(8):
+        rvec = rng.normal(0, 0.35, 3) + [np.pi, 0, 0]
+        tvec = np.array([-0.09, 0.18, 0.9]) + rng.normal(0, 0.05, 3)  # the board centred, 0.9 m away
+        cv2.imwrite(str(folder / f"cam01_{i:02d}_int.png"), _checkerboard_shot(K, rvec, tvec))
+    cv2.imwrite(str(folder / "cam01_99_int.png"), np.full((480, 640), 200, np.uint8))  # no board: rejected
+    (result,) = calibrate_checkerboard_shots(tmp_path, (4, 7), 0.06).values()
+    # sub-pixel corners on 8 views of 28 corners: focal within 1 %, principal point within a few pixels
+    assert abs(result["K"][0, 0] / 520 - 1) < 0.01 and abs(result["K"][1, 1] / 520 - 1) < 0.01
+    assert np.abs(result["K"][:2, 2] - [322, 238]).max() < 6 and result["rms_px"] < 0.5
+    assert "cam01_99_int.png" in result["rejected"] and len(result["used"]) == 8

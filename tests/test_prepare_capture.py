@@ -97,13 +97,13 @@ def test_qualisys_conversion_by_hand(tmp_path):
         '<calibration><cameras><camera model="none" serial="cam2"><fov_video left="8" top="0" right="1087" '
         'bottom="1919"/><transform r11="1" r12="0" r13="0" r21="0" r22="0" r23="1" r31="0" r32="-1" r33="0" x="1000" '
         'y="-2000" z="1500"/><intrinsic focalLengthU="64000" focalLengthV="64064" centerPointU="35200" '
-        'centerPointV="61440" radialDistortion1="-3.2" radialDistortion2="6.4" tangentalDistortion1="0.064" '
+        'centerPointV="61440" radialDistortion1="-0.05" radialDistortion2="0.1" tangentalDistortion1="0.001" '
         'tangentalDistortion2="0" radialDistortion3="0"/></camera><camera model="Oqus" serial="marker"/></cameras>'
         "</calibration>"
     )
     (tmp_path / "c.qca.txt").write_text(text)
     (camera,) = read_rig(tmp_path / "c.qca.txt")  # the marker-only camera is skipped, as Pose2Sim does
-    # fx = 64000/64, cx = 35200/64 - left 8, k1 = -3.2/64; R = diag(1,-1,-1) . rows r11..r33; t = -R . centre (m)
+    # fx = 64000/64, cx = 35200/64 - left 8; distortion as written; R = diag(1,-1,-1) . rows r11..r33; t = -R . C
     np.testing.assert_allclose(camera.K, [[1000, 0, 542], [0, 1001, 960], [0, 0, 1]])
     np.testing.assert_allclose(camera.dist, [-0.05, 0.1, 0.001, 0, 0])
     rotation = np.array([[1, 0, 0], [0, 0, -1], [0, 1, 0]])

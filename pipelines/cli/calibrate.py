@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import re
 import shutil
 import sys
 from collections import Counter
@@ -15,11 +14,8 @@ from pipelines.calibration.board import BoardSpec
 from pipelines.cli.common import HelpFormatter, run_cli
 from pipelines.datasets.colmap import write_colmap_model
 from pipelines.datasets.easymocap import write_easymocap_cameras
+from pipelines.datasets.rig_files import natural_key
 from pipelines.datasets.zju_mocap import Camera, CaptureError, read_annots, write_annots
-
-
-def _natural(name: str) -> list:
-    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
 
 
 def _board(args, calib: Path) -> BoardSpec:
@@ -53,7 +49,7 @@ def _camera_order(capture: Path, calib: Path) -> tuple[list[str], list[list[str]
     if annots.is_file():
         cameras, ims = read_annots(annots, image_size=(1, 1), check_folders=False)
         return [c.name for c in cameras], ims, cameras
-    folders = sorted((p.name for p in calib.iterdir() if p.is_dir()), key=_natural)
+    folders = sorted((p.name for p in calib.iterdir() if p.is_dir()), key=natural_key)
     return folders, None, None
 
 
@@ -153,6 +149,45 @@ def merge_into_capture(capture: Path, cameras: list[Camera]) -> Path:
     return backup
 
 
+def _corners(text: str) -> tuple[int, int]:
+    parts = text.lower().split("x")
+    if len(parts) != 2 or not all(p.isdigit() and int(p) >= 2 for p in parts):
+        raise argparse.ArgumentTypeError(f"expected inner corners as COLSxROWS with each >= 2 (e.g. 4x7), got '{text}'")
+    return int(parts[0]), int(parts[1])
+
+
+def checkerboard_intrinsics(args) -> int:
+    """``--checkerboard``: per-camera intrinsics from checkerboard shots, written to intrinsics.json (and compared
+    with ``--compare``)."""
+    from pipelines.calibration.checkerboard import calibrate_checkerboard_shots
+    from pipelines.datasets.rig_files import read_rig
+    from pipelines.datasets.smpl_files import atomic_write_bytes
+
+    square = args.square_length if args.square_length is not None else 0.06
+    if not (square > 0 and square < 10):
+        raise ValueError(f"--square-length {square}: expected a square side in metres, in (0, 10)")
+    found = calibrate_checkerboard_shots(args.capture, args.checkerboard, square)
+    reference = {c.name: c for c in read_rig(args.compare)} if args.compare else {}
+    report = {}
+    for name, result in found.items():
+        entry = {"K": result["K"].tolist(), "dist": result["dist"].tolist(), "size": list(result["size"])}
+        entry |= {"rms_px": result["rms_px"], "shots_used": result["used"], "shots_rejected": result["rejected"]}
+        K, k1 = result["K"], result["dist"][0]
+        line = f"narf-calibrate: {name}: f = {K[0, 0]:.1f}, {K[1, 1]:.1f} px, k1 = {k1:+.4f}"
+        line += f", RMS {result['rms_px']:.2f} px"
+        line += f", {len(result['used'])} shots"
+        if name in reference:
+            focal = 100 * (result["K"][0, 0] / reference[name].K[0, 0] - 1)
+            entry["focal_vs_reference_pct"] = focal
+            line += f"; focal {focal:+.2f} % against {args.compare.name}"
+        report[name] = entry
+        print(line)
+    out = args.out or args.capture
+    atomic_write_bytes(out / "intrinsics.json", json.dumps(report, indent=1).encode())
+    print(f"narf-calibrate: wrote {out / 'intrinsics.json'}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="narf-calibrate",
@@ -183,10 +218,27 @@ def main(argv: list[str] | None = None) -> int:
         "tangential (p1 = p2 = 0), principal_point (image centre); 'none' frees all",
     )
     parser.add_argument("--write-annots", action="store_true", help="also merge the cams into CAPTURE/annots.npy")
+    parser.add_argument(
+        "--checkerboard",
+        type=_corners,
+        default=None,
+        metavar="COLSxROWS",
+        help="intrinsics only, from checkerboard shots: CAPTURE holds one folder of shots per camera (Pose2Sim's "
+        "calibration/intrinsics/int_<camera>_img/); COLSxROWS counts inner corners; --square-length is the square "
+        "side in metres; writes intrinsics.json to --out (default: CAPTURE)",
+    )
+    parser.add_argument(
+        "--compare",
+        type=Path,
+        default=None,
+        help="with --checkerboard: a calibration file to compare the intrinsics with",
+    )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     if not args.capture.is_dir():
         raise CaptureError(f"{args.capture}: no such capture folder")
+    if args.checkerboard:
+        return checkerboard_intrinsics(args)
     spec = _board(args, args.capture / "calib")
     fixed = _fixed_groups(args.fix)
     cameras, ims, report, figures = calibrate_capture(args.capture, spec, args.reference_shot, not args.quiet, fixed)

@@ -83,6 +83,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--masks", type=Path, default=None, help="person mask images, one sub-folder per camera (default: mediapipe)"
     )
+    _choices(parser)
+    return parser
+
+
+def _choices(parser: argparse.ArgumentParser) -> None:
+    """Options of the splits, the consensus, the body fit and the output."""
     parser.add_argument(
         "--holdout-camera",
         default=None,
@@ -111,7 +117,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--overwrite", action="store_true", help="replace a capture this tool prepared before")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
-    return parser
 
 
 def main(argv: list[str] | None = None) -> int:

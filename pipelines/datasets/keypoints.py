@@ -1,4 +1,4 @@
-"""Person keypoints from detectors, and the body-model joints they stand for (docs/formats.md §7).
+"""Person keypoints from detectors, and the body-model joints they stand for (docs/formats.md §9).
 
 Three layouts are read: OpenPose BODY_25 and COCO-18 (``<name>_<frame:012d>_keypoints.json``, one file per frame
 and camera) and BlazePose's 33 landmarks. Each is mapped onto one set of **targets**: SMPL joints that the body fit

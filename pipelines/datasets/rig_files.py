@@ -1,8 +1,9 @@
-"""Rig calibration files from other tools, read into OpenCV cameras (docs/formats.md §7).
+"""Rig calibration files from other tools, read into OpenCV cameras (docs/formats.md §9).
 
-* Qualisys ``.qca.txt`` (XML): intrinsics in 1/64 sensor units, centres offset by the ``fov_video`` window, the
-  rotation listed by columns, camera centres in mm, cameras looking down -z with y up. Converted as Pose2Sim
-  converts it: ``cam_from_world = diag(1, -1, -1) reshape(r11..r33)``, ``t = -cam_from_world centre / 1000``.
+* Qualisys ``.qca.txt`` (XML): focal lengths and centres in 1/64 sensor units, centres offset by the ``fov_video``
+  window, the rotation listed by columns, camera centres in mm, cameras looking down -z with y up. Converted as
+  Pose2Sim converts it, ``cam_from_world = diag(1, -1, -1) reshape(r11..r33)``, ``t = -cam_from_world centre /
+  1000``, except the distortion coefficients: dimensionless, read as written.
 * Pose2Sim / Anipose ``.toml``: one table per camera (``matrix``, ``distortions`` k1 k2 p1 p2, Rodrigues
   ``rotation`` and ``translation`` in metres, world to camera).
 * EasyMocap ``intri.yml`` / ``extri.yml`` (``pipelines.datasets.easymocap``), ZJU ``annots.npy`` and the folder that
@@ -79,10 +80,12 @@ def _qualisys_camera(path: Path, camera) -> Camera:
             [0.0, 0.0, 1.0],
         ]
     )
+    # Distortion coefficients are read as written (dimensionless), not divided by 64 as Pose2Sim does: the demo's
+    # checkerboard shots give k1 = -0.044..-0.048, k2 = 0.09..0.14 per camera against the file's -0.046..-0.048
+    # and 0.135..0.140 (docs/formats.md §9).
+    raw = lambda key: _number(path, intrinsic, key) if intrinsic.get(key) is not None else 0.0  # noqa: E731
     keys = ("radialDistortion1", "radialDistortion2", "tangentalDistortion1", "tangentalDistortion2")
-    dist = np.array(
-        [value(k) for k in keys] + [value("radialDistortion3") if intrinsic.get("radialDistortion3") else 0]
-    )
+    dist = np.array([raw(k) for k in (*keys, "radialDistortion3")])
     listed = np.array([_number(path, transform, f"r{i}{j}") for i in (1, 2, 3) for j in (1, 2, 3)]).reshape(3, 3)
     rotation = _rotation(path, name, QUALISYS_TO_OPENCV @ listed)
     centre = np.array([_number(path, transform, k) for k in "xyz"]) / 1000.0
@@ -120,7 +123,7 @@ def write_qualisys(path: Path, cameras: list[Camera]) -> None:
         r = {f"r{i + 1}{j + 1}": repr(float(listed[i, j])) for i in range(3) for j in range(3)}
         centre = [float(v) for v in cam.centre * 1000.0]
         k = (cam.K * QUALISYS_SUBPIXELS).tolist()
-        d = [float(v) for v in np.asarray(cam.dist, float) * QUALISYS_SUBPIXELS]
+        d = [float(v) for v in np.asarray(cam.dist, float)]
         window = f'left="0" top="0" right="{cam.width - 1}" bottom="{cam.height - 1}"'
         rotation = " ".join(f'{key}="{value}"' for key, value in r.items())
         lines += [

@@ -102,20 +102,10 @@ def _median(values) -> float:
     return float(np.median(values)) if values.size else float("nan")
 
 
-def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, request, calibration) -> dict:
-    """Masks, overlays, splits and the report (returned, and written to ``report.json``)."""
-    from fitting.video import write_mp4
-
-    cameras, names = seen.cameras, [c.name for c in seen.cameras]
-    ious, tiles = _check_pass(root, seen, found, fitted, vertices, faces)
-    write_mp4(root / "overlay" / "overlay.mp4", [np.concatenate(t, axis=1)[..., ::-1] for t in tiles], fps=15)
-    shutil.rmtree(root / ".frames")
-    triangulated, body = _errors(cameras, found, fitted)
-    excluded = [[i, v] for i in range(len(found.frames)) for v in range(len(cameras)) if not found.used[i, v]]
-    split = splits(len(found.frames), names, holdout, request.novel_fraction, excluded)
-    (root / "splits.json").write_text(json.dumps(split, indent=1))
+def _camera_report(seen, found, triangulated, body, ious) -> dict:
+    """Per camera: size, notes, views used / without a person / disagreeing, reprojection errors and IoU."""
     per_camera = {}
-    for v, cam in enumerate(cameras):
+    for v, cam in enumerate(seen.cameras):
         height = cam.height
         per_camera[cam.name] = {
             "size": [cam.width, cam.height],
@@ -129,6 +119,22 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
             "iou_mean": float(np.mean(ious[cam.name])) if ious[cam.name] else float("nan"),
             "iou_min": float(np.min(ious[cam.name])) if ious[cam.name] else float("nan"),
         }
+    return per_camera
+
+
+def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, request, calibration) -> dict:
+    """Masks, overlays, splits and the report (returned, and written to ``report.json``)."""
+    from fitting.video import write_mp4
+
+    cameras, names = seen.cameras, [c.name for c in seen.cameras]
+    ious, tiles = _check_pass(root, seen, found, fitted, vertices, faces)
+    write_mp4(root / "overlay" / "overlay.mp4", [np.concatenate(t, axis=1)[..., ::-1] for t in tiles], fps=15)
+    shutil.rmtree(root / ".frames")
+    triangulated, body = _errors(cameras, found, fitted)
+    excluded = [[i, v] for i in range(len(found.frames)) for v in range(len(cameras)) if not found.used[i, v]]
+    split = splits(len(found.frames), names, holdout, request.novel_fraction, excluded)
+    (root / "splits.json").write_text(json.dumps(split, indent=1))
+    per_camera = _camera_report(seen, found, triangulated, body, ious)
     errors = {n: _median(body[..., v]) for v, n in enumerate(names)}
     disagreed = {n: found.view_notes[v]["disagreed"] / max(1, len(seen.frames[v])) for v, n in enumerate(names)}
     flags = flag_cameras(names, errors, {n: per_camera[n]["iou_mean"] for n in names}, disagreed)
