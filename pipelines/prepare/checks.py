@@ -85,8 +85,8 @@ def flag_cameras(
     for name in names:
         if disagreed.get(name, 0.0) > FLAG_DISAGREED:
             flags[name] = (
-                f"its person disagrees with the other cameras in {100 * disagreed[name]:.0f} % of the frames: check "
-                "this camera's calibration and synchronisation"
+                f"its detection disagrees with the other cameras in {100 * disagreed[name]:.0f} % of the frames: "
+                "another person in view, or this camera's calibration or synchronisation is off"
             )
             continue
         others = [errors[n] for n in names if n != name and np.isfinite(errors[n])]

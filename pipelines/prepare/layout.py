@@ -85,12 +85,13 @@ def _check_pass(root: Path, seen, found, fitted, vertices, faces) -> tuple[dict,
 
 
 def _errors(cameras, found, fitted) -> tuple[np.ndarray, np.ndarray]:
-    """(F, T, V) reprojection errors (fraction of the height; NaN where nothing was detected) of the triangulated
-    targets and of the fitted body's targets, against every camera's detection (used in the fit or not)."""
+    """(F, T, V) reprojection errors (fraction of the height; NaN elsewhere) of the triangulated targets and of the
+    fitted body's targets, against the detections of the views that agreed on the person (a view showing somebody
+    else is counted as disagreeing, not measured)."""
     P = np.stack([projection_matrix(c) for c in cameras])
     heights = np.array([c.height for c in cameras], np.float64)
     xy = found.detected[..., :2].transpose(0, 2, 1, 3)
-    used = found.detected[..., 2].transpose(0, 2, 1) > 0
+    used = (found.detected[..., 2] * found.used[..., None]).transpose(0, 2, 1) > 0
     triangulated = np.where(used, relative_errors(P, found.points, xy, heights), np.nan)
     body = np.where(used, relative_errors(P, fitted.targets, xy, heights), np.nan)
     return triangulated, body

@@ -78,14 +78,21 @@ class Consensus:
 
 
 def consensus(
-    P: np.ndarray, people: list[list[np.ndarray]], heights: np.ndarray, threshold: float, previous=None
+    P: np.ndarray,
+    people: list[list[np.ndarray]],
+    heights: np.ndarray,
+    threshold: float,
+    previous=None,
+    radius: float = np.inf,
 ) -> Consensus:
     """The views that see one person, found as RANSAC does over pairs of detections from two views.
 
     Each pair is triangulated; a view agrees when one of its detections reprojects within ``threshold`` (median
-    over the shared joints, fraction of the height). The hypothesis with most agreeing views wins; ties go to the
-    one nearest ``previous`` (the last frame's targets, (T, 3)), then to the smaller error. A view whose detections
-    all disagree (nobody, or somebody else) keeps none.
+    over the shared joints, fraction of the height). With ``previous`` (the followed person's targets in the last
+    kept frame, (T, 3)) only hypotheses within ``radius`` metres of it (median over the joints) count, so that the
+    same person is followed through the sequence; among those, the most agreeing views win, then the nearest, then
+    the smaller error. A view whose detections all disagree (nobody, or somebody else) keeps none; no hypothesis
+    at all gives every view -1.
 
     Args:
         P: (V, 3, 4). people: per view, a list of (T, 3) detections (x, y, confidence). heights: (V,) pixels.
@@ -107,7 +114,10 @@ def consensus(
         choice, errors = _agreeing(P, people, heights, points, threshold)
         agreeing = sum(c >= 0 for c in choice)
         distance = 0.0 if previous is None else float(np.nanmedian(np.linalg.norm(points - previous, axis=-1)))
-        key = (-agreeing, np.nan_to_num(distance, nan=np.inf), float(np.mean(errors)) if errors else np.inf)
+        distance = np.nan_to_num(distance, nan=np.inf)
+        if distance > radius:
+            continue
+        key = (-agreeing, distance, float(np.mean(errors)) if errors else np.inf)
         if best_key is None or key < best_key:
             best, best_key = Consensus(choice, key[2]), key
     return best

@@ -15,6 +15,8 @@ from pipelines.prepare.triangulate import consensus, project, projection_matrix,
 MIN_CONFIDENCE = 0.3
 #: fewest targets a kept frame has triangulated
 MIN_TARGETS = 8
+#: metres a followed person may move per frame (a sprinter at 60 fps moves 0.2 m); beyond it, it is somebody else
+TRACK_RADIUS = 0.5
 
 
 @dataclass
@@ -89,11 +91,12 @@ def triangulate_people(cameras: list[Camera], people, frames: list[int], thresho
     n_views, n_targets = len(cameras), len(TARGETS)
     kept, points, keypoints, used, distorted, detected, dropped = [], [], [], [], [], [], {}
     notes = [{"no_person": 0, "disagreed": 0} for _ in cameras]
-    previous = None
+    previous, previous_frame = None, 0
     for frame in frames:
         raw = [_with_mirrored(people[v].get(frame, [])) for v in range(n_views)]
         undistorted = _undistorted_people(cameras, raw)
-        choice = consensus(P, undistorted, heights, threshold, previous)
+        radius = TRACK_RADIUS * (frame - previous_frame) if previous is not None else np.inf
+        choice = consensus(P, undistorted, heights, threshold, previous, radius)
         for v in range(n_views):
             if choice.person[v] < 0:
                 notes[v]["no_person" if not raw[v] else "disagreed"] += 1
@@ -103,7 +106,8 @@ def triangulate_people(cameras: list[Camera], people, frames: list[int], thresho
             if p >= 0:
                 frame_xy[v], frame_raw[v] = undistorted[v][p], raw[v][p]
         if sum(p >= 0 for p in choice.person) < 2:
-            dropped[frame] = "fewer than two views see the same person"
+            followed = " (the person followed so far)" if previous is not None else ""
+            dropped[frame] = f"fewer than two views agree on a person{followed}"
             continue
         xyz, weights = triangulate_robust(
             P, frame_xy[..., :2].transpose(1, 0, 2), frame_xy[..., 2].T, heights, threshold
@@ -118,7 +122,7 @@ def triangulate_people(cameras: list[Camera], people, frames: list[int], thresho
         keypoints.append(frame_xy)
         used.append(np.array(choice.person) >= 0)
         distorted.append(frame_raw)
-        previous = xyz
+        previous, previous_frame = xyz, frame
     shape = (-1, n_views, n_targets, 3)
     return Triangulated(
         kept,
