@@ -180,3 +180,25 @@ def test_bad_recordings_are_one_line(recording, tmp_path, capsys):
     (rec / "videos" / "Camera_B2.mp4").write_bytes(b"\x00" * 4096)
     assert "Camera_B2.mp4: cannot be decoded" in _error(capsys, [rec, *flags])
     assert not out.exists() and not list(tmp_path.glob(".out*")), "nothing half-written"
+
+
+def test_training_views_of_different_sizes_sample_only_their_own_pixels():
+    from types import SimpleNamespace
+
+    import torch
+
+    from fitting.data import TrainingSet
+
+    def view(width):
+        mask = np.zeros((20, width), np.float32)
+        mask[5:15, width - 6 : width - 2] = 1  # the body at the right edge: the box would reach the padding
+        camera = SimpleNamespace(K=np.eye(3), cam_from_world=np.eye(4))
+        return SimpleNamespace(
+            image=np.ones((20, width, 3), np.float32), mask=mask, band=np.zeros((20, width), bool), camera=camera
+        )
+
+    poses = SimpleNamespace(to=lambda device: None)
+    training = TrainingSet([view(30), view(40)], [0, 0], poses, torch.device("cpu"))
+    assert tuple(training.images.shape) == (2, 20, 40, 3)
+    for pool in training.pools[0]:
+        assert (pool % 40 < 30).all(), "the 30-px view samples only its own columns"

@@ -169,5 +169,16 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
         },
         "splits": {k: v for k, v in split.items() if k != "excluded"} | {"excluded_views": len(excluded)},
     }
-    (root / "report.json").write_text(json.dumps(report, indent=1))
+    (root / "report.json").write_text(json.dumps(_json_ready(report), indent=1, allow_nan=False))
     return report
+
+
+def _json_ready(value):
+    """NaN (a value with nothing to measure: a target the detector has no point for) as JSON null."""
+    if isinstance(value, dict):
+        return {k: _json_ready(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_ready(v) for v in value]
+    if isinstance(value, float) and not np.isfinite(value):
+        return None
+    return value
