@@ -24,6 +24,7 @@ BENCHMARKS = {
     "calib": "bench.bench_calib",
     "autoencoder": "bench.bench_autoencoder",
     "quality": "bench.bench_quality",
+    "views": "bench.bench_views",
 }
 
 

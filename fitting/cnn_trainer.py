@@ -36,12 +36,13 @@ class CnnTrainer(Trainer):
             raise ValueError("the CNN baseline needs every training pose's world_from_joint")
         size = config.model.image_size
         self.rays_per_step = config.train.images_per_step * size * size
-        images = self.data.images.permute(0, 3, 1, 2).float() / 255.0  # (N, 3, H, W)
-        self.rgb = F.interpolate(images, size=(size, size), mode="area").to(torch.float16)
-        masks = self.data.masks[:, None].float()
-        self.mask = F.interpolate(masks, size=(size, size), mode="area")[:, 0].to(torch.float16)
-        bands = self.data.bands[:, None].float()
-        self.mask_weight = (F.interpolate(bands, size=(size, size), mode="area")[:, 0] == 0).to(torch.float16)
+        rgb, mask, weight = [], [], []
+        for index in range(len(self.data)):  # one view at a time: only the network-size copies stay in memory
+            image, silhouette, band = (torch.as_tensor(a)[None].float() for a in self.data.full_view(index))
+            rgb.append(F.interpolate(image.permute(0, 3, 1, 2) / 255.0, size=(size, size), mode="area")[0])
+            mask.append(F.interpolate(silhouette[None], size=(size, size), mode="area")[0, 0])
+            weight.append(F.interpolate(band[None], size=(size, size), mode="area")[0, 0] == 0)
+        self.rgb, self.mask, self.mask_weight = (torch.stack(a).to(device, torch.float16) for a in (rgb, mask, weight))
 
     def train_step(self) -> tuple[float, float]:
         chosen = self._choose_images()

@@ -1,19 +1,18 @@
-"""Training data in memory: training views, per-frame poses, part boxes and mask-guided ray batches.
+"""Training data: training views (on disk, ``fitting.view_store``), per-frame poses, part boxes and mask-guided
+ray batches.
 
-Built by ``pipelines.runs.subject.session`` from a capture; this module reads no files."""
+Built by ``pipelines.runs.*.session`` from views they load; this module reads no capture files."""
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import torch
 
+from fitting.view_store import BAND_BIT, POOL_BACKGROUND, POOL_BITS, POOL_BODY, POOL_BORDER, ViewStore
 from narf.fields.common import PoseBatch
-
-BORDER_PX = 11  # side of the square dilation kernel: the border band is the 5-px ring around the silhouette
 
 
 @dataclass
@@ -34,62 +33,50 @@ class RayBatch:
 
 
 class TrainingSet:
-    """Training images kept as uint8 on ``device``, with their cameras, poses and sampling pools.
+    """Training views in a disk-backed store (``fitting.view_store``), with their cameras, poses and pixel pools.
+
+    Each view is stored once, as uint8 and cropped to its sampling box; a step reads back only the views it draws,
+    so memory does not grow with the number of views.
 
     Args:
-        views: loaded views with ``image`` (H, W, 3) float in [0, 1], ``mask`` (H, W), ``band`` (H, W) bool and
-            ``camera`` (``K``, ``cam_from_world``), e.g. ``pipelines.zju_mocap.Frame``.
+        views: loaded views, consumed one at a time (a generator will do): ``image`` (H, W, 3) float in [0, 1],
+            ``mask`` (H, W), ``band`` (H, W) bool and ``camera`` (``K``, ``cam_from_world``), e.g.
+            ``pipelines.datasets.zju_mocap.Frame``. Views may differ in size.
         frame_of_view: index of each view's frame in ``poses``.
         poses: PoseBatch of the training frames.
-        device: where images and rays live.
+        device: where rays and targets are sent.
+        store_dir: folder of the store's anonymous file (the system's temporary folder by default).
     """
 
-    def __init__(self, views: list, frame_of_view: list[int], poses: PoseBatch, device):
+    def __init__(self, views, frame_of_view: list[int], poses: PoseBatch, device, store_dir=None):
         self.device = device
         self.poses = poses.to(device)
-        # Cameras may differ in image size: every view is stored at the largest size, padded at the bottom and
-        # right, and its sampling pools stay inside its own pixels.
-        self.height = max(v.image.shape[0] for v in views)
-        self.width = max(v.image.shape[1] for v in views)
-        self.images = torch.as_tensor(np.stack([self._padded((v.image * 255 + 0.5).astype(np.uint8)) for v in views]))
-        self.images = self.images.to(device)
-        self.masks = torch.as_tensor(np.stack([self._padded(v.mask > 0.5) for v in views])).to(device)
-        self.bands = torch.as_tensor(np.stack([self._padded(v.band) for v in views])).to(device)
-        self.Ks = torch.as_tensor(np.stack([v.camera.K for v in views]), dtype=torch.float32).to(device)
-        self.cam_from_world = torch.as_tensor(
-            np.stack([v.camera.cam_from_world for v in views]), dtype=torch.float32
-        ).to(device)
+        self.store = ViewStore(store_dir)
+        Ks, cam_from_world = [], []
+        for view in views:
+            image = (view.image * 255 + 0.5).astype(np.uint8)
+            self.store.add(image, np.asarray(view.mask) > 0.5, np.asarray(view.band, bool))
+            Ks.append(view.camera.K)
+            cam_from_world.append(view.camera.cam_from_world)
+        if not Ks:
+            raise ValueError("no training views")
+        # the largest view's size: the CNN baseline's full views are padded to it (bottom and right)
+        self.height = max(self.store.size(i)[0] for i in range(len(self.store)))
+        self.width = max(self.store.size(i)[1] for i in range(len(self.store)))
+        self.Ks = torch.as_tensor(np.stack(Ks), dtype=torch.float32).to(device)
+        self.cam_from_world = torch.as_tensor(np.stack(cam_from_world), dtype=torch.float32).to(device)
         self.frame_of_image = torch.as_tensor(frame_of_view, dtype=torch.long, device=device)
-        self.pools = [self._pools(v.mask > 0.5) for v in views]
+        if len(self.frame_of_image) != len(self.store):
+            raise ValueError(f"{len(self.store)} views but {len(self.frame_of_image)} frame indices")
 
     def __len__(self) -> int:
-        return self.images.shape[0]
+        return len(self.store)
 
-    def _padded(self, array: np.ndarray) -> np.ndarray:
-        """``array`` (h, w, ...) zero-padded to (height, width, ...)."""
-        pad = [(0, self.height - array.shape[0]), (0, self.width - array.shape[1])] + [(0, 0)] * (array.ndim - 2)
-        return np.pad(array, pad) if any(p[1] for p in pad) else array
-
-    def _pools(self, mask: np.ndarray) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """Flat pixel indices of body, border band and background inside the padded silhouette box."""
-        own_height, own_width = mask.shape
-        mask = self._padded(mask)
-        mask_u8 = mask.astype(np.uint8)
-        dilated = cv2.dilate(mask_u8, np.ones((BORDER_PX, BORDER_PX), np.uint8)) > 0
-        dilated[own_height:], dilated[:, own_width:] = False, False
-        border = dilated & ~mask
-        if dilated.any():
-            ys, xs = np.nonzero(dilated)
-        else:  # an empty mask: the whole image is background
-            ys, xs = np.array([0, own_height - 1]), np.array([0, own_width - 1])
-        pad_y, pad_x = int(0.1 * (ys.max() - ys.min() + 1)), int(0.1 * (xs.max() - xs.min() + 1))
-        box = np.zeros_like(mask)
-        box[max(ys.min() - pad_y, 0) : ys.max() + pad_y + 1, max(xs.min() - pad_x, 0) : xs.max() + pad_x + 1] = True
-        box[own_height:], box[:, own_width:] = False, False
-        background = box & ~dilated
-        as_index = lambda m: torch.as_tensor(np.flatnonzero(m), dtype=torch.long, device=self.device)  # noqa: E731
-        body = as_index(mask)
-        return body, as_index(border), as_index(background)
+    def full_view(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """View ``index`` padded to (height, width): image (height, width, 3) uint8, mask and band bool."""
+        image, mask, band = self.store.full(index)
+        pad = ((0, self.height - mask.shape[0]), (0, self.width - mask.shape[1]))
+        return np.pad(image, (*pad, (0, 0))), np.pad(mask, pad), np.pad(band, pad)
 
     def sample(
         self,
@@ -99,37 +86,49 @@ class TrainingSet:
         border_fraction: float,
         generator: torch.Generator,
     ) -> RayBatch:
-        """Draw ``n_images`` images and mask-guided pixels from each (body, border band, background in the box)."""
+        """Draw ``n_images`` images and mask-guided pixels from each (body, border ring, background in the box); an
+        empty pool draws from the body pool, and an image with no body pixel from its whole box."""
         chosen = torch.randint(0, len(self), (n_images,), generator=generator).tolist()
         n_body = int(round(rays_per_image * body_fraction))
         n_border = int(round(rays_per_image * border_fraction))
         counts = (n_body, n_border, rays_per_image - n_body - n_border)
-        images, pixels = [], []
+        images, rows, cols, rgb, labels = [], [], [], [], []
         for image in chosen:
-            for pool, count in zip(self.pools[image], counts):
+            crop, crop_labels = self.store.read(image)
+            y0, x0, _, width = self.store.box(image)
+            pools = [np.flatnonzero((crop_labels & POOL_BITS) == pool) for pool in (POOL_BODY, POOL_BORDER)]
+            pools.append(np.flatnonzero((crop_labels & POOL_BITS) == POOL_BACKGROUND))
+            for pool, count in zip(pools, counts):
                 if count == 0:
                     continue
-                pool = pool if pool.numel() else self.pools[image][0]
-                if pool.numel() == 0:
-                    pool = torch.arange(self.height * self.width, device=self.device)
-                pick = torch.randint(0, pool.numel(), (count,), generator=generator)
-                pixels.append(pool[pick.to(pool.device)])
-                images.append(torch.full((count,), image, dtype=torch.long, device=self.device))
-        return self.rays(torch.cat(images), torch.cat(pixels))
+                pool = pool if pool.size else pools[0]
+                if pool.size == 0:
+                    pool = np.arange(crop_labels.size)
+                pixels = pool[torch.randint(0, pool.size, (count,), generator=generator).numpy()]
+                v, u = pixels // width, pixels % width
+                rows.append(v + y0)
+                cols.append(u + x0)
+                rgb.append(crop[v, u])
+                labels.append(crop_labels[v, u])
+                images.append(np.full(count, image))
+        labels = torch.as_tensor(np.concatenate(labels))
+        targets = (
+            torch.as_tensor(np.concatenate(rgb)).float() / 255.0,
+            ((labels & POOL_BITS) == POOL_BODY).float(),
+            ((labels & BAND_BIT) == 0).float(),
+        )
+        pixels = [torch.as_tensor(np.concatenate(a), dtype=torch.long) for a in (images, rows, cols)]
+        return self.rays(*(a.to(self.device) for a in pixels), *(t.to(self.device) for t in targets))
 
-    def rays(self, images: torch.Tensor, flat_pixels: torch.Tensor) -> RayBatch:
-        """Rays and targets of given (image, flat pixel index) pairs."""
-        v, u = flat_pixels // self.width, flat_pixels % self.width
-        homogeneous = torch.stack([u.float(), v.float(), torch.ones_like(u, dtype=torch.float32)], dim=-1)
+    def rays(self, images, rows, cols, rgb, mask, mask_weight) -> RayBatch:
+        """Rays through pixels (``rows``, ``cols``) of training ``images`` (R,) each, with their targets."""
+        homogeneous = torch.stack([cols.float(), rows.float(), torch.ones_like(cols, dtype=torch.float32)], dim=-1)
         dirs_cam = torch.linalg.solve(self.Ks[images], homogeneous[..., None])[..., 0]
         rotation = self.cam_from_world[images, :3, :3]
         dirs = (rotation.transpose(1, 2) @ dirs_cam[..., None])[..., 0]
         dirs = dirs / dirs.norm(dim=-1, keepdim=True)
         origins = -(rotation.transpose(1, 2) @ self.cam_from_world[images, :3, 3:4])[..., 0]
-        rgb = self.images[images, v, u].float() / 255.0
-        mask = self.masks[images, v, u].float()
-        weight = (~self.bands[images, v, u]).float()
-        return RayBatch(origins, dirs, self.frame_of_image[images], rgb, mask, weight)
+        return RayBatch(origins, dirs, self.frame_of_image[images], rgb, mask, mask_weight)
 
 
 @dataclass

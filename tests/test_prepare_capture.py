@@ -198,7 +198,9 @@ def test_training_views_of_different_sizes_sample_only_their_own_pixels():
         )
 
     poses = SimpleNamespace(to=lambda device: None)
-    training = TrainingSet([view(30), view(40)], [0, 0], poses, torch.device("cpu"))
-    assert tuple(training.images.shape) == (2, 20, 40, 3)
-    for pool in training.pools[0]:
-        assert (pool % 40 < 30).all(), "the 30-px view samples only its own columns"
+    training = TrainingSet([view(30), view(40)], [0, 1], poses, torch.device("cpu"))
+    assert (training.height, training.width) == (20, 40)
+    batch = training.sample(16, 64, 0.5, 0.25, torch.Generator().manual_seed(0))
+    narrow = batch.frames == 0  # the 30-px view is frame 0
+    columns = batch.dirs[:, 0] / batch.dirs[:, 2]  # K = I: the column of each ray
+    assert len(columns) == 1024 and (columns[narrow] < 30).all(), "the 30-px view samples only its own columns"

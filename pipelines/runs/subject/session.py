@@ -4,6 +4,7 @@ stand-in), pose its frames, fit the part boxes, load the training views, and sta
 from __future__ import annotations
 
 import sys
+from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,8 +18,10 @@ from fitting.data import FitData, TrainingSet
 from fitting.distributed import SINGLE
 from fitting.fitted import load_fitted
 from fitting.trainer import Trainer
+from narf.fields.common import PoseBatch
 from pipelines.body.model import BodyModel, pose_batch
 from pipelines.datasets.capture import ZjuCapture
+from pipelines.datasets.smpl_files import cache_dir
 from pipelines.datasets.subjects import data_root, find_subject, real_candidates, synthetic_path
 from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
@@ -75,38 +78,53 @@ def poses_for_frames(capture: ZjuCapture, body_model: BodyModel, frames: list[in
     return pose_batch(bodies), bodies, stack[3]
 
 
-def fit_boxes(body_model: BodyModel, bodies, shapes: torch.Tensor, n_frames: int, scale_pad: float, abs_pad: float):
-    """Part boxes over the rest pose and up to ``n_frames`` evenly spaced training frames (docs/model.md §1)."""
-    count = bodies.vertices.shape[0]
-    pick = torch.as_tensor(np.unique(np.linspace(0, count - 1, min(n_frames, count)).astype(int)))
-    subset = type(bodies)(*(getattr(bodies, k)[pick] for k in bodies.__dataclass_fields__))
+def training_poses(capture: ZjuCapture, body_model: BodyModel, frames: list[int], chunk: int = 256) -> PoseBatch:
+    """PoseBatch of many frames, posed ``chunk`` at a time: the posed vertices (80 kB a frame) are never all held."""
+    parts = [poses_for_frames(capture, body_model, frames[i : i + chunk])[0] for i in range(0, len(frames), chunk)]
+    return PoseBatch(*(torch.cat([getattr(p, k) for p in parts]) for k in PoseBatch.__dataclass_fields__))
+
+
+def fit_boxes(body_model: BodyModel, bodies, shapes: torch.Tensor, scale_pad: float, abs_pad: float):
+    """Part boxes over the rest pose and the posed ``bodies`` (docs/model.md §1)."""
     with torch.no_grad():
         rest = body_model.rest_body(shapes[:1])
-        return body_model.part_boxes([rest, subset], scale_pad, abs_pad)
+        return body_model.part_boxes([rest, bodies], scale_pad, abs_pad)
+
+
+def box_frames(frames: list[int], count: int) -> list[int]:
+    """Up to ``count`` evenly spaced frames of ``frames``, the ones the part boxes are fitted on."""
+    return [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, min(count, len(frames))).astype(int))]
+
+
+def decoded_views(capture: ZjuCapture, items: list[tuple[int, int]], progress: bool, ahead: int = 8):
+    """The views (frame, camera) of ``items``, decoded by two threads and yielded in order, at most ``ahead`` of
+    them decoded and not yet taken: memory does not grow with the number of views."""
+    bar = tqdm(total=len(items), desc="loading training views", unit="image", disable=not progress)
+    with ThreadPoolExecutor(2) as pool:
+        pending = deque()
+        for frame, camera in items:
+            pending.append(pool.submit(capture.load_frame, frame, camera))
+            if len(pending) >= ahead:
+                bar.update()
+                yield pending.popleft().result()
+        while pending:
+            bar.update()
+            yield pending.popleft().result()
+    bar.close()
 
 
 def build_fit_data(config: FitConfig, device, progress: bool = True) -> FitData:
-    """Load the protocol's training views (Neural Body order), their poses and the part boxes."""
+    """Load the protocol's training views (Neural Body order) into the view store, their poses and the part boxes."""
     capture = open_capture(config)
     protocol = capture.protocol(config.data.protocol)
     frames = list(protocol.train_frames[:: config.data.frame_stride])
     body_model = BodyModel()
-    poses, bodies, shapes = poses_for_frames(capture, body_model, frames)
-    boxes = fit_boxes(
-        body_model, bodies, shapes, config.data.box_frames, config.model.box_scale_pad, config.model.box_abs_pad
-    )
+    poses = training_poses(capture, body_model, frames)
+    _, bodies, shapes = poses_for_frames(capture, body_model, box_frames(frames, config.data.box_frames))
+    boxes = fit_boxes(body_model, bodies, shapes, config.model.box_scale_pad, config.model.box_abs_pad)
     items = [(i, f, c) for i, f in enumerate(frames) for _, c in protocol.usable([f], protocol.train_views)]
-    with ThreadPoolExecutor(2) as pool:
-        views = list(
-            tqdm(
-                pool.map(lambda item: capture.load_frame(item[1], item[2]), items),
-                total=len(items),
-                desc="loading training views",
-                unit="image",
-                disable=not progress,
-            )
-        )
-    training = TrainingSet(views, [i for i, _, _ in items], poses, device)
+    views = decoded_views(capture, [(f, c) for _, f, c in items], progress)
+    training = TrainingSet(views, [i for i, _, _ in items], poses, device, store_dir=cache_dir() / "views")
     held_frame = frames[len(frames) // 2]
     held_view = protocol.test_views[0] if protocol.test_views else protocol.train_views[0]
 

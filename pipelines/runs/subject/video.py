@@ -20,7 +20,7 @@ from pipelines.body.model import BodyModel, pose_batch, posed_from_rest_joints
 from pipelines.body.motion import load_motion, place, resample, stage_of
 from pipelines.datasets.smpl_files import atomic_write_bytes
 from pipelines.runs.requests import VideoRequest, refuse_options
-from pipelines.runs.subject.session import LoadedRun, load_run, poses_for_frames
+from pipelines.runs.subject.session import LoadedRun, box_frames, load_run, poses_for_frames
 from pipelines.synthetic.scene import look_at
 
 KINDS = ("orbit", "poses", "bones")
@@ -87,8 +87,7 @@ def motion_params(run: LoadedRun, motion_path: Path, fps, start: int, n_frames, 
     frame ``start`` for at most ``n_frames`` (None: to the end), placed on the capture's stage, and a report of the
     frames whose parts leave the trained range (``docs/design.md`` *Driving the avatar*)."""
     capture, body = run.capture, run.body_model
-    frames = list(run.protocol.train_frames)
-    frames = [frames[i] for i in np.unique(np.linspace(0, len(frames) - 1, min(100, len(frames))).astype(int))]
+    frames = box_frames(list(run.protocol.train_frames), 100)
     train_pose, train_bodies, shapes = poses_for_frames(capture, body, frames)
     rest_pelvis = body.rest_joints(shapes[:1].to(body.dtype))[0, 0].double().numpy()
     source = load_motion(motion_path, rest_pelvis, motion_fps)

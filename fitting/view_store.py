@@ -1,0 +1,123 @@
+"""Training views on disk: each view's pixels inside its sampling box, as uint8, in one anonymous file written
+once; a training step reads back only the views it draws, so memory does not grow with the number of views
+(docs/design.md *Training views on disk*).
+
+A record is the crop's RGB (h, w, 3) followed by its label map (h, w): the sampling pool of each pixel in the low
+two bits (``POOL_BODY``, ``POOL_BORDER``, ``POOL_BACKGROUND``; 0 outside every pool) and ``BAND_BIT`` on the
+5-px boundary band that the mask loss skips."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+BORDER_PX = 11  # side of the square dilation kernel: the border pool is the 5-px ring around the silhouette
+BOX_PAD = 0.1  # the sampling box: the dilated silhouette's bounding box grown by 10 % of its size on each side
+POOL_BODY, POOL_BORDER, POOL_BACKGROUND = 1, 2, 3
+POOL_BITS = 3
+BAND_BIT = 4
+
+
+def sampling_labels(mask: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+    """Pool labels of one view and its sampling box.
+
+    Body = the silhouette; border = the dilation ring (``BORDER_PX``) outside it; background = the rest of the box,
+    which is the dilated silhouette's bounding box padded by ``BOX_PAD`` of its size (the whole image when the
+    silhouette is empty: then every pixel is background).
+
+    Args:
+        mask: (H, W) bool silhouette.
+        band: (H, W) bool boundary band (mask loss weight 0).
+
+    Returns:
+        labels (H, W) uint8, and the box (y0, y1, x0, x1), end-exclusive.
+    """
+    height, width = mask.shape
+    dilated = cv2.dilate(mask.astype(np.uint8), np.ones((BORDER_PX, BORDER_PX), np.uint8)) > 0
+    if dilated.any():
+        ys, xs = np.nonzero(dilated)
+        pad_y, pad_x = int(BOX_PAD * (ys.max() - ys.min() + 1)), int(BOX_PAD * (xs.max() - xs.min() + 1))
+        box = (max(ys.min() - pad_y, 0), min(ys.max() + pad_y + 1, height), max(xs.min() - pad_x, 0))
+        box = (*box, min(xs.max() + pad_x + 1, width))
+    else:
+        box = (0, height, 0, width)
+    y0, y1, x0, x1 = (int(v) for v in box)
+    labels = np.zeros((height, width), np.uint8)
+    labels[y0:y1, x0:x1] = POOL_BACKGROUND
+    labels[dilated] = POOL_BORDER
+    labels[mask] = POOL_BODY
+    labels[band] |= BAND_BIT
+    return labels, (y0, y1, x0, x1)
+
+
+class ViewStore:
+    """Cropped views in an anonymous file under ``directory`` (the system's temporary folder by default): removed
+    by the operating system when the store is closed or the process ends, however it ends.
+
+    Outside its box a view must be one colour (the composited background) to be stored cropped; otherwise the
+    whole view is stored, so ``full`` always gives back exactly what was added."""
+
+    def __init__(self, directory: str | Path | None = None):
+        if directory is not None:
+            Path(directory).mkdir(parents=True, exist_ok=True)
+        self._file = tempfile.TemporaryFile(prefix="narf-views-", dir=directory)
+        self._end = 0
+        self._records: list[tuple[int, int, int, int, int, int, int]] = []  # offset, y0, x0, h, w, H, W
+        self._fill: list[np.ndarray] = []
+
+    def __len__(self) -> int:
+        return len(self._records)
+
+    def add(self, image: np.ndarray, mask: np.ndarray, band: np.ndarray) -> None:
+        """Store a view: ``image`` (H, W, 3) uint8, ``mask`` and ``band`` (H, W) bool."""
+        height, width = mask.shape
+        if image.shape != (height, width, 3) or image.dtype != np.uint8 or band.shape != mask.shape:
+            raise ValueError(f"a view needs image (H, W, 3) uint8 and mask, band (H, W); got {image.shape}")
+        labels, (y0, y1, x0, x1) = sampling_labels(mask, band)
+        fill = image[0, 0] if y0 > 0 or x0 > 0 else image[-1, -1]
+        outside = np.ones((height, width), bool)
+        outside[y0:y1, x0:x1] = False
+        if (image[outside] != fill).any():
+            y0, y1, x0, x1 = 0, height, 0, width  # not one colour outside the box: keep the whole view
+        crop = np.ascontiguousarray(image[y0:y1, x0:x1])
+        record = crop.tobytes() + np.ascontiguousarray(labels[y0:y1, x0:x1]).tobytes()
+        os.pwrite(self._file.fileno(), record, self._end)
+        self._records.append((self._end, y0, x0, y1 - y0, x1 - x0, height, width))
+        self._fill.append(fill.copy())
+        self._end += len(record)
+
+    def box(self, index: int) -> tuple[int, int, int, int]:
+        """(y0, x0, h, w) of view ``index``'s stored crop."""
+        return self._records[index][1:5]
+
+    def size(self, index: int) -> tuple[int, int]:
+        """(H, W) of view ``index``."""
+        return self._records[index][5:7]
+
+    def read(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """RGB (h, w, 3) uint8 and labels (h, w) uint8 of view ``index``'s crop (``box``), read from the file."""
+        offset, _, _, h, w, _, _ = self._records[index]
+        data = os.pread(self._file.fileno(), 4 * h * w, offset)
+        if len(data) != 4 * h * w:
+            raise OSError(f"training view store: view {index} is truncated ({len(data)} of {4 * h * w} bytes)")
+        raw = np.frombuffer(data, np.uint8)
+        return raw[: 3 * h * w].reshape(h, w, 3), raw[3 * h * w :].reshape(h, w)
+
+    def full(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """View ``index`` as it was added: image (H, W, 3) uint8, mask and band (H, W) bool."""
+        rgb, labels = self.read(index)
+        y0, x0, h, w = self.box(index)
+        height, width = self.size(index)
+        image = np.empty((height, width, 3), np.uint8)
+        image[:] = self._fill[index]
+        image[y0 : y0 + h, x0 : x0 + w] = rgb
+        full_labels = np.zeros((height, width), np.uint8)
+        full_labels[y0 : y0 + h, x0 : x0 + w] = labels
+        return image, (full_labels & POOL_BITS) == POOL_BODY, (full_labels & BAND_BIT) > 0
+
+    def close(self) -> None:
+        self._file.close()

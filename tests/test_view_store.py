@@ -1,0 +1,124 @@
+"""The disk-backed training views (fitting.view_store, fitting.data.TrainingSet) against the in-memory sampler they
+replace: the same random draws give the same rays and targets, bit for bit, and a view comes back as it went in."""
+
+from types import SimpleNamespace
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from fitting.data import TrainingSet
+from fitting.view_store import BORDER_PX, ViewStore, sampling_labels
+
+
+def _view(rng, height, width, body, noisy_background=False):
+    """A view with a rectangular 'body' (y0, y1, x0, x1) on black (or noise), a 2-px band and its own camera."""
+    image = rng.random((height, width, 3)).astype(np.float32) if noisy_background else np.zeros((height, width, 3))
+    mask = np.zeros((height, width), np.float32)
+    if body is not None:
+        y0, y1, x0, x1 = body
+        mask[y0:y1, x0:x1] = 1
+        image[y0:y1, x0:x1] = rng.random((y1 - y0, x1 - x0, 3))
+    band = (cv2.dilate(mask, np.ones((5, 5))) > 0) & (cv2.erode(mask, np.ones((5, 5))) == 0)
+    K = np.array([[50.0 + width, 0, width / 2], [0, 50.0 + width, height / 2], [0, 0, 1]])
+    angle = rng.uniform(-0.3, 0.3)
+    cam_from_world = np.eye(4)
+    cam_from_world[:3, :3] = cv2.Rodrigues(np.array([0.1, angle, 0.0]))[0]
+    cam_from_world[:3, 3] = [0.1, -0.2, 3.0]
+    return SimpleNamespace(
+        image=image.astype(np.float32), mask=mask, band=band, camera=SimpleNamespace(K=K, cam_from_world=cam_from_world)
+    )
+
+
+def _views():
+    rng = np.random.default_rng(7)
+    return [
+        _view(rng, 48, 40, (10, 30, 12, 20)),
+        _view(rng, 48, 40, (3, 45, 0, 9)),  # the box touches the top-left corner
+        _view(rng, 40, 32, (20, 38, 25, 31), noisy_background=True),  # smaller, and stored whole
+        _view(rng, 48, 40, None),  # nobody in view
+    ]
+
+
+def _reference_sample(views, frame_of_view, n_images, rays_per_image, body_fraction, border_fraction, generator):
+    """The sampler as it was with every view in memory: pools of flat indices into the views padded to one size."""
+    height, width = max(v.mask.shape[0] for v in views), max(v.mask.shape[1] for v in views)
+    pad = lambda a: np.pad(a, [(0, height - a.shape[0]), (0, width - a.shape[1])] + [(0, 0)] * (a.ndim - 2))  # noqa: E731
+    images = np.stack([pad((v.image * 255 + 0.5).astype(np.uint8)) for v in views])
+    masks, bands = np.stack([pad(v.mask > 0.5) for v in views]), np.stack([pad(v.band) for v in views])
+    pools = []
+    for v, mask in zip(views, masks):
+        dilated = cv2.dilate(mask.astype(np.uint8), np.ones((BORDER_PX, BORDER_PX), np.uint8)) > 0
+        dilated[v.mask.shape[0] :], dilated[:, v.mask.shape[1] :] = False, False
+        ys, xs = np.nonzero(dilated) if dilated.any() else ([0, v.mask.shape[0] - 1], [0, v.mask.shape[1] - 1])
+        ys, xs = np.asarray(ys), np.asarray(xs)
+        pad_y, pad_x = int(0.1 * (ys.max() - ys.min() + 1)), int(0.1 * (xs.max() - xs.min() + 1))
+        box = np.zeros_like(mask)
+        box[max(ys.min() - pad_y, 0) : ys.max() + pad_y + 1, max(xs.min() - pad_x, 0) : xs.max() + pad_x + 1] = True
+        box[v.mask.shape[0] :], box[:, v.mask.shape[1] :] = False, False
+        pools.append([np.flatnonzero(m) for m in (mask, dilated & ~mask, box & ~dilated)])
+    chosen = torch.randint(0, len(views), (n_images,), generator=generator).tolist()
+    n_body, n_border = int(round(rays_per_image * body_fraction)), int(round(rays_per_image * border_fraction))
+    picked = []
+    for image in chosen:
+        for pool, count in zip(pools[image], (n_body, n_border, rays_per_image - n_body - n_border)):
+            pool = pool if pool.size else pools[image][0]
+            pick = torch.randint(0, pool.size, (count,), generator=generator).numpy()
+            picked += [(image, flat // width, flat % width) for flat in pool[pick]]
+    index = tuple(np.array(picked).T)
+    rgb, mask, band = images[index] / 255.0, masks[index], bands[index]
+    return index, rgb, mask, ~band, np.asarray(frame_of_view)[index[0]]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_sampling_from_disk_draws_what_the_in_memory_sampler_drew(seed, tmp_path):
+    views, frames = _views()[:3], [2, 0, 1]  # the empty view is left out: the reference drew from padding there
+    training = TrainingSet(iter(views), frames, SimpleNamespace(to=lambda device: None), "cpu", store_dir=tmp_path)
+    batch = training.sample(6, 20, 0.5, 0.25, torch.Generator().manual_seed(seed))
+    (images, rows, cols), rgb, mask, weight, frame = _reference_sample(
+        views, frames, 6, 20, 0.5, 0.25, torch.Generator().manual_seed(seed)
+    )
+    # the targets are the same bytes; float32 of a uint8 / 255 either way
+    assert np.array_equal(batch.rgb.numpy(), rgb.astype(np.float32))
+    assert np.array_equal(batch.mask.numpy(), mask.astype(np.float32))
+    assert np.array_equal(batch.mask_weight.numpy(), weight.astype(np.float32))
+    assert np.array_equal(batch.frames.numpy(), frame)
+    # the ray through pixel (col, row) of its view's camera: K^-1 (u, v, 1) turned into the world, unit length
+    for i in range(0, len(images), 7):
+        camera = views[images[i]].camera
+        direction = camera.cam_from_world[:3, :3].T @ np.linalg.solve(camera.K, [cols[i], rows[i], 1.0])
+        # float32 solve and rotation of O(1) numbers: a few float32 ulps
+        np.testing.assert_allclose(batch.dirs[i].numpy(), direction / np.linalg.norm(direction), atol=1e-6)
+        centre = -camera.cam_from_world[:3, :3].T @ camera.cam_from_world[:3, 3]
+        np.testing.assert_allclose(batch.origins[i].numpy(), centre, atol=1e-6)
+
+
+def test_a_view_comes_back_as_it_went_in(tmp_path):
+    views = _views()
+    training = TrainingSet(views, [0, 1, 2, 3], SimpleNamespace(to=lambda device: None), "cpu", store_dir=tmp_path)
+    assert (training.height, training.width) == (48, 40)
+    for index, view in enumerate(views):
+        image, mask, band = training.full_view(index)
+        h, w = view.mask.shape
+        assert np.array_equal(image[:h, :w], (view.image * 255 + 0.5).astype(np.uint8))
+        assert np.array_equal(mask[:h, :w], view.mask > 0.5) and np.array_equal(band[:h, :w], view.band)
+        assert not image[h:].any() and not mask[:, w:].any(), "padded with zeros"
+    # the black-background views are kept cropped to their boxes, the noisy one whole
+    assert training.store.box(0) != (0, 0, 48, 40) and training.store.box(2) == (0, 0, 40, 32)
+    assert not list(tmp_path.iterdir()), "the store's file has no name: nothing is left behind"
+
+
+def test_an_empty_view_draws_from_its_whole_image(tmp_path):
+    view = _views()[3]
+    training = TrainingSet([view], [0], SimpleNamespace(to=lambda device: None), "cpu", store_dir=tmp_path)
+    batch = training.sample(4, 50, 0.5, 0.25, torch.Generator().manual_seed(0))
+    assert len(batch.rgb) == 200 and not batch.mask.any()
+    labels, box = sampling_labels(view.mask > 0.5, view.band)
+    assert box == (0, 48, 0, 40) and (labels == 3).all()
+
+
+def test_a_view_of_the_wrong_type_is_refused(tmp_path):
+    store = ViewStore(tmp_path)
+    with pytest.raises(ValueError, match="uint8"):
+        store.add(np.zeros((4, 4, 3), np.float32), np.zeros((4, 4), bool), np.zeros((4, 4), bool))
