@@ -13,6 +13,7 @@ import os
 import shutil
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -44,12 +45,14 @@ def one_step_fit(capture: Path, run_dir: Path, ratio: float) -> tuple[float, flo
     """(wall seconds, peak RSS in MB) of a one-step ``narf-fit`` of ``capture``."""
     command = [sys.executable, "-m", "pipelines.cli.fit", "--subject", str(capture), "--out", str(run_dir)]
     command += ["--config", "cpu", "--set", "train.steps=1", "--set", f"data.ratio={ratio}"]
-    start = time.perf_counter()
-    child = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    _, status, usage = os.wait4(child.pid, 0)
-    seconds = time.perf_counter() - start
-    if status != 0:
-        raise RuntimeError(f"{' '.join(command)} failed: {child.stderr.read()[-2000:]}")
+    with tempfile.TemporaryFile("w+") as errors:  # a file, not a pipe: a pipe nobody reads fills and blocks the fit
+        start = time.perf_counter()
+        child = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=errors, text=True)
+        _, status, usage = os.wait4(child.pid, 0)
+        seconds = time.perf_counter() - start
+        if status != 0:
+            errors.seek(0)
+            raise RuntimeError(f"{' '.join(command)} failed: {errors.read()[-2000:]}")
     return seconds, usage.ru_maxrss / 1024
 
 
@@ -62,8 +65,8 @@ def run() -> list[dict]:
     for size, ratio in RATIOS.items():
         for n_views in VIEWS:
             capture = many_views(template, cache / "views_capture", n_views)
-            seconds, peak = one_step_fit(capture, cache / "views_run", ratio)
             shutil.rmtree(cache / "views_run", ignore_errors=True)
+            seconds, peak = one_step_fit(capture, cache / "views_run", ratio)
             rows.append(
                 {
                     "benchmark": "narf-fit start-up",

@@ -79,9 +79,8 @@ class ViewStore:
             raise ValueError(f"a view needs image (H, W, 3) uint8 and mask, band (H, W); got {image.shape}")
         labels, (y0, y1, x0, x1) = sampling_labels(mask, band)
         fill = image[0, 0] if y0 > 0 or x0 > 0 else image[-1, -1]
-        outside = np.ones((height, width), bool)
-        outside[y0:y1, x0:x1] = False
-        if (image[outside] != fill).any():
+        outside = (image[:y0], image[y1:], image[y0:y1, :x0], image[y0:y1, x1:])
+        if any((part != fill).any() for part in outside):
             y0, y1, x0, x1 = 0, height, 0, width  # not one colour outside the box: keep the whole view
         crop = np.ascontiguousarray(image[y0:y1, x0:x1])
         record = crop.tobytes() + np.ascontiguousarray(labels[y0:y1, x0:x1]).tobytes()

@@ -180,6 +180,7 @@ class ZjuCapture:
             if not (self.root / cam.name).is_dir():
                 raise CaptureError(f"{self.root / cam.name}: camera folder listed in annots.npy is missing")
         self._frame_of_entry = [param_index_from_image(entry[0]) for entry in self.ims]
+        self._maps: dict[int, tuple] = {}
 
     @property
     def n_frames(self) -> int:
@@ -240,6 +241,16 @@ class ZjuCapture:
                 labels = raw.astype(np.uint8)
         return np.logical_or.reduce(masks), labels
 
+    def _undistort_maps(self, cam: int) -> tuple:
+        """Camera ``cam``'s undistortion maps, computed on first use: fixed-point ones (those ``cv2.undistort``
+        builds, for the image) and float ones (for masks and labels, nearest neighbour)."""
+        if cam not in self._maps:
+            camera = self.cameras[cam]
+            size = (camera.width, camera.height)
+            build = lambda kind: cv2.initUndistortRectifyMap(camera.K, camera.dist, None, camera.K, size, kind)  # noqa: E731
+            self._maps[cam] = (build(cv2.CV_16SC2), build(cv2.CV_32FC1))
+        return self._maps[cam]
+
     def load_frame(self, frame: int, cam: int) -> Frame:
         """Load one view in the Neural Body order (module docstring)."""
         self._check_frame(frame)
@@ -258,10 +269,8 @@ class ZjuCapture:
         image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
         mask, labels = self._read_mask(frame, cam, image.shape[:2])
         if np.any(camera.dist != 0):
-            image = cv2.undistort(image, camera.K, camera.dist)
-            maps = cv2.initUndistortRectifyMap(
-                camera.K, camera.dist, None, camera.K, (camera.width, camera.height), cv2.CV_32FC1
-            )
+            image_maps, maps = self._undistort_maps(cam)
+            image = cv2.remap(image, *image_maps, cv2.INTER_LINEAR)  # exactly cv2.undistort, maps computed once
             mask = cv2.remap(mask.astype(np.uint8), *maps, cv2.INTER_NEAREST) > 0
             labels = cv2.remap(labels, *maps, cv2.INTER_NEAREST)
         band = boundary_band(mask)
