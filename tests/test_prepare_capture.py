@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from pipelines.body.model import BodyModel
+from pipelines.body.motion import stage_of
 from pipelines.cli import prepare_capture
 from pipelines.cli.common import run_cli
 from pipelines.datasets.capture import ZjuCapture
@@ -204,3 +205,39 @@ def test_training_views_of_different_sizes_sample_only_their_own_pixels():
     narrow = batch.frames == 0  # the 30-px view is frame 0
     columns = batch.dirs[:, 0] / batch.dirs[:, 2]  # K = I: the column of each ray
     assert len(columns) == 1024 and (columns[narrow] < 30).all(), "the 30-px view samples only its own columns"
+
+
+def test_the_floor_is_found_under_the_feet_or_given(recording, prepared, tmp_path, capsys):
+    found = ZjuCapture(prepared).floor
+    # the synthetic world is z-down with the feet on z = 0 in every frame; the cameras on a ring give up = -z to
+    # within their tilt's leftover (4 cameras), and the fitted feet sit within the fit's few cm of the true ones
+    assert found.source == "feet" and np.degrees(np.arccos(found.up @ [0, 0, -1])) < 3.0
+    assert abs(found.height) < 0.03
+    report = json.loads((prepared / "report.json").read_text())["floor"]
+    assert abs(report["lowest_point_cm_median"]) < 1e-6, "the median frame's lowest point defines the floor"
+    assert _prepare(recording / "rec", tmp_path / "given", "--floor", "z-down=0.01") == 0
+    given = ZjuCapture(tmp_path / "given").floor
+    assert given.source == "given" and list(given.up) == [0, 0, -1] and given.height == -0.01
+    stage = stage_of(np.array([0, 0, 1.0]), np.zeros((1, 4, 3)), np.zeros((1, 3)), np.zeros((1, 3)), given)
+    assert stage.floor == -0.01 and list(stage.up) == [0, 0, -1], "a motion is placed on the capture's floor"
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as usage:  # argparse's usage error: the usage line, then one error line
+        prepare_capture.main([str(recording / "rec"), "--out", str(tmp_path / "bad"), "--floor", "down"])
+    assert usage.value.code == 2 and "argument --floor: expected 'auto'" in capsys.readouterr().err.splitlines()[-1]
+    assert not (tmp_path / "bad").exists()
+
+
+def test_a_bad_floor_file_names_itself(tmp_path):
+    from pipelines.datasets.floor import read_floor
+    from pipelines.datasets.zju_mocap import CaptureError
+
+    for text in (
+        '{"up": [0, 0], "height": 0}',
+        '{"up": [0, 0, 0], "height": 0}',
+        '{"height": 1}',
+        "[1, 2",
+        '{"up": [0, 0, 1], "height": "NaN"}',
+    ):
+        (tmp_path / "floor.json").write_text(text)
+        with pytest.raises(CaptureError, match="floor.json"):
+            read_floor(tmp_path / "floor.json")

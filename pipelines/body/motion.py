@@ -150,17 +150,22 @@ class Stage:
     forward: np.ndarray
 
 
-def stage_of(up: np.ndarray, vertices: np.ndarray, pelvis: np.ndarray, root_rotvecs: np.ndarray) -> Stage:
-    """The stage of a capture from its training poses: floor = their lowest vertex along ``up``, centre = their
-    mean pelvis, forward = their mean facing (SMPL's +z of the root, flattened onto the floor).
+def stage_of(up: np.ndarray, vertices: np.ndarray, pelvis: np.ndarray, root_rotvecs: np.ndarray, floor=None) -> Stage:
+    """The stage of a capture from its training poses: floor = their lowest vertex along ``up`` (or the capture's
+    own ``floor``, whose up axis then replaces ``up``), centre = their mean pelvis, forward = their mean facing
+    (SMPL's +z of the root, flattened onto the floor).
 
     Args:
         up: (3,) capture up axis. vertices: (F, V, 3) world vertices. pelvis: (F, 3). root_rotvecs: (F, 3) world
-        root orientations.
+        root orientations. floor: a ``pipelines.datasets.floor.Floor`` or None.
     """
-    up = up / np.linalg.norm(up)
+    if floor is not None:
+        up, height = floor.up, floor.height
+    else:
+        up = up / np.linalg.norm(up)
+        height = float((vertices @ up).min())
     facing = Rotation.from_rotvec(root_rotvecs).apply([0.0, 0.0, 1.0]).mean(0)
-    return Stage(up, float((vertices @ up).min()), pelvis.mean(0), _flat(facing, up))
+    return Stage(up, height, pelvis.mean(0), _flat(facing, up))
 
 
 def place(motion: Motion, stage: Stage, body: BodyModel, shapes: np.ndarray) -> list[SmplParams]:

@@ -37,6 +37,15 @@ def _fraction(text: str) -> float:
     return value
 
 
+def _floor(text: str):
+    from pipelines.datasets.floor import parse_floor
+
+    try:
+        return parse_floor(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="narf-prepare-capture",
@@ -115,6 +124,15 @@ def _choices(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="SMPL model file or folder (default: $NARF_SMPL_DIR, else the stand-in)",
     )
+    parser.add_argument(
+        "--floor",
+        type=_floor,
+        default=None,
+        metavar="auto|AXIS-up|AXIS-down[=COORD]",
+        help="the floor, written to floor.json: 'auto' (default) finds it under the fitted feet; 'z-up', "
+        "'y-down=0.02', ...: the world axis pointing up (or down) and the floor's coordinate on it, metres "
+        "(a Qualisys world: 'z-up')",
+    )
     parser.add_argument("--overwrite", action="store_true", help="replace a capture this tool prepared before")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -140,6 +158,7 @@ def main(argv: list[str] | None = None) -> int:
         threshold=args.max_error / 100,
         smpl_dir=args.smpl_dir,
         fit=FitSettings(iterations=args.fit_iterations),
+        floor=args.floor,
         overwrite=args.overwrite,
         progress=not args.quiet,
     )
@@ -149,6 +168,11 @@ def main(argv: list[str] | None = None) -> int:
         f"narf-prepare-capture: {frames['kept']} of {frames['common']} frames kept, {len(report['cameras'])} cameras; "
         f"median reprojection {summary['median_reprojection_pct_height']:.2f} % of the image height, lowest camera "
         f"IoU {summary['min_camera_iou']:.2f}; wrote {args.out}"
+    )
+    floor = report["floor"]
+    print(
+        f"  floor ({floor['source']}): height {floor['height']:.3f} m along up {[round(v, 3) for v in floor['up']]}; "
+        f"the body's lowest point {floor['lowest_point_cm_median']:.1f} cm above it (median frame)"
     )
     for name, camera in report["cameras"].items():
         error, share = camera["body_reprojection_px"], camera["body_reprojection_pct_height"]

@@ -195,6 +195,14 @@ class ZjuCapture:
         digits = "".join(ch for ch in self.root.name.split("_")[-1] if ch.isdigit())
         return int(digits) if digits else None
 
+    @cached_property
+    def floor(self):
+        """The capture's floor (``floor.json``, written by narf-prepare-capture: docs/formats.md §1.10), or None."""
+        from pipelines.datasets.floor import read_floor
+
+        path = self.root / "floor.json"
+        return read_floor(path) if path.is_file() else None
+
     def protocol(self, name: str = "neuralbody") -> Protocol:
         """The capture's own ``splits.json`` when it has one (written by narf-prepare-capture), else the named
         protocol."""

@@ -3,7 +3,7 @@
 ``<camera>/<i:06d>.jpg`` (i: 0-based index of the kept frames), ``mask/`` and ``mask_cihp/`` (binary: 1 on the
 person), ``params/<i>.npy`` and ``vertices/<i>.npy`` (with pose blend shapes, in the calibration's world),
 ``annots.npy`` (cameras with their distortion ``D``: the loader undistorts), ``intri.yml`` / ``extri.yml``,
-``splits.json``, ``keypoints3d.npy``, ``overlay/`` and ``report.json``.
+``splits.json``, ``floor.json``, ``keypoints3d.npy``, ``overlay/`` and ``report.json``.
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from pipelines.datasets.easymocap import write_easymocap_cameras
+from pipelines.datasets.floor import feet_against_floor
 from pipelines.datasets.keypoints import TARGET_NAMES
 from pipelines.datasets.zju_mocap import SmplParams, write_annots, write_params
 from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, mask_near_body, project_distorted, silhouette
@@ -123,7 +124,7 @@ def _camera_report(seen, found, triangulated, body, ious) -> dict:
     return per_camera
 
 
-def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, request, calibration) -> dict:
+def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, request, calibration, floor) -> dict:
     """Masks, overlays, splits and the report (returned, and written to ``report.json``)."""
     from fitting.video import write_mp4
 
@@ -168,6 +169,7 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
             "body_to_triangulated_cm": 100 * _median(distance),
         },
         "splits": {k: v for k, v in split.items() if k != "excluded"} | {"excluded_views": len(excluded)},
+        "floor": floor.to_json() | feet_against_floor(vertices, floor),
     }
     (root / "report.json").write_text(json.dumps(_json_ready(report), indent=1, allow_nan=False))
     return report

@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipelines.datasets.floor import Floor, camera_up, floor_from_feet, write_floor
 from pipelines.datasets.rig_files import read_rig
 from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.prepare.body_fit import FitSettings, fit_body
@@ -46,6 +47,7 @@ class PrepareRequest:
     threshold: float = 0.03
     smpl_dir: Path | None = None
     fit: FitSettings = field(default_factory=FitSettings)
+    floor: Floor | None = None  # None: found from the fitted feet
     overwrite: bool = False
     progress: bool = True
 
@@ -135,7 +137,9 @@ def _build(staging: Path, pairs, detector, body, holdout, calibration, request: 
     with torch.no_grad():
         vertices = body.pose_zju(fitted.poses, fitted.rh, fitted.th, shapes).vertices.numpy()
     write_sequence(staging, seen.cameras, found, fitted, vertices)
-    return finish_capture(staging, seen, found, fitted, vertices, body.faces, holdout, request, calibration)
+    floor = request.floor or floor_from_feet(vertices, camera_up(seen.cameras))
+    write_floor(staging, floor)
+    return finish_capture(staging, seen, found, fitted, vertices, body.faces, holdout, request, calibration, floor)
 
 
 def _fit_inputs(cameras, found):

@@ -78,7 +78,7 @@ def poses_for_frames(capture: ZjuCapture, body_model: BodyModel, frames: list[in
     return pose_batch(bodies), bodies, stack[3]
 
 
-def training_poses(capture: ZjuCapture, body_model: BodyModel, frames: list[int], chunk: int = 256) -> PoseBatch:
+def training_poses(capture: ZjuCapture, body_model: BodyModel, frames: list[int], chunk: int = 64) -> PoseBatch:
     """PoseBatch of many frames, posed ``chunk`` at a time: the posed vertices (80 kB a frame) are never all held."""
     parts = [poses_for_frames(capture, body_model, frames[i : i + chunk])[0] for i in range(0, len(frames), chunk)]
     return PoseBatch(*(torch.cat([getattr(p, k) for p in parts]) for k in PoseBatch.__dataclass_fields__))

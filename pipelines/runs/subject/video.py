@@ -18,6 +18,7 @@ from fitting.video import video_frame, write_mp4
 from narf.kinematics import JOINT_NAMES, PART_JOINTS, SMPL_PARENTS, rigid_from_rotvec_translation
 from pipelines.body.model import BodyModel, pose_batch, posed_from_rest_joints
 from pipelines.body.motion import load_motion, place, resample, stage_of
+from pipelines.datasets.floor import camera_up
 from pipelines.datasets.smpl_files import atomic_write_bytes
 from pipelines.runs.requests import VideoRequest, refuse_options
 from pipelines.runs.subject.session import LoadedRun, box_frames, load_run, poses_for_frames
@@ -28,15 +29,9 @@ KINDS = ("orbit", "poses", "bones")
 LEG_JOINTS = (4, 5, 7, 8, 10, 11)
 
 
-def up_vector(cameras) -> np.ndarray:
-    """World 'up' estimated as the normalised mean of the cameras' -R[1, :] rows (never hard-coded)."""
-    up = -np.mean([c.cam_from_world[1, :3] for c in cameras], axis=0)
-    return up / np.linalg.norm(up)
-
-
 def orbit_cameras(cameras, centre: np.ndarray, n_frames: int) -> list:
     """A full circle of cameras around ``centre`` at the rig's mean distance and height."""
-    up = up_vector(cameras)
+    up = camera_up(cameras)
     centres = np.array([c.centre for c in cameras])
     offsets = centres - centre
     height = float(np.mean(offsets @ up))
@@ -94,7 +89,8 @@ def motion_params(run: LoadedRun, motion_path: Path, fps, start: int, n_frames, 
     motion = resample(source, fps or source.fps, start, n_frames)
     pelvis = train_bodies.world_from_joint[:, 0].double().numpy()  # world rotation R(Rh) R(poses[:3]), position
     root_world = Rotation.from_matrix(pelvis[:, :3, :3]).as_rotvec()
-    stage = stage_of(up_vector(capture.cameras), train_bodies.vertices.double().numpy(), pelvis[:, :3, 3], root_world)
+    vertices = train_bodies.vertices.double().numpy()
+    stage = stage_of(camera_up(capture.cameras), vertices, pelvis[:, :3, 3], root_world, capture.floor)
     params = place(motion, stage, body, shapes[0].double().numpy())
     stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
     with torch.no_grad():
