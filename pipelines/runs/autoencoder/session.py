@@ -19,6 +19,7 @@ from fitting.cnn_trainer import CnnAutoencoderTrainer
 from fitting.config import FitConfig
 from fitting.data import TrainingSet
 from pipelines.body.model import BodyModel, pose_batch_from_joints
+from pipelines.datasets.smpl_files import cache_dir
 from pipelines.datasets.subjects import data_root
 from pipelines.datasets.thuman import ThumanView, count_renders, read_render
 from pipelines.datasets.zju_mocap import Camera, CaptureError
@@ -115,7 +116,7 @@ def autoencoder_boxes(body_model: BodyModel, config: FitConfig):
 def build_autoencoder_data(config: FitConfig, device, progress: bool = True) -> AutoencoderData:
     dataset = open_thuman(resolve_thuman(config, quiet=not progress), config)
     views, encoder_inputs, poses = load_views(dataset, "train", list(range(dataset.n_train_meshes)), progress)
-    training = TrainingSet(views, list(range(len(views))), poses, device)
+    training = TrainingSet(views, list(range(len(views))), poses, device, store_dir=cache_dir() / "views")
     held = dataset.n_train_meshes if dataset.n_train_meshes < dataset.n_meshes else 0
 
     def validation():

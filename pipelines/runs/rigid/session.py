@@ -18,6 +18,7 @@ from fitting.fitted import load_fitted
 from fitting.plots import grid, save_png, to_numpy
 from fitting.trainer import Trainer
 from pipelines.datasets.rigid import RigidSet, load_rigid_views, open_rigid
+from pipelines.datasets.smpl_files import cache_dir
 from pipelines.datasets.subjects import data_root
 from pipelines.runs.requests import EvalRequest, refuse_options
 from pipelines.synthetic.rigid import RigidSynthConfig, generate_rigid, is_rigid_complete
@@ -47,7 +48,7 @@ def build_rigid_data(config: FitConfig, device, progress: bool = True) -> FitDat
     """Every training image is its own frame (its own object pose); validation renders the first test image."""
     rigid = open_rigid(resolve_rigid(config, quiet=not progress))
     views, poses = load_rigid_views(rigid, "train")
-    training = TrainingSet(views, list(range(len(views))), poses, device)
+    training = TrainingSet(views, list(range(len(views))), poses, device, store_dir=cache_dir() / "views")
 
     def validation():
         view, pose = load_rigid_views(rigid, "test", [0])
