@@ -358,15 +358,29 @@ class Trainer:
         return path
 
 
+#: What a run folder holds (hidden names too: a checkpoint being written); anything else means it is not one.
+RUN_ENTRIES = frozenset({"checkpoint.pt", "config.yaml", "log.jsonl", "curve.png", "val", "eval", "videos", "meshes"})
+
+
 def prepare_run_dir(out: Path, config: FitConfig, resume: bool, write: bool = True) -> Path:
-    """Create the run folder (refusing a file or a folder that holds a fit, unless resuming) and write config.yaml
-    (the Trainer rewrites it with the run's world size). ``write=False`` (data-parallel ranks other than 0) only
-    checks."""
+    """Create the run folder (refusing a file, a folder that holds a fit unless resuming, and a folder that holds
+    anything a run does not write) and write config.yaml (the Trainer rewrites it with the run's world size).
+    ``write=False`` (data-parallel ranks other than 0) only checks."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{out}: output path exists and is a file")
     if not resume and out.is_dir() and (out / "checkpoint.pt").exists():
         raise FileExistsError(f"{out}: holds a fit already; pass --resume to continue it or choose another --out")
+    foreign = (
+        sorted(p.name for p in out.iterdir() if p.name not in RUN_ENTRIES and not p.name.startswith("."))
+        if out.is_dir()
+        else []
+    )
+    if foreign:
+        raise FileExistsError(
+            f"{out}: not a run folder (it holds {', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}); "
+            "choose a new or empty --out"
+        )
     out.mkdir(parents=True, exist_ok=True)
     if not resume and write:
         (out / "log.jsonl").unlink(missing_ok=True)

@@ -112,7 +112,7 @@ def _truncated_image(root):
     path, annots = _annots(root)
     victim = root / "synthetic" / "taichi" / annots["ims"][3]["ims"][0]
     victim.write_bytes(victim.read_bytes()[:40])
-    return f"{victim}: missing or unreadable image"
+    return f"{victim}: truncated JPEG"
 
 
 def _text_as_image(root):

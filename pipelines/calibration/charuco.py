@@ -16,6 +16,7 @@ import cv2
 import numpy as np
 
 from pipelines.calibration.board import BoardSpec
+from pipelines.datasets.images import read_image
 
 MIN_CORNERS = 6
 _FIX_FLAGS = {
@@ -109,9 +110,7 @@ def detect_folder(folder: Path, spec: BoardSpec) -> tuple[list[Detection], tuple
     if not images:
         raise CalibrationError(f"{folder}: no images")
     for shot, path in images:
-        image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise CalibrationError(f"{path}: unreadable image")
+        image = read_image(path, cv2.IMREAD_GRAYSCALE)
         if size is None:
             size = (image.shape[1], image.shape[0])
         elif (image.shape[1], image.shape[0]) != size:

@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 
 from pipelines.calibration.charuco import CalibrationError
+from pipelines.datasets.images import read_image
 from pipelines.datasets.rig_files import natural_key
 
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp")
@@ -52,9 +53,7 @@ def calibrate_folder(folder: Path, corners: tuple[int, int], square: float, fix_
     )
     object_points, image_points, used, rejected, size = [], [], [], [], None
     for shot in shots:
-        gray = cv2.imread(str(shot), cv2.IMREAD_GRAYSCALE)
-        if gray is None:
-            raise CalibrationError(f"{shot}: unreadable image")
+        gray = read_image(shot, cv2.IMREAD_GRAYSCALE)
         if size is not None and (gray.shape[1], gray.shape[0]) != size:
             raise CalibrationError(f"{shot}: {gray.shape[1]}x{gray.shape[0]}, the other shots are {size[0]}x{size[1]}")
         size = (gray.shape[1], gray.shape[0])

@@ -10,8 +10,8 @@ from collections import Counter
 from dataclasses import asdict
 from pathlib import Path
 
-from pipelines.calibration.board import BoardSpec
-from pipelines.cli.common import HelpFormatter, run_cli
+from pipelines.calibration.board import BoardSpec, read_board_json
+from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
 from pipelines.datasets.colmap import write_colmap_model
 from pipelines.datasets.easymocap import write_easymocap_cameras
 from pipelines.datasets.rig_files import natural_key
@@ -22,12 +22,14 @@ def _board(args, calib: Path) -> BoardSpec:
     values = asdict(BoardSpec())
     source = args.board_json or (calib / "board.json" if (calib / "board.json").is_file() else None)
     if source:
-        data = json.loads(Path(source).read_text())
-        values.update({k: data[k] for k in values if k in data})
+        values.update(read_board_json(Path(source)))
     for key in values:
         if getattr(args, key, None) is not None:
             values[key] = getattr(args, key)
-    return BoardSpec(**values)
+    try:
+        return BoardSpec(**values)
+    except ValueError as err:
+        raise ValueError(f"{source or 'the default board'} with the flags given: {err}") from None
 
 
 def _fixed_groups(text: str) -> frozenset[str]:
@@ -205,10 +207,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("capture", type=Path, help="capture folder holding calib/<camera>/*.jpg")
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: CAPTURE_DIR/calibration)")
     parser.add_argument("--board-json", type=Path, default=None, help="board definition (default: calib/board.json)")
-    parser.add_argument("--squares-x", type=int, default=None, help="squares along x (overrides the json)")
-    parser.add_argument("--squares-y", type=int, default=None, help="squares along y")
-    parser.add_argument("--square-length", type=float, default=None, help="square side in metres")
-    parser.add_argument("--marker-length", type=float, default=None, help="marker side in metres")
+    parser.add_argument("--squares-x", type=at_least(2, 100), default=None, help="squares along x (overrides the json)")
+    parser.add_argument("--squares-y", type=at_least(2, 100), default=None, help="squares along y")
+    parser.add_argument("--square-length", type=positive_number, default=None, help="square side in metres")
+    parser.add_argument("--marker-length", type=positive_number, default=None, help="marker side in metres")
     parser.add_argument("--dictionary", default=None, help="ArUco dictionary, e.g. DICT_5X5_100")
     parser.add_argument("--reference-shot", default="000", help="shot whose board defines the world frame")
     parser.add_argument(

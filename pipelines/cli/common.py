@@ -36,16 +36,17 @@ def positive_number(text: str) -> float:
     return value
 
 
-def at_least(minimum: int) -> Callable[[str], int]:
-    """argparse type: a whole number >= ``minimum``."""
+def at_least(minimum: int, at_most: int | None = None) -> Callable[[str], int]:
+    """argparse type: a whole number >= ``minimum`` (and <= ``at_most`` when given)."""
+    wanted = f">= {minimum}" if at_most is None else f"in [{minimum}, {at_most}]"
 
     def parse(text: str) -> int:
         try:
             value = int(text)
         except ValueError:
-            raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got '{text}'") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"expected a whole number >= {minimum}, got '{text}'")
+            raise argparse.ArgumentTypeError(f"expected a whole number {wanted}, got '{text}'") from None
+        if value < minimum or (at_most is not None and value > at_most):
+            raise argparse.ArgumentTypeError(f"expected a whole number {wanted}, got '{text}'")
         return value
 
     return parse

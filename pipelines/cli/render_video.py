@@ -66,9 +66,12 @@ def build_parser() -> argparse.ArgumentParser:
         "centre of the training poses, facing where they face; RUN/videos/<name>.json lists the frames whose parts "
         "leave the trained range",
     )
-    parser.add_argument("--start", type=int, default=0, help="--motion: first source frame")
+    parser.add_argument("--start", type=at_least(0), default=0, help="--motion: first source frame")
     parser.add_argument(
-        "--motion-fps", type=float, default=None, help="--motion: its frame rate when the file has none (ZJU: 30)"
+        "--motion-fps",
+        type=positive_number,
+        default=None,
+        help="--motion: its frame rate when the file has none (ZJU: 30)",
     )
     parser.add_argument("--scale", type=positive_number, default=1.3, help="bones: largest leg-length factor")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")

@@ -8,7 +8,7 @@ import sys
 import time
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, run_cli
+from pipelines.cli.common import HelpFormatter, at_least, run_cli
 from pipelines.datasets.subjects import data_root, synthetic_path
 from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
 from pipelines.synthetic.rigid import RigidSynthConfig, generate_rigid, is_rigid_complete
@@ -43,19 +43,19 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--data-root", default=None, help="data root (default: $NARF_DATA or data/)")
     parser.add_argument(
         "--resolution",
-        type=int,
+        type=at_least(1, 8192),
         default=None,
         help="square image size in pixels (default: 512 for a subject, 200 for the rigid object; THUman and SURREAL "
         "keep their formats' fixed sizes)",
     )
     parser.add_argument(
         "--frames",
-        type=int,
+        type=at_least(1, 100_000),
         default=None,
         help="frames (30 fps) of the capture (zju: 300) or of each clip (surreal: 40)",
     )
-    parser.add_argument("--cameras", type=int, default=d.cameras, help="number of ring cameras")
-    parser.add_argument("--seed", type=int, default=d.seed, help="seed of rig, motion and jitter")
+    parser.add_argument("--cameras", type=at_least(1, 256), default=d.cameras, help="number of ring cameras")
+    parser.add_argument("--seed", type=at_least(0), default=d.seed, help="seed of rig, motion and jitter")
     parser.add_argument(
         "--layout",
         choices=("standard", "313"),
@@ -64,29 +64,37 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument(
         "--calib-shots",
-        type=int,
+        type=at_least(0, 1000),
         default=d.calib_shots,
         help="ChArUco board shots seen by the whole rig (0: no calib/ folder)",
     )
     parser.add_argument(
         "--calib-close-ups",
-        type=int,
+        type=at_least(0, 1000),
         default=d.calib_close_ups,
         help="per-camera close-up board shots under calib/<camera>/intrinsics/",
     )
     t, s = ThumanSynthConfig(), SurrealSynthConfig()
-    parser.add_argument("--people", type=int, default=t.people, help="thuman: number of people")
-    parser.add_argument("--train-poses", type=int, default=t.train_poses, help="thuman: training meshes per person")
-    parser.add_argument("--novel-poses", type=int, default=t.novel_poses, help="thuman: held-out meshes per person")
+    parser.add_argument("--people", type=at_least(1, 10_000), default=t.people, help="thuman: number of people")
     parser.add_argument(
-        "--renders-per-mesh", type=int, default=t.renders_per_mesh, help="thuman: train renders per mesh"
+        "--train-poses", type=at_least(1, 10_000), default=t.train_poses, help="thuman: training meshes per person"
     )
-    parser.add_argument("--raw-items", type=int, default=t.raw_items, help="thuman: meshes also written as raw items")
-    parser.add_argument("--clips", type=int, default=s.clips, help="surreal: number of clips (one person each)")
+    parser.add_argument(
+        "--novel-poses", type=at_least(0, 10_000), default=t.novel_poses, help="thuman: held-out meshes per person"
+    )
+    parser.add_argument(
+        "--renders-per-mesh", type=at_least(1, 1000), default=t.renders_per_mesh, help="thuman: train renders per mesh"
+    )
+    parser.add_argument(
+        "--raw-items", type=at_least(0, 10_000), default=t.raw_items, help="thuman: meshes also written as raw items"
+    )
+    parser.add_argument(
+        "--clips", type=at_least(1, 10_000), default=s.clips, help="surreal: number of clips (one person each)"
+    )
     r = RigidSynthConfig()
-    parser.add_argument("--train-images", type=int, default=r.train, help="rigid: training images")
-    parser.add_argument("--test-images", type=int, default=r.test, help="rigid: test images")
-    parser.add_argument("--workers", type=int, default=d.workers, help="render processes")
+    parser.add_argument("--train-images", type=at_least(1, 100_000), default=r.train, help="rigid: training images")
+    parser.add_argument("--test-images", type=at_least(1, 100_000), default=r.test, help="rigid: test images")
+    parser.add_argument("--workers", type=at_least(1, 256), default=d.workers, help="render processes")
     parser.add_argument(
         "--lbs",
         action="store_true",
@@ -102,6 +110,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _other_dataset(args) -> int:
     root = data_root(args.data_root)
+    if args.dataset in ("thuman", "surreal") and args.resolution is not None:
+        raise ValueError(f"--resolution: {args.dataset} images have their format's fixed size; leave it out")
     if args.dataset == "thuman":
         config = ThumanSynthConfig(
             args.people, args.train_poses, args.novel_poses, args.renders_per_mesh, args.raw_items, args.seed

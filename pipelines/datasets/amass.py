@@ -49,6 +49,14 @@ def _array(data, key: str, path: Path) -> np.ndarray:
         raise CaptureError(f"{path}: '{key}' is stored as a Python object (pickle), which is not read") from err
 
 
+def _numbers(data, key: str, path: Path) -> np.ndarray:
+    """``data[key]`` as float64, or an error naming the file and the key."""
+    try:
+        return _array(data, key, path).astype(np.float64)
+    except (TypeError, ValueError) as err:
+        raise CaptureError(f"{path}: '{key}' is not numeric ({err})") from None
+
+
 def read_amass(path: str | Path) -> AmassMotion:
     """Read an AMASS ``.npz`` (``poses`` (T, 156 or 165), ``trans`` (T, 3), ``betas``, ``gender``, frame rate).
 
@@ -67,10 +75,13 @@ def read_amass(path: str | Path) -> AmassMotion:
         missing = [k for k in ("poses", "trans") if k not in data.files] + ([] if rate_key else ["mocap_framerate"])
         if missing:
             raise CaptureError(f"{path}: missing keys {missing} (has {sorted(data.files)}); not an AMASS motion")
-        poses, trans = _array(data, "poses", path).astype(np.float64), _array(data, "trans", path).astype(np.float64)
-        betas = _array(data, "betas", path).astype(np.float64).reshape(-1) if "betas" in data.files else np.zeros(16)
+        poses, trans = _numbers(data, "poses", path), _numbers(data, "trans", path)
+        betas = _numbers(data, "betas", path).reshape(-1) if "betas" in data.files else np.zeros(16)
         gender = str(_array(data, "gender", path)) if "gender" in data.files else ""
-        fps = float(_array(data, rate_key, path))
+        rate = _numbers(data, rate_key, path)
+    if rate.size != 1:
+        raise CaptureError(f"{path}: '{rate_key}' has shape {rate.shape}, expected one number (frames per second)")
+    fps = float(rate.reshape(()))
     if poses.ndim != 2 or poses.shape[1] not in POSE_WIDTHS or poses.shape[0] == 0:
         raise CaptureError(f"{path}: 'poses' has shape {poses.shape}, expected (T, 156) SMPL+H or (T, 165) SMPL-X")
     if trans.shape != (poses.shape[0], 3):

@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipelines.datasets.images import read_image
 from pipelines.datasets.zju_mocap import (
     CaptureError,
     Frame,
@@ -236,9 +237,7 @@ class ZjuCapture:
         masks, labels = [], np.zeros(shape, np.uint8)
         for folder in sources:
             path = self.root / folder / rel
-            raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if raw is None:
-                raise CaptureError(f"{path}: missing or unreadable mask")
+            raw = read_image(path, cv2.IMREAD_UNCHANGED, "mask")
             raw = raw[..., 0] if raw.ndim == 3 else raw
             if raw.shape != shape:
                 raise CaptureError(
@@ -265,9 +264,7 @@ class ZjuCapture:
         if not 0 <= cam < self.n_cameras:
             raise CaptureError(f"{self.root}: camera {cam} out of range ({self.n_cameras} cameras)")
         path = self.root / self.ims[frame][cam]
-        bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if bgr is None:
-            raise CaptureError(f"{path}: missing or unreadable image")
+        bgr = read_image(path)
         camera = self.cameras[cam]
         if (bgr.shape[1], bgr.shape[0]) != (camera.width, camera.height):
             raise CaptureError(

@@ -88,6 +88,23 @@ def validate_smpl_dict(model: dict, source: str) -> None:
         raise SmplFileError(f"{source}: {n_verts} vertices; smplx's SMPL needs 6890 (extra-joint vertex ids)")
     if np.asarray(model["shapedirs"]).shape[:2] != (n_verts, 3) or np.asarray(model["shapedirs"]).shape[2] < 10:
         raise SmplFileError(f"{source}: 'shapedirs' has shape {np.shape(model['shapedirs'])}, expected (6890,3,>=10)")
+    for key in ("v_template", "weights", "J_regressor", "shapedirs", "posedirs"):
+        try:
+            value = model[key].data if scipy.sparse.issparse(model[key]) else model[key]  # J_regressor: sparse
+            values = np.asarray(value, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise SmplFileError(f"{source}: '{key}' is not numeric") from None
+        if not np.isfinite(values).all():
+            raise SmplFileError(f"{source}: '{key}' contains NaN or infinite values")
+    faces = np.asarray(model["f"])
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu":
+        raise SmplFileError(f"{source}: 'f' has shape {faces.shape} ({faces.dtype}), expected (F, 3) vertex indices")
+    if faces.size and (faces.min() < 0 or faces.max() >= n_verts):
+        worst = faces.max() if faces.max() >= n_verts else faces.min()
+        raise SmplFileError(f"{source}: 'f' indexes vertex {worst}, outside 0..{n_verts - 1}")
+    parents = np.asarray(model["kintree_table"])[0, 1:]
+    if parents.dtype.kind not in "iu" or (parents < 0).any() or (parents >= 24).any():
+        raise SmplFileError(f"{source}: 'kintree_table' has parents outside 0..23")
 
 
 def _unwrap(value):

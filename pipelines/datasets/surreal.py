@@ -119,14 +119,17 @@ def read_surreal_info(path: str | Path) -> SurrealClip:
     missing = [key for key in INFO_KEYS if key not in info]
     if missing:
         raise CaptureError(f"{path}: missing keys {missing} (a SURREAL _info.mat has {', '.join(INFO_KEYS)})")
-    pose = np.asarray(info["pose"], dtype=np.float64)
+    try:
+        pose = np.asarray(info["pose"], dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise CaptureError(f"{path}: 'pose' is not numeric ({err})") from None
     if pose.ndim == 1 or pose.shape[0] != 72:
         raise CaptureError(f"{path}: 'pose' has shape {pose.shape}, expected 72xT")
     n = pose.shape[1]
     cam_loc = np.asarray(info["camLoc"], dtype=np.float64)
     if cam_loc.size != 3:
         raise CaptureError(f"{path}: 'camLoc' has shape {cam_loc.shape}, expected 3x1")
-    return SurrealClip(
+    clip = SurrealClip(
         path=path,
         K=SURREAL_K.copy(),
         cam_from_world=surreal_cam_from_world(cam_loc),
@@ -137,6 +140,12 @@ def read_surreal_info(path: str | Path) -> SurrealClip:
         joints2d=_per_frame(info, "joints2D", path, n, (2, 24)).astype(np.float64),
         joints3d=_per_frame(info, "joints3D", path, n, (3, 24)).astype(np.float64),
     )
+    for field, key in (("pose", "pose"), ("shape", "shape"), ("zrot", "zrot"), ("joints3d", "joints3D")):
+        if not np.isfinite(getattr(clip, field)).all():
+            raise CaptureError(f"{path}: '{key}' contains NaN or infinite values")
+    if not np.isfinite(clip.cam_from_world).all():
+        raise CaptureError(f"{path}: 'camLoc' contains NaN or infinite values")
+    return clip
 
 
 def clip_paths(info_path: str | Path) -> dict[str, Path]:

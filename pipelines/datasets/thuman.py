@@ -20,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipelines.datasets.images import read_image
 from pipelines.datasets.zju_mocap import CaptureError
 
 RENDER_SIZE = 128
@@ -202,9 +203,7 @@ def read_render(
     """
     color_dir = Path(color_dir)
     image_path = color_dir / f"color_{index:08d}.png"
-    bgra = cv2.imread(str(image_path), cv2.IMREAD_UNCHANGED) if image_path.is_file() else None
-    if bgra is None:
-        raise CaptureError(f"{image_path}: missing or not an image")
+    bgra = read_image(image_path, cv2.IMREAD_UNCHANGED)
     if bgra.shape != (size, size, 4):
         raise CaptureError(f"{image_path}: shape {bgra.shape}, expected a {size}x{size} BGRA image (alpha = mask)")
     scale = 65535.0 if bgra.dtype == np.uint16 else 255.0

@@ -134,7 +134,10 @@ def read_params(path: Path) -> SmplParams:
     for key, size in want.items():
         if key not in data:
             raise CaptureError(f"{path}: missing key '{key}' (has {sorted(data)})")
-        arr = np.asarray(data[key], dtype=np.float64)
+        try:
+            arr = np.asarray(data[key], dtype=np.float64)
+        except (TypeError, ValueError) as err:
+            raise CaptureError(f"{path}: '{key}' is not numeric ({err})") from None
         if arr.size != size:
             raise CaptureError(f"{path}: '{key}' has shape {arr.shape}, expected (1, {size})")
         if not np.isfinite(arr).all():
@@ -186,7 +189,7 @@ def _orthonormalise(rotation: np.ndarray) -> np.ndarray:
 
 
 def _check_camera(path: Path, c: int, cams: dict) -> None:
-    """Shapes, finiteness, an invertible K and a rotation close to orthonormal (|det| within 1e-3 of 1)."""
+    """Shapes, finiteness, an invertible K and a rotation close to orthonormal (det within 1e-3 of +1)."""
     sizes = {"K": 9, "D": (4, 5, 8), "R": 9, "T": 3}
     for key, size in sizes.items():
         try:
@@ -200,8 +203,8 @@ def _check_camera(path: Path, c: int, cams: dict) -> None:
     K, R = np.asarray(cams["K"][c], np.float64).reshape(3, 3), np.asarray(cams["R"][c], np.float64).reshape(3, 3)
     if abs(np.linalg.det(K)) < 1e-9:
         raise CaptureError(f"{path}: cams['K'][{c}] is singular")
-    if abs(abs(np.linalg.det(R)) - 1) > 1e-3:
-        raise CaptureError(f"{path}: cams['R'][{c}] is not a rotation (det {np.linalg.det(R):.4g})")
+    if abs(np.linalg.det(R) - 1) > 1e-3:  # det -1 is a reflection: a left-handed camera no loader expects
+        raise CaptureError(f"{path}: cams['R'][{c}] is not a rotation (det {np.linalg.det(R):.4g}, expected +1)")
 
 
 def read_annots(

@@ -4,6 +4,7 @@ supplement's orderings whether the results reproduce it (``pipelines.experiments
 from __future__ import annotations
 
 import json
+import math
 from pathlib import Path
 
 from pipelines.experiments.orderings import check_orderings, paper_results
@@ -26,7 +27,24 @@ def load_summary(path: str | Path) -> dict:
         raise ValueError(f"{path}: not a readable table.json ({err})") from err
     if not isinstance(summary, dict) or summary.get("table") not in TABLES or not isinstance(summary.get("rows"), dict):
         raise ValueError(f"{path}: not a table written by narf-experiments run (no known 'table' and 'rows')")
+    for name, row in summary["rows"].items():
+        _check_row(path, name, row, TABLES[summary["table"]].splits)
     return summary
+
+
+def _check_row(path: Path, name: str, row, splits) -> None:
+    """A row as ``narf-experiments run`` writes it: a label and, per split of the table, finite metrics."""
+    where = f"{path}: rows['{name}']"
+    if not isinstance(row, dict) or not isinstance(row.get("label"), str) or not isinstance(row.get("metrics"), dict):
+        raise ValueError(f"{where} needs a 'label' (text) and 'metrics' (an object per split)")
+    for split in splits:
+        cell = row["metrics"].get(split)
+        if not isinstance(cell, dict):
+            raise ValueError(f"{where}['metrics'] lacks the split '{split}'")
+        for key in ("mask_l2", "psnr", "ssim"):
+            value = cell.get(key)
+            if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+                raise ValueError(f"{where}['metrics']['{split}']['{key}'] is {value!r}, not a finite number")
 
 
 def _delta(ours: dict, paper: dict) -> str:

@@ -14,6 +14,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipelines.datasets.images import read_image
 from pipelines.datasets.rig_files import natural_key
 from pipelines.datasets.zju_mocap import Camera, CaptureError
 
@@ -92,9 +93,7 @@ def read_frames(source: Source, wanted: range) -> Iterator[tuple[int, np.ndarray
         for index in wanted:
             if index >= len(files):
                 return
-            image = cv2.imread(str(files[index]), cv2.IMREAD_COLOR)
-            if image is None:
-                raise CaptureError(f"{files[index]}: unreadable image")
+            image = read_image(files[index])
             yield index, image
         return
     video = cv2.VideoCapture(str(source.path))

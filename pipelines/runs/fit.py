@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 
@@ -98,9 +99,15 @@ def fit(request: FitRequest, announce: Callable[[str], None] | None = None) -> F
     out = request.out or default_out(config)
     if request.resume and not (Path(out) / "checkpoint.pt").exists():
         raise FileNotFoundError(f"{out}: no checkpoint to resume")
+    fresh = not request.resume and not Path(out).exists()
     run_dir = prepare_run_dir(out, config, request.resume, write=processes.is_main)
     barrier(processes)
-    trainer = start_run(run_dir, device, config, request.resume, request.overrides, request.progress, processes)
+    try:
+        trainer = start_run(run_dir, device, config, request.resume, request.overrides, request.progress, processes)
+    except BaseException:  # bad data, Ctrl-C while loading: a fit that never started leaves no folder behind
+        if fresh and processes.is_main:
+            shutil.rmtree(run_dir, ignore_errors=True)
+        raise
     if announce is not None and processes.is_main:
         c = trainer.config
         size = f"{c.model.image_size}^2" if c.model.name == "cnn" else f"width {c.model.width}"

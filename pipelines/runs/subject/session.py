@@ -40,8 +40,13 @@ def resolve_subject(name: str, root: str | Path | None = None, generate: bool = 
         return real
     root = data_root(root)
     key = name.lower()
+    if key not in SYNTHETIC_SUBJECTS and Path(name).is_dir():  # a folder was named: say what it lacks
+        raise CaptureError(
+            f"{name}: no annots.npy, so not a ZJU-MoCap subject folder (narf-prepare-capture makes one from a "
+            "recording)"
+        )
     if key not in SYNTHETIC_SUBJECTS:
-        looked = ", ".join(str(p) for p in real_candidates(name, root)[:3])
+        looked = ", ".join(dict.fromkeys(str(p) for p in real_candidates(name, root)[:3]))
         raise CaptureError(
             f"no subject '{name}' under {root} (looked in {looked}, ...); synthetic stand-ins exist "
             f"for: {', '.join(SYNTHETIC_SUBJECTS)}"
@@ -99,8 +104,8 @@ def box_frames(frames: list[int], count: int) -> list[int]:
 def decoded_views(capture: ZjuCapture, items: list[tuple[int, int]], progress: bool, ahead: int = 8):
     """The views (frame, camera) of ``items``, decoded by two threads and yielded in order, at most ``ahead`` of
     them decoded and not yet taken: memory does not grow with the number of views."""
-    bar = tqdm(total=len(items), desc="loading training views", unit="image", disable=not progress)
-    with ThreadPoolExecutor(2) as pool:
+    progress_bar = tqdm(total=len(items), desc="loading training views", unit="image", disable=not progress)
+    with progress_bar as bar, ThreadPoolExecutor(2) as pool:  # closed before an error propagates to its message
         pending = deque()
         for frame, camera in items:
             pending.append(pool.submit(capture.load_frame, frame, camera))
@@ -110,7 +115,6 @@ def decoded_views(capture: ZjuCapture, items: list[tuple[int, int]], progress: b
         while pending:
             bar.update()
             yield pending.popleft().result()
-    bar.close()
 
 
 def build_fit_data(config: FitConfig, device, progress: bool = True) -> FitData:
