@@ -44,14 +44,15 @@ $(REAL_STAMP): $(STAMP)
 	@touch $(REAL_STAMP)
 
 # A real recording end to end: Pose2Sim's Demo_SinglePerson (4 cameras, 100 frames, Qualisys calibration; from
-# the pose2sim wheel, downloaded once) -> narf-prepare-capture -> fit (REAL_MINUTES) -> both splits -> orbit.
+# the pose2sim wheel, downloaded once) -> narf-prepare-capture (the Qualisys world is z-up with the floor at z = 0)
+# -> fit (REAL_MINUTES) -> both splits -> orbit.
 REAL_MINUTES ?= 10
 REAL_DATA    ?= data/real
 REAL_CAPTURE ?= $(REAL_DATA)/demo_single_person
 REAL_RUN     ?= runs/demo-real
 demo-real: $(REAL_STAMP)
 	$(PY) -m pipelines.prepare.demo_data .cache/pose2sim $(REAL_DATA)
-	$(VENV)/bin/narf-prepare-capture $(REAL_DATA)/Demo_SinglePerson --out $(REAL_CAPTURE) --overwrite
+	$(VENV)/bin/narf-prepare-capture $(REAL_DATA)/Demo_SinglePerson --out $(REAL_CAPTURE) --overwrite --floor z-up
 	rm -rf $(REAL_RUN)
 	$(VENV)/bin/narf-fit --subject $(REAL_CAPTURE) --out $(REAL_RUN) --max-minutes $(REAL_MINUTES)
 	$(VENV)/bin/narf-eval --run $(REAL_RUN) --split novel_pose --split novel_view
