@@ -96,8 +96,8 @@ class TrainingSet:
         for image in chosen:
             crop, crop_labels = self.store.read(image)
             y0, x0, _, width = self.store.box(image)
-            pools = [np.flatnonzero((crop_labels & POOL_BITS) == pool) for pool in (POOL_BODY, POOL_BORDER)]
-            pools.append(np.flatnonzero((crop_labels & POOL_BITS) == POOL_BACKGROUND))
+            pool_of = crop_labels & POOL_BITS
+            pools = [np.flatnonzero(pool_of == pool) for pool in (POOL_BODY, POOL_BORDER, POOL_BACKGROUND)]
             for pool, count in zip(pools, counts):
                 if count == 0:
                     continue
