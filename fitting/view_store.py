@@ -38,14 +38,12 @@ def sampling_labels(mask: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, tup
     """
     height, width = mask.shape
     dilated = cv2.dilate(mask.astype(np.uint8), np.ones((BORDER_PX, BORDER_PX), np.uint8)) > 0
+    y0, y1, x0, x1 = 0, height, 0, width
     if dilated.any():
         ys, xs = np.nonzero(dilated)
         pad_y, pad_x = int(BOX_PAD * (ys.max() - ys.min() + 1)), int(BOX_PAD * (xs.max() - xs.min() + 1))
-        box = (max(ys.min() - pad_y, 0), min(ys.max() + pad_y + 1, height), max(xs.min() - pad_x, 0))
-        box = (*box, min(xs.max() + pad_x + 1, width))
-    else:
-        box = (0, height, 0, width)
-    y0, y1, x0, x1 = (int(v) for v in box)
+        y0, y1 = int(max(ys.min() - pad_y, 0)), int(min(ys.max() + pad_y + 1, height))
+        x0, x1 = int(max(xs.min() - pad_x, 0)), int(min(xs.max() + pad_x + 1, width))
     labels = np.zeros((height, width), np.uint8)
     labels[y0:y1, x0:x1] = POOL_BACKGROUND
     labels[dilated] = POOL_BORDER
@@ -56,7 +54,7 @@ def sampling_labels(mask: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, tup
 
 class ViewStore:
     """Cropped views in an anonymous file under ``directory`` (the system's temporary folder by default): removed
-    by the operating system when the store is closed or the process ends, however it ends.
+    by the operating system when the store is garbage-collected or the process ends, however it ends.
 
     Outside its box a view must be one colour (the composited background) to be stored cropped; otherwise the
     whole view is stored, so ``full`` always gives back exactly what was added."""
@@ -117,6 +115,3 @@ class ViewStore:
         full_labels = np.zeros((height, width), np.uint8)
         full_labels[y0 : y0 + h, x0 : x0 + w] = labels
         return image, (full_labels & POOL_BITS) == POOL_BODY, (full_labels & BAND_BIT) > 0
-
-    def close(self) -> None:
-        self._file.close()

@@ -1,6 +1,7 @@
 """Shared fixtures: a session cache so the stand-in body model is generated once per test run."""
 
 import os
+import shutil
 from pathlib import Path
 
 import pytest
@@ -86,3 +87,11 @@ def tiny_run(data_root_64, tmp_path_factory):
     run = prepare_run_dir(tmp_path_factory.mktemp("tiny_run") / "run", config, False)
     start_run(run, torch.device("cpu"), config, progress=False).fit()
     return run
+
+
+@pytest.fixture()
+def capture(data_root_64, tmp_path):
+    """A private copy of the 64^2 synthetic capture under a data root of its own (to damage in a test)."""
+    root = tmp_path / "data"
+    shutil.copytree(data_root_64 / "synthetic" / "taichi", root / "synthetic" / "taichi")
+    return root

@@ -56,14 +56,6 @@ def expect_error(capsys, prog: str, argv: list[str], message: str) -> str:
     return lines[0]
 
 
-@pytest.fixture()
-def capture(data_root_64, tmp_path):
-    """A private copy of the 64^2 synthetic capture under a data root of its own."""
-    root = tmp_path / "data"
-    shutil.copytree(data_root_64 / "synthetic" / "taichi", root / "synthetic" / "taichi")
-    return root
-
-
 def _fit_args(root, out):
     return ["--config", "tiny", "--data-root", root, "--set", "data.ratio=1.0", "--set", "train.steps=1", "--out", out]
 

@@ -8,7 +8,7 @@ import pickle
 import numpy as np
 import pytest
 import scipy.io
-from test_bad_input import _annots, _fit_args, _save_annots, capture, expect_error, expect_usage_error  # noqa: F401
+from test_bad_input import _annots, _fit_args, _save_annots, expect_error, expect_usage_error
 
 from pipelines.cli import prepare_capture
 
@@ -84,7 +84,7 @@ CAPTURE_CASES = [
 
 
 @pytest.mark.parametrize("damage", CAPTURE_CASES, ids=lambda f: f.__name__.strip("_"))
-def test_fit_refuses_a_damaged_capture(capture, tmp_path, capsys, damage):  # noqa: F811
+def test_fit_refuses_a_damaged_capture(capture, tmp_path, capsys, damage):
     message = damage(capture)
     expect_error(capsys, "narf-fit", _fit_args(capture, tmp_path / "run"), message)
     assert not (tmp_path / "run").exists(), "a fit that never started leaves no folder"
@@ -99,7 +99,7 @@ def test_empty_capture_folder_says_what_is_missing(tmp_path, capsys):
 # ---- output folders of narf-fit ---------------------------------------------------------------------------------
 
 
-def test_fit_refuses_a_folder_that_is_not_a_run(capture, tmp_path, capsys):  # noqa: F811
+def test_fit_refuses_a_folder_that_is_not_a_run(capture, tmp_path, capsys):
     out = tmp_path / "photos"
     out.mkdir()
     (out / "holiday.jpg").write_bytes(b"mine")

@@ -18,7 +18,6 @@ import numpy as np
 
 from pipelines.datasets.zju_mocap import CaptureError
 
-AXES = {"x": 0, "y": 1, "z": 2}
 _GIVEN = re.compile(r"^([xyz])-(up|down)(?:=(.+))?$")
 
 
@@ -45,16 +44,16 @@ def parse_floor(text: str) -> Floor | None:
         return None
     match = _GIVEN.match(text.strip().lower())
     try:
-        coordinate = float(match.group(3) or "0") if match else float("nan")
+        coordinate = float(match.group(3) or "0") if match else None
     except ValueError:
-        coordinate = float("nan")
-    if not np.isfinite(coordinate):
+        coordinate = None
+    if coordinate is None or not np.isfinite(coordinate):
         raise ValueError(
             f"expected 'auto', or AXIS-up / AXIS-down[=COORD] such as 'z-up' or 'y-down=0.02'; got '{text}'"
         )
     sign = 1.0 if match.group(2) == "up" else -1.0
     up = np.zeros(3)
-    up[AXES[match.group(1)]] = sign
+    up["xyz".index(match.group(1))] = sign
     return Floor(up, sign * coordinate, "given")
 
 
@@ -64,16 +63,20 @@ def camera_up(cameras) -> np.ndarray:
     return up / np.linalg.norm(up)
 
 
+def _lowest(vertices: np.ndarray, up: np.ndarray) -> np.ndarray:
+    """(F,) each frame's lowest point along ``up``: ``vertices`` (F, V, 3)."""
+    return (vertices @ up).min(axis=1)
+
+
 def floor_from_feet(vertices: np.ndarray, up: np.ndarray) -> Floor:
     """The floor under fitted bodies (module docstring). ``vertices`` (F, V, 3) world; ``up`` (3,) unit."""
-    lowest = (vertices @ up).min(axis=1)
-    return Floor(np.asarray(up, np.float64), float(np.median(lowest)), "feet")
+    return Floor(np.asarray(up, np.float64), float(np.median(_lowest(vertices, up))), "feet")
 
 
 def feet_against_floor(vertices: np.ndarray, floor: Floor) -> dict:
     """How the fitted feet meet the floor, in cm: each frame's lowest point above it (negative: below), its median
     and the lowest frame's."""
-    clearance = 100 * ((vertices @ floor.up).min(axis=1) - floor.height)
+    clearance = 100 * (_lowest(vertices, floor.up) - floor.height)
     return {"lowest_point_cm_median": float(np.median(clearance)), "lowest_point_cm_min": float(clearance.min())}
 
 
