@@ -18,7 +18,6 @@ def frame_window(text: str) -> tuple[int, int]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fitting.mesh import DEFAULT_LEVEL
     from fitting.trainer import auto_device
     from pipelines.runs.kinds import kind_of_run
     from pipelines.runs.requests import a_run
@@ -39,7 +38,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--frames", type=frame_window, default=None, help="--motion: frames A:B (B excluded)")
     parser.add_argument("--out", type=Path, required=True, help="output .ply, .obj or .glb")
     parser.add_argument("--resolution", type=at_least(8), default=256, help="grid samples along the longest side")
-    parser.add_argument("--level", type=float, default=DEFAULT_LEVEL, help="density iso-level (1/m)")
+    parser.add_argument(
+        "--level",
+        type=float,
+        default=None,
+        help="density iso-level (1/m); default: the level whose silhouettes best match the fit's own training masks "
+        "(4 training frames x up to 4 training cameras; docs/design.md, Meshes out)",
+    )
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
@@ -50,7 +55,7 @@ def main(argv: list[str] | None = None) -> int:
     kind = kind_of_run(args.run)
     if kind.export is None:
         raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-export-mesh exports subject runs")
-    written = kind.export(
+    written, level = kind.export(
         args.run,
         args.out,
         args.frame,
@@ -61,6 +66,8 @@ def main(argv: list[str] | None = None) -> int:
         str(auto_device(args.device)),
         not args.quiet,
     )
+    if level["level_source"] != "given":
+        print(f"narf-export-mesh: level {level['level']:.3g} (silhouette IoU {level['level_iou']:.3f} on {level['level_views']} training views)")
     print(f"narf-export-mesh: wrote {written[0]}" + (f" ... ({len(written)} files)" if len(written) > 1 else ""))
     return 0
 

@@ -78,11 +78,10 @@ def evaluate_run(
             "per_view": records,
         }
         if mesh:
-            from fitting.mesh import DEFAULT_LEVEL
             from pipelines.runs.subject.mesh import mesh_accuracy
 
             report["splits"][split]["mesh"] = mesh_accuracy(
-                run, frames, out_dir / "meshes" / split, mesh_resolution, mesh_level or DEFAULT_LEVEL, device, progress
+                run, frames, out_dir / "meshes" / split, mesh_resolution, mesh_level, device, progress
             )
     report.update(
         {

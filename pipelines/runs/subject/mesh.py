@@ -13,11 +13,12 @@ import numpy as np
 import torch
 import trimesh
 
-from fitting.mesh import DEFAULT_LEVEL, ExtractedMesh, extract_mesh, surface_metrics
+from fitting.mesh import ExtractedMesh, extract_mesh, surface_metrics
+from fitting.mesh_level import LevelChoice, LevelView, choose_level
 from pipelines.body.model import pose_batch
 from pipelines.datasets.smpl_files import atomic_write_bytes
 from pipelines.datasets.zju_mocap import CaptureError
-from pipelines.runs.subject.session import LoadedRun, load_run, poses_for_frames
+from pipelines.runs.subject.session import LoadedRun, box_frames, load_run, poses_for_frames
 from pipelines.runs.subject.video import motion_params
 
 MESH_SUFFIXES = (".ply", ".obj", ".glb")
@@ -58,6 +59,31 @@ def _capture_pose(run: LoadedRun, frame: int, device: str):
     return pose.to(device)
 
 
+def fit_level(run: LoadedRun, device: str, n_frames: int = 4, n_cameras: int = 4) -> LevelChoice:
+    """The mesh level of a run chosen from its own training views (``fitting.mesh_level``): ``n_frames`` evenly
+    spaced training frames, each seen by up to ``n_cameras`` evenly spaced training cameras."""
+    protocol = run.protocol
+    cameras = box_frames(list(protocol.train_views), n_cameras)
+    frames = []
+    for frame in box_frames(list(protocol.train_frames), n_frames):
+        views = []
+        for _, cam in protocol.usable([frame], cameras):
+            item = run.capture.load_frame(frame, cam)
+            views.append(LevelView(item.camera.K, item.camera.cam_from_world, item.mask > 0.5, item.band))
+        if views:
+            frames.append((_capture_pose(run, frame, device), views))
+    return choose_level(run.field, frames)
+
+
+def resolve_level(run: LoadedRun, level: float | None, device: str) -> tuple[float, dict]:
+    """``level`` when given, else the fit's own (:func:`fit_level`); with a record for reports."""
+    if level is not None:
+        return level, {"level": level, "level_source": "given"}
+    choice = fit_level(run, device)
+    record = {"level": choice.level, "level_source": "training masks", "level_iou": choice.iou}
+    return choice.level, record | {"level_views": choice.n_views}
+
+
 def export_run_meshes(
     run_dir: Path,
     out: Path,
@@ -65,33 +91,35 @@ def export_run_meshes(
     motion: Path | None = None,
     window: tuple[int, int] | None = None,
     resolution: int = 256,
-    level: float = DEFAULT_LEVEL,
+    level: float | None = None,
     device: str = "cpu",
     progress: bool = True,
-) -> list[Path]:
+) -> tuple[list[Path], dict]:
     """Export the fitted body at a capture frame, or at frames ``window = (A, B)`` (B excluded) of a motion file
-    placed on the capture's stage as for videos (one file per frame: ``<stem>_<frame>.<ext>``)."""
+    placed on the capture's stage as for videos (one file per frame: ``<stem>_<frame>.<ext>``). ``level`` None:
+    chosen from the fit (:func:`resolve_level`). Returns the files written and the level's record."""
     out = Path(out)
     if out.suffix.lower() not in MESH_SUFFIXES:
         raise ValueError(f"{out}: unknown mesh format '{out.suffix}'; use {', '.join(MESH_SUFFIXES)}")
     run = load_run(Path(run_dir), device)
     if run.config.model.name == "cnn":
         raise ValueError(f"{run_dir}: the CNN baseline renders images, not a density field: no mesh to export")
+    if motion is None and (frame is None or not 0 <= frame < run.capture.n_frames):
+        raise CaptureError(f"{run.capture.root}: frame {frame} out of range (0..{run.capture.n_frames - 1})")
+    if motion is not None:
+        start, stop = window or (0, None)
+        params, _ = motion_params(run, Path(motion), None, start, None if stop is None else stop - start)
+    level, record = resolve_level(run, level, device)
     if motion is None:
-        if frame is None or not 0 <= frame < run.capture.n_frames:
-            raise CaptureError(f"{run.capture.root}: frame {frame} out of range (0..{run.capture.n_frames - 1})")
-        return write_mesh(
-            out, extract_mesh(run.field, _capture_pose(run, frame, device), resolution, level, progress=progress)
-        )
-    start, stop = window or (0, None)
-    params, _ = motion_params(run, Path(motion), None, start, None if stop is None else stop - start)
+        mesh = extract_mesh(run.field, _capture_pose(run, frame, device), resolution, level, progress=progress)
+        return write_mesh(out, mesh), record
     written = []
     for k, p in enumerate(params):
         with torch.no_grad():
             body = run.body_model.pose_zju(*(torch.as_tensor(v)[None] for v in (p.poses, p.rh, p.th, p.shapes)))
         mesh = extract_mesh(run.field, pose_batch(body).to(device), resolution, level, progress=progress)
         written += write_mesh(out.with_name(f"{out.stem}_{start + k:05d}{out.suffix}"), mesh)
-    return written
+    return written, record
 
 
 def true_surface(root: Path, frame: int) -> trimesh.Trimesh | None:
@@ -106,10 +134,11 @@ def true_surface(root: Path, frame: int) -> trimesh.Trimesh | None:
 
 
 def mesh_accuracy(
-    run: LoadedRun, frames: list[int], out_dir: Path, resolution: int, level: float, device: str, progress: bool
+    run: LoadedRun, frames: list[int], out_dir: Path, resolution: int, level: float | None, device: str, progress: bool
 ) -> dict:
     """Surface distance and normal consistency of the exported mesh against the true surface, per frame and
-    averaged, over the ``frames`` that have a true surface; the meshes go to ``out_dir/<frame>.ply``."""
+    averaged, over the ``frames`` that have a true surface; the meshes go to ``out_dir/<frame>.ply``. ``level``
+    None: chosen from the fit (:func:`resolve_level`), as narf-export-mesh does."""
     truths = {f: true_surface(run.capture.root, f) for f in frames}
     frames = [f for f in frames if truths[f] is not None]
     if not frames:
@@ -117,6 +146,7 @@ def mesh_accuracy(
             f"{run.capture.root}: no true surfaces (surfaces/<frame>.ply) for the split's frames; --mesh needs a "
             "capture that ships them, as the synthetic captures do"
         )
+    level, level_record = resolve_level(run, level, device)
     records = []
     for frame in frames:
         mesh = extract_mesh(run.field, _capture_pose(run, frame, device), resolution, level, progress=progress)
@@ -126,7 +156,7 @@ def mesh_accuracy(
     return {
         "frames": frames,
         "resolution": resolution,
-        "level": level,
+        **level_record,
         **{k: float(np.mean([r[k] for r in records])) for k in keys},
         "per_frame": records,
     }
