@@ -136,7 +136,9 @@ def choose_level(field, frames: list, resolution: int = 128, stride: int = 2, la
     for pose, views in frames:
         volume, origin, spacing = density_grid(field, pose, resolution, latent=latent)
         for view in views:
-            images.append(max_density_image(volume, origin, spacing, view.K, view.cam_from_world, view.mask.shape, stride))
+            images.append(
+                max_density_image(volume, origin, spacing, view.K, view.cam_from_world, view.mask.shape, stride)
+            )
             all_views.append(view)
     levels = candidate_levels(float(max(image.max() for image in images)))
     ious = silhouette_ious(images, all_views, levels, stride)

@@ -239,7 +239,9 @@ def test_chosen_level_matches_the_masks_silhouette():
     for cam_from_world in cameras:
         origins, dirs = rays_from_pixels(torch.tensor(K), torch.tensor(cam_from_world), image_pixels(256, 256).double())
         miss = torch.linalg.cross(origins, dirs).norm(dim=1)  # distance of each ray from the centre
-        views.append(LevelView(K, cam_from_world, (miss < RADIUS).reshape(256, 256).numpy(), np.zeros((256, 256), bool)))
+        views.append(
+            LevelView(K, cam_from_world, (miss < RADIUS).reshape(256, 256).numpy(), np.zeros((256, 256), bool))
+        )
     choice = choose_level(field, [(_pose(), views)])
     radius = RADIUS - RAMP * np.log(choice.level / (PEAK - choice.level))  # where the density equals the level
     # candidates are 11 % apart: half a step moves the surface by at most RAMP * 0.11 / (4 * 0.25) ~ 0.06 ramp at the

@@ -17,6 +17,12 @@ def frame_window(text: str) -> tuple[int, int]:
     return int(first), int(last)
 
 
+def _print_level(record: dict) -> None:
+    if record["level_source"] != "given":
+        iou, views = record["level_iou"], record["level_views"]
+        print(f"narf-export-mesh: level {record['level']:.3g} (silhouette IoU {iou:.3f} on {views} training views)")
+
+
 def main(argv: list[str] | None = None) -> int:
     from fitting.trainer import auto_device
     from pipelines.runs.kinds import kind_of_run
@@ -32,11 +38,28 @@ def main(argv: list[str] | None = None) -> int:
         formatter_class=HelpFormatter,
     )
     parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")
-    which = parser.add_mutually_exclusive_group(required=True)
-    which.add_argument("--frame", type=int, help="a frame of the fitted capture (its SMPL parameters)")
-    which.add_argument("--motion", type=Path, help="an AMASS .npz, ZJU params/ folder or SURREAL _info.mat")
+    which = parser.add_mutually_exclusive_group()
+    which.add_argument(
+        "--frame", type=int, help="a frame of the fitted capture (its SMPL parameters); --rigged: the bind pose"
+    )
+    which.add_argument(
+        "--motion", type=Path, help="an AMASS .npz, ZJU params/ folder or SURREAL _info.mat; --rigged: the animation"
+    )
     parser.add_argument("--frames", type=frame_window, default=None, help="--motion: frames A:B (B excluded)")
-    parser.add_argument("--out", type=Path, required=True, help="output .ply, .obj or .glb")
+    parser.add_argument("--out", type=Path, required=True, help="output .ply, .obj or .glb (--rigged: .glb)")
+    parser.add_argument(
+        "--rigged",
+        action="store_true",
+        help="one skinned glTF binary: the mesh in the rest pose (or --frame's), the body model's 24 named joints as "
+        "its skeleton, skin weights from NARF's part selector, --motion baked as an animation; y-up, floor at y = 0",
+    )
+    parser.add_argument(
+        "--skin",
+        choices=("selector", "rigid"),
+        default="selector",
+        help="--rigged: a vertex follows the selector's 4 most probable parts, or its most probable part alone",
+    )
+    parser.add_argument("--fps", type=float, default=None, help="--rigged --motion: frame rate (default: the motion's)")
     parser.add_argument("--resolution", type=at_least(8), default=256, help="grid samples along the longest side")
     parser.add_argument(
         "--level",
@@ -48,6 +71,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
+    if args.fps is not None and not (args.fps > 0 and args.fps <= 1000):
+        raise ValueError(f"--fps must be in (0, 1000], got {args.fps:g}")
+    if not args.rigged and args.frame is None and args.motion is None:
+        raise ValueError("one of --frame N or --motion FILE is required (or --rigged for the rest pose)")
     if args.frames is not None and args.motion is None:
         raise ValueError("--frames A:B picks frames of a --motion; use --frame N for a capture frame")
     if not args.run.is_dir():
@@ -55,6 +82,27 @@ def main(argv: list[str] | None = None) -> int:
     kind = kind_of_run(args.run)
     if kind.export is None:
         raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-export-mesh exports subject runs")
+    if args.rigged:
+        if kind.rigged is None:
+            raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-export-mesh --rigged exports subject runs")
+        device = str(auto_device(args.device))
+        path, record = kind.rigged(
+            args.run,
+            args.out,
+            args.frame,
+            args.motion,
+            args.frames,
+            args.fps,
+            args.resolution,
+            args.level,
+            args.skin,
+            device,
+            not args.quiet,
+        )
+        _print_level(record)
+        frames = f", {record['frames']} animation frames" if record["frames"] else ""
+        print(f"narf-export-mesh: wrote {path} (24 joints, {record['vertices']} vertices{frames})")
+        return 0
     written, level = kind.export(
         args.run,
         args.out,
@@ -66,8 +114,7 @@ def main(argv: list[str] | None = None) -> int:
         str(auto_device(args.device)),
         not args.quiet,
     )
-    if level["level_source"] != "given":
-        print(f"narf-export-mesh: level {level['level']:.3g} (silhouette IoU {level['level_iou']:.3f} on {level['level_views']} training views)")
+    _print_level(level)
     print(f"narf-export-mesh: wrote {written[0]}" + (f" ... ({len(written)} files)" if len(written) > 1 else ""))
     return 0
 

@@ -19,6 +19,7 @@ from pipelines.runs.requests import a_run
 from pipelines.runs.rigid import session as rigid_session
 from pipelines.runs.subject import evaluation as subject_evaluation
 from pipelines.runs.subject import mesh as subject_mesh
+from pipelines.runs.subject import rigged as subject_rigged
 from pipelines.runs.subject import session as subject_session
 from pipelines.runs.subject import video as subject_video
 
@@ -37,7 +38,7 @@ class RunKind:
             ``all`` stands for.
         evaluate: ``(run_dir, EvalRequest) -> report``; ``markdown``: ``report -> table``.
         videos: the ``narf-render-video --kind`` values; ``render``: ``(run_dir, VideoRequest) -> mp4 path``.
-        export: ``narf-export-mesh``'s work, or None where the kind has no mesh export.
+        export: ``narf-export-mesh``'s work, or None where the kind has no mesh export; ``rigged``: its ``--rigged``.
     """
 
     name: str
@@ -54,6 +55,7 @@ class RunKind:
     videos: tuple[str, ...] = ()
     render: Callable | None = None
     export: Callable | None = None
+    rigged: Callable | None = None
 
     def preset(self, model: str | None, gpu: bool) -> str:
         """The default preset for ``model`` on this device."""
@@ -91,6 +93,7 @@ KINDS: dict[str, RunKind] = {
         videos=subject_video.KINDS,
         render=subject_video.render,
         export=subject_mesh.export_run_meshes,
+        rigged=subject_rigged.export_rigged,
     ),
     "autoencoder": RunKind(
         name="autoencoder",

@@ -77,20 +77,27 @@ def part_rotation_gaps(train_world_from_part: torch.Tensor, world_from_part: tor
     return np.degrees(np.arccos(cosine.clamp(-1, 1).amax(dim=1).numpy()))
 
 
+def capture_stage(run: LoadedRun):
+    """The capture's stage (``pipelines.body.motion.stage_of``) from up to 100 training frames, with their
+    PoseBatch and betas (F, 10)."""
+    frames = box_frames(list(run.protocol.train_frames), 100)
+    train_pose, train_bodies, shapes = poses_for_frames(run.capture, run.body_model, frames)
+    pelvis = train_bodies.world_from_joint[:, 0].double().numpy()  # world rotation R(Rh) R(poses[:3]), position
+    root_world = Rotation.from_matrix(pelvis[:, :3, :3]).as_rotvec()
+    vertices = train_bodies.vertices.double().numpy()
+    stage = stage_of(camera_up(run.capture.cameras), vertices, pelvis[:, :3, 3], root_world, run.capture.floor)
+    return stage, train_pose, shapes
+
+
 def motion_params(run: LoadedRun, motion_path: Path, fps, start: int, n_frames, motion_fps=None):
     """The subject's ZJU parameters performing a motion file at ``fps`` (None: the motion's own rate) from source
     frame ``start`` for at most ``n_frames`` (None: to the end), placed on the capture's stage, and a report of the
     frames whose parts leave the trained range (``docs/design.md`` *Driving the avatar*)."""
-    capture, body = run.capture, run.body_model
-    frames = box_frames(list(run.protocol.train_frames), 100)
-    train_pose, train_bodies, shapes = poses_for_frames(capture, body, frames)
+    body = run.body_model
+    stage, train_pose, shapes = capture_stage(run)
     rest_pelvis = body.rest_joints(shapes[:1].to(body.dtype))[0, 0].double().numpy()
     source = load_motion(motion_path, rest_pelvis, motion_fps)
     motion = resample(source, fps or source.fps, start, n_frames)
-    pelvis = train_bodies.world_from_joint[:, 0].double().numpy()  # world rotation R(Rh) R(poses[:3]), position
-    root_world = Rotation.from_matrix(pelvis[:, :3, :3]).as_rotvec()
-    vertices = train_bodies.vertices.double().numpy()
-    stage = stage_of(camera_up(capture.cameras), vertices, pelvis[:, :3, 3], root_world, capture.floor)
     params = place(motion, stage, body, shapes[0].double().numpy())
     stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
     with torch.no_grad():
