@@ -10,7 +10,7 @@ from pathlib import Path
 from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
 
 #: The video kinds of subject and autoencoder runs (``pipelines.runs.kinds``; here so ``--help`` loads no model code).
-VIDEO_KINDS = ("bones", "interpolate", "orbit", "poses")
+VIDEO_KINDS = ("bones", "interpolate", "orbit", "path", "poses")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -19,7 +19,8 @@ def build_parser() -> argparse.ArgumentParser:
         description="Render an H.264 mp4 from a fitted run, side by side RGB | depth | part segmentation: 'orbit' "
         "circles a held pose at the rig's distance and height; 'poses' plays the held-out frames (or another "
         "motion capture given with --motion) from one camera; 'bones' grows and shrinks "
-        "the legs (bone-length edit). For an autoencoder run (narf-fit --kind autoencoder), --input encodes a person "
+        "the legs (bone-length edit); 'path' (or --camera-path FILE) flies along the keyframes saved by narf-view. "
+        "For an autoencoder run (narf-fit --kind autoencoder), --input encodes a person "
         "(a render_128 color_XXXXXXXX.png with its pose files beside it, or a SURREAL <clip>_info.mat[:FRAME]) and "
         "'orbit' circles that person, 'poses' plays the set's held-out poses on the person's skeleton, "
         "'interpolate' (two --input) morphs z_s and z_a from the first person to the second; frames are "
@@ -43,6 +44,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="autoencoder runs: refine each input's code for N steps of the training loss on that input before "
         "rendering (the field fixed; about 0.15 s per step for the CPU preset on 2 CPU cores; docs/model.md "
         "section 4); 0 renders the encoder's code as it is",
+    )
+    parser.add_argument(
+        "--camera-path",
+        type=Path,
+        default=None,
+        help="a camera path saved by narf-view ('save camera path'): --frames cameras interpolated along its "
+        "keyframes, at its image size, each showing its keyframes' capture frame (implies --kind path)",
     )
     parser.add_argument("--out", type=Path, default=None, help="output .mp4 (default: RUN/videos/<kind>.mp4)")
     parser.add_argument("--frames", type=at_least(1), default=60, help="number of video frames (at most)")
@@ -85,6 +93,10 @@ def main(argv: list[str] | None = None) -> int:
     from pipelines.runs.requests import VideoRequest, a_run
 
     args = build_parser().parse_args(argv)
+    if args.camera_path is not None:
+        args.kind = "path"
+    elif args.kind == "path":
+        raise ValueError("--kind path renders a camera path: give --camera-path FILE (saved by narf-view)")
     out = args.out or args.run / "videos" / f"{args.kind}.mp4"
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
@@ -110,6 +122,7 @@ def main(argv: list[str] | None = None) -> int:
         scale=args.scale,
         start=args.start,
         motion_fps=args.motion_fps,
+        camera_path=args.camera_path,
     )
     print(f"narf-render-video: wrote {kind.render(args.run, request)}")
     return 0

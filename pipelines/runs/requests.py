@@ -89,6 +89,7 @@ class VideoRequest:
     scale: float = 1.3
     start: int = 0
     motion_fps: float | None = None
+    camera_path: Path | None = None
 
 
 def a_run(kind: str) -> str:

@@ -18,13 +18,15 @@ from fitting.video import video_frame, write_mp4
 from narf.kinematics import JOINT_NAMES, PART_JOINTS, SMPL_PARENTS, rigid_from_rotvec_translation
 from pipelines.body.model import BodyModel, pose_batch, posed_from_rest_joints
 from pipelines.body.motion import load_motion, place, resample, stage_of
+from pipelines.datasets.camera_path import interpolate, intrinsics, read_camera_path
 from pipelines.datasets.floor import camera_up
 from pipelines.datasets.smpl_files import atomic_write_bytes
+from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.runs.requests import VideoRequest, refuse_options
 from pipelines.runs.subject.session import LoadedRun, box_frames, load_run, poses_for_frames
 from pipelines.synthetic.scene import look_at
 
-KINDS = ("orbit", "poses", "bones")
+KINDS = ("orbit", "poses", "bones", "path")
 #: Bone-length edit: joints whose offset from their parent is scaled (legs: knees, ankles, feet).
 LEG_JOINTS = (4, 5, 7, 8, 10, 11)
 
@@ -132,12 +134,14 @@ def render_video(
     progress: bool = True,
     start: int = 0,
     motion_fps: float | None = None,
+    camera_path: Path | None = None,
 ) -> Path:
     """Render ``kind`` (orbit | poses | bones) of a fitted run to an H.264 mp4 of RGB | depth | segmentation.
 
     With ``motion`` (an AMASS .npz, a ZJU params folder or a SURREAL _info.mat) ``poses`` plays that motion at
     ``fps`` from source frame ``start`` (``motion_params``); its report goes to ``out`` with the suffix ``.json``,
-    and the frames outside the trained range are named on stderr.
+    and the frames outside the trained range are named on stderr. ``path`` renders ``n_frames`` cameras along a
+    ``camera_path`` saved by narf-view (``pipelines.datasets.camera_path``).
     """
     if kind not in KINDS:
         raise ValueError(f"unknown video kind '{kind}'; choose from {', '.join(KINDS)}")
@@ -151,18 +155,19 @@ def render_video(
     base = capture.params(held)
     shapes = torch.as_tensor(base.shapes)[None]
     frames_out = []
-    if kind == "poses" and motion is not None:
+    if kind == "path":
+        params, cameras = path_views(run, camera_path, n_frames)
+    elif kind == "poses" and motion is not None:
         params, report = motion_params(run, Path(motion), fps, start, n_frames, motion_fps)
         _report_motion(report, Path(out).with_suffix(".json"))
     elif kind == "poses":
         params = [capture.params(f) for f in list(protocol.novel_frames or protocol.train_frames)[:n_frames]]
     else:
         params = [base] * n_frames
-    cameras = (
-        orbit_cameras([c.scaled(capture.ratio) for c in capture.cameras], _pelvis(body_model, base), n_frames)
-        if kind == "orbit"
-        else [camera] * len(params)
-    )
+    if kind == "orbit":
+        cameras = orbit_cameras([c.scaled(capture.ratio) for c in capture.cameras], _pelvis(body_model, base), n_frames)
+    elif kind != "path":
+        cameras = [camera] * len(params)
     for k, (p, cam) in enumerate(
         tqdm(list(zip(params, cameras)), desc=f"video {kind}", unit="frame", disable=not progress)
     ):
@@ -176,6 +181,31 @@ def render_video(
                 pose = pose_batch(body_model.pose_zju(*args, shapes))
         frames_out.append(video_frame(to_numpy(render_view(field, cam, pose.to(device), config))))
     return write_mp4(out, frames_out, fps)
+
+
+def path_views(run: LoadedRun, camera_path: Path | None, n_frames: int) -> tuple[list, list]:
+    """The capture parameters and cameras of ``n_frames`` views along a camera path (checked against the capture)."""
+    if camera_path is None:
+        raise ValueError("--kind path renders a camera path: give --camera-path FILE (saved by narf-view)")
+    path = read_camera_path(camera_path)
+    for key in path.keyframes:
+        if key.frame >= run.capture.n_frames:
+            raise CaptureError(f"{camera_path}: frame {key.frame} is not a frame of {run.capture.root}")
+    views = interpolate(path, n_frames)
+    template = run.capture.cameras[0]
+    cameras = [
+        replace(
+            template,
+            name="path",
+            K=intrinsics(path.width, path.height, v.fov_y_degrees),
+            dist=np.zeros(5),
+            cam_from_world=v.cam_from_world,
+            width=path.width,
+            height=path.height,
+        )
+        for v in views
+    ]
+    return [run.capture.params(v.frame) for v in views], cameras
 
 
 def _report_motion(report: dict, path: Path) -> None:
@@ -229,4 +259,5 @@ def render(run_dir: Path, request: VideoRequest) -> Path:
         r.progress,
         r.start,
         r.motion_fps,
+        r.camera_path,
     )

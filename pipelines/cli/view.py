@@ -1,0 +1,58 @@
+"""``narf-view``: look at a fitted avatar in the browser and pose it (docs/guides/viewer.md)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+from pipelines.cli.common import HelpFormatter, at_least, run_cli
+
+
+def main(argv: list[str] | None = None) -> int:
+    from fitting.trainer import auto_device
+    from pipelines.runs.kinds import kind_of_run
+    from pipelines.runs.requests import a_run
+
+    parser = argparse.ArgumentParser(
+        prog="narf-view",
+        description="Serve a fitted avatar to the browser (viser): the field is rendered for each tab's camera and "
+        "streamed as the scene's background with its depth, a low-resolution preview while the camera moves and the "
+        "full frame once it rests. Controls: capture-frame slider, --motion playback (play / pause, speed), joint "
+        "rotation handles, bone-length sliders, RGB / depth / parts, the training cameras as view presets, a "
+        "screenshot (saved under RUN/viewer/screenshots/) and 'save camera path' (RUN/viewer/camera_paths/, for "
+        "narf-render-video --camera-path). Ctrl-C stops the server.",
+        formatter_class=HelpFormatter,
+    )
+    parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")
+    parser.add_argument("--port", type=at_least(1, 65535), default=8080, help="port of the page")
+    parser.add_argument("--host", default="127.0.0.1", help="address to listen on (0.0.0.0: every interface)")
+    parser.add_argument(
+        "--motion", type=Path, default=None, help="an AMASS .npz, ZJU params/ folder or SURREAL _info.mat to play"
+    )
+    parser.add_argument("--preview", type=at_least(32, 1024), default=192, help="long side of the preview (pixels)")
+    parser.add_argument("--full", type=at_least(64, 4096), default=512, help="long side of the still frame (pixels)")
+    parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
+    args = parser.parse_args(argv)
+    if not args.run.is_dir():
+        raise FileNotFoundError(f"{args.run}: no such run folder")
+    kind = kind_of_run(args.run)  # a missing or foreign checkpoint fails here, before any server starts
+    if kind.name != "subject":
+        raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-view shows subject runs")
+    from pipelines.viewer.app import Viewer, viewer_data
+
+    data = viewer_data(args.run, args.motion, str(auto_device(args.device)), args.preview, args.full)
+    if data.run.config.model.name == "cnn":
+        raise ValueError(f"{args.run}: the CNN baseline renders fixed-size images, not views: nothing to orbit")
+    viewer = Viewer(data, args.host, args.port)
+    print(f"narf-view: serving {args.run} at http://{args.host}:{viewer.server.get_port()} (Ctrl-C stops it)")
+    try:
+        while True:
+            time.sleep(3600)
+    finally:
+        viewer.stop()
+
+
+def entrypoint() -> None:
+    sys.exit(run_cli("narf-view", main))

@@ -1,0 +1,335 @@
+"""``narf-view``'s server: a viser page per browser tab, the fitted field rendered as the scene's background image
+with its depth (docs/guides/viewer.md).
+
+Each tab is a :class:`Session` with its own pose, mode and camera, and one thread that renders: a preview at
+``preview`` pixels on the long side as soon as anything changes, then, once nothing has changed for
+``settle_seconds``, the full frame in bands of rows (a change abandons it between bands). Renders of all tabs take
+turns on one lock, so two tabs share the cores instead of fighting over them. A closed tab stops its thread and
+drops its state.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import threading
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+import viser
+from scipy.spatial.transform import Rotation
+
+from fitting.evaluate import render_view
+from fitting.plots import colour_depth, colour_segmentation, to_numpy
+from narf.kinematics import JOINT_NAMES
+from pipelines.datasets.camera_path import CameraPath, Keyframe
+from pipelines.datasets.floor import camera_up
+from pipelines.datasets.smpl_files import atomic_write_bytes
+from pipelines.viewer.avatar import AvatarPose, camera_from_viewer, viewer_from_camera, z_depth
+
+MODES = ("RGB", "depth", "parts")
+
+
+@dataclass
+class ViewerData:
+    """What every tab shares: the loaded run, its capture's cameras (at the fitted ratio), the poses a tab can show
+    (``sources``: name -> list of SmplParams and a frame rate), the world's up axis and the render lock."""
+
+    run: object
+    cameras: list
+    sources: dict
+    up: np.ndarray
+    device: str
+    out_dir: Path
+    preview: int = 192
+    full: int = 512
+    settle_seconds: float = 0.25
+    lock: threading.Lock = None
+
+    def __post_init__(self):
+        self.lock = self.lock or threading.Lock()
+
+
+class Session:
+    """One browser tab (module docstring)."""
+
+    def __init__(self, data: ViewerData, client: viser.ClientHandle):
+        self.data, self.client = data, client
+        self.source = next(iter(data.sources))
+        self.index = 0
+        self.pose = AvatarPose(data.sources[self.source][0][0])
+        self.mode, self.version, self.shown, self.full_shown = MODES[0], 0, -1, -1
+        self.changed_at, self.playing, self.speed = time.monotonic(), False, 1.0
+        self.keyframes: list[Keyframe] = []
+        self.last_image: np.ndarray | None = None
+        self.stop = threading.Event()
+        self.wake = threading.Event()
+        self.handles = []
+        self._build_gui()
+        self.show_camera(data.cameras[0])
+        client.camera.on_update(lambda _: self.touch())
+        self.thread = threading.Thread(target=self._loop, name=f"narf-view tab {client.client_id}", daemon=True)
+        self.thread.start()
+
+    # --- state -------------------------------------------------------------------------------------------------
+    def touch(self) -> None:
+        """Something changed: render again (preview first)."""
+        self.version += 1
+        self.changed_at = time.monotonic()
+        self.wake.set()
+
+    def set_frame(self, source: str, index: int) -> None:
+        params, _ = self.data.sources[source]
+        self.source, self.index = source, int(np.clip(index, 0, len(params) - 1))
+        self.pose = replace(self.pose, params=params[self.index])
+        self._place_handles()
+        self.touch()
+
+    def show_camera(self, camera) -> None:
+        position, wxyz, fov = viewer_from_camera(camera)
+        centre = self.pose.world_from_joint(self.data.run.body_model)[0, :3, 3].double().numpy()
+        with self.client.atomic():
+            self.client.camera.up_direction = self.data.up
+            self.client.camera.fov = fov
+            self.client.camera.position = position
+            self.client.camera.look_at = centre
+            self.client.camera.wxyz = wxyz
+        self.touch()
+
+    # --- rendering ---------------------------------------------------------------------------------------------
+    def current_camera(self, long_side: int):
+        camera = self.client.camera
+        return camera_from_viewer(camera.position, camera.wxyz, camera.fov, camera.aspect, long_side)
+
+    def render(self, camera, abandon_on_change: bool = False) -> dict | None:
+        """Render ``camera`` in bands of rows under the shared lock; None when abandoned for a newer change."""
+        run, version = self.data.run, self.version
+        pose = self.pose.pose_batch(run.body_model).to(self.data.device)
+        bands, band_rows = [], max(16, camera.height // 4) if abandon_on_change else camera.height
+        for top in range(0, camera.height, band_rows):
+            rows = min(band_rows, camera.height - top)
+            K = camera.K.copy()
+            K[1, 2] -= top
+            band = replace(camera, K=K, height=rows)
+            with self.data.lock:
+                if abandon_on_change and version != self.version:
+                    return None
+                bands.append(to_numpy(render_view(run.field, band, pose, run.config)))
+        return {key: np.concatenate([b[key] for b in bands]) for key in bands[0]}
+
+    def picture(self, render: dict) -> np.ndarray:
+        """(H, W, 3) uint8 of the tab's mode."""
+        if self.mode == "depth":
+            image = colour_depth(render["depth"], render["mask"])
+        elif self.mode == "parts" and "segmentation" in render:
+            image = colour_segmentation(render["segmentation"])
+        else:
+            image = render["rgb"]
+        return (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
+
+    def _show(self, camera, render: dict) -> None:
+        depth = z_depth(render["depth"], render["mask"], camera.K)
+        self.last_image = self.picture(render)
+        self.client.scene.set_background_image(self.last_image, format="jpeg", jpeg_quality=90, depth=depth)
+
+    def _loop(self) -> None:
+        torch.set_grad_enabled(False)
+        while not self.stop.is_set():
+            self.wake.wait(timeout=0.05)
+            self.wake.clear()
+            if self.playing:
+                self._advance()
+            version = self.version
+            if self.client.camera.update_timestamp == 0.0:
+                continue  # the page has not reported its camera yet
+            try:
+                if version != self.shown:
+                    camera = self.current_camera(self.data.preview)
+                    self._show(camera, self.render(camera))
+                    self.shown = version
+                elif self.full_shown != version and time.monotonic() - self.changed_at > self.data.settle_seconds:
+                    camera = self.current_camera(self.data.full)
+                    render = self.render(camera, abandon_on_change=True)
+                    if render is not None and version == self.version:
+                        self._show(camera, render)
+                        self.full_shown = version
+            except Exception as err:  # a render thread must not die silently: say it, and go on with the next change
+                if self.stop.is_set():
+                    return
+                print(f"narf-view: tab {self.client.client_id}: {type(err).__name__}: {err}", file=sys.stderr)
+                self.shown = self.full_shown = version
+                time.sleep(0.5)
+
+    def _advance(self) -> None:
+        params, fps = self.data.sources[self.source]
+        step = int((time.monotonic() - self._play_started) * fps * self.speed)
+        index = (self._play_from + step) % len(params)
+        if index != self.index:
+            self.frame_slider.value = index
+            self.set_frame(self.source, index)
+
+    # --- controls ----------------------------------------------------------------------------------------------
+    def _build_gui(self) -> None:
+        gui, data = self.client.gui, self.data
+        with gui.add_folder("Pose"):
+            self.source_menu = gui.add_dropdown("source", tuple(data.sources), initial_value=self.source)
+            self.frame_slider = gui.add_slider("frame", 0, len(data.sources[self.source][0]) - 1, 1, 0)
+            self.play_button = gui.add_button("play / pause")
+            self.speed_slider = gui.add_slider("speed", 0.25, 4.0, 0.25, 1.0)
+            self.hand_box = gui.add_checkbox("pose by hand (joint handles)", False)
+            reset = gui.add_button("reset pose")
+        with gui.add_folder("Bone lengths"):
+            self.bone_sliders = {name: gui.add_slider(name, 0.5, 1.5, 0.05, 1.0) for name in self.pose.bone_scales}
+        with gui.add_folder("View"):
+            self.mode_menu = gui.add_dropdown("show", MODES, initial_value=self.mode)
+            names = tuple(c.name for c in data.cameras)
+            self.camera_menu = gui.add_dropdown("training camera", names, initial_value=names[0])
+            shot = gui.add_button("screenshot")
+            key = gui.add_button("add camera keyframe")
+            save = gui.add_button("save camera path")
+        self.source_menu.on_update(lambda _: self._switch_source())
+        self.frame_slider.on_update(lambda _: self.set_frame(self.source, self.frame_slider.value))
+        self.play_button.on_click(lambda _: self._toggle_play())
+        self.speed_slider.on_update(lambda _: setattr(self, "speed", self.speed_slider.value))
+        self.hand_box.on_update(lambda _: self._place_handles())
+        reset.on_click(lambda _: self.set_frame(self.source, self.index))
+        for name, slider in self.bone_sliders.items():
+            slider.on_update(lambda _, n=name, s=slider: self._scale_bones(n, s.value))
+        self.mode_menu.on_update(lambda _: (setattr(self, "mode", self.mode_menu.value), self.touch()))
+        self.camera_menu.on_update(lambda _: self.show_camera(data.cameras[names.index(self.camera_menu.value)]))
+        shot.on_click(lambda _: self.screenshot())
+        key.on_click(lambda _: self.add_keyframe())
+        save.on_click(lambda _: self.save_camera_path())
+
+    def _switch_source(self) -> None:
+        self.source = self.source_menu.value
+        self.frame_slider.max = len(self.data.sources[self.source][0]) - 1
+        self.frame_slider.value = 0
+        self.set_frame(self.source, 0)
+
+    def _toggle_play(self) -> None:
+        self.playing = not self.playing
+        self._play_started, self._play_from = time.monotonic(), self.index
+        self.wake.set()
+
+    def _scale_bones(self, name: str, value: float) -> None:
+        self.pose.bone_scales[name] = float(value)
+        self._place_handles()
+        self.touch()
+
+    def _place_handles(self) -> None:
+        """Show (or hide) a rotation handle at every joint, oriented as the joint."""
+        if not self.hand_box.value:
+            for handle in self.handles:
+                handle.remove()
+            self.handles = []
+            return
+        world = self.pose.world_from_joint(self.data.run.body_model).double().numpy()
+        if not self.handles:
+            for j, name in enumerate(JOINT_NAMES):
+                handle = self.client.scene.add_transform_controls(
+                    f"/joints/{name}", scale=0.12, disable_axes=True, disable_sliders=True, depth_test=False
+                )
+                handle.on_update(lambda _, j=j, h=handle: self._turn(j, h))
+                self.handles.append(handle)
+        for j, handle in enumerate(self.handles):
+            handle.position = world[j, :3, 3]
+            x, y, z, w = Rotation.from_matrix(world[j, :3, :3]).as_quat()
+            handle.wxyz = (w, x, y, z)
+
+    def _turn(self, joint: int, handle) -> None:
+        w, x, y, z = handle.wxyz
+        self.pose.rotate_joint(self.data.run.body_model, joint, Rotation.from_quat([x, y, z, w]).as_matrix())
+        self._place_handles()
+        self.touch()
+
+    # --- outputs -----------------------------------------------------------------------------------------------
+    def screenshot(self) -> Path:
+        """Render the current view at full size, save it under the run's ``viewer/`` folder and send it to the tab."""
+        camera = self.current_camera(self.data.full)
+        image = self.picture(self.render(camera))
+        ok, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        path = _unique(self.data.out_dir / "screenshots", "screenshot", ".png")
+        atomic_write_bytes(path, png.tobytes())
+        self.client.send_file_download(path.name, png.tobytes())
+        return path
+
+    def add_keyframe(self) -> None:
+        camera = self.current_camera(self.data.full)
+        fov = float(np.degrees(self.client.camera.fov))
+        frame = self.index if self.source == "capture frames" else 0
+        self.keyframes.append(Keyframe(camera.cam_from_world, fov, frame))
+        self.client.add_notification("camera path", f"{len(self.keyframes)} keyframes", auto_close_seconds=2.0)
+
+    def save_camera_path(self) -> Path | None:
+        """Write the keyframes (the current camera alone if none were added) for narf-render-video --camera-path."""
+        if not self.keyframes:
+            self.add_keyframe()
+        camera = self.current_camera(self.data.full)
+        text = json.dumps(CameraPath(camera.width, camera.height, self.keyframes).to_json(), indent=1).encode()
+        path = _unique(self.data.out_dir / "camera_paths", "path", ".json")
+        atomic_write_bytes(path, text)
+        self.client.send_file_download(path.name, text)
+        self.client.add_notification("camera path saved", str(path), auto_close_seconds=5.0)
+        return path
+
+    def close(self) -> None:
+        self.stop.set()
+        self.wake.set()
+
+
+def _unique(folder: Path, stem: str, suffix: str) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    path, k = folder / f"{stem}-{stamp}{suffix}", 1
+    while path.exists():
+        path, k = folder / f"{stem}-{stamp}-{k}{suffix}", k + 1
+    return path
+
+
+class Viewer:
+    """The viser server and its tabs."""
+
+    def __init__(self, data: ViewerData, host: str = "127.0.0.1", port: int = 8080):
+        self.data, self.sessions = data, {}
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.server.scene.set_up_direction(tuple(data.up))
+        self.server.on_client_connect(self._connect)
+        self.server.on_client_disconnect(self._disconnect)
+
+    def _connect(self, client: viser.ClientHandle) -> None:
+        self.sessions[client.client_id] = Session(self.data, client)
+
+    def _disconnect(self, client: viser.ClientHandle) -> None:
+        session = self.sessions.pop(client.client_id, None)
+        if session is not None:
+            session.close()
+
+    def stop(self) -> None:
+        for session in list(self.sessions.values()):
+            session.close()
+        self.sessions.clear()
+        self.server.stop()
+
+
+def viewer_data(run_dir: Path, motion: Path | None, device: str, preview: int, full: int) -> ViewerData:
+    """Load a subject run and the poses its tabs can show: the capture's frames, and ``motion`` placed on its stage."""
+    from pipelines.runs.subject.session import load_run
+    from pipelines.runs.subject.video import motion_params
+
+    run = load_run(Path(run_dir), device)
+    capture = run.capture
+    sources = {"capture frames": ([capture.params(f) for f in range(capture.n_frames)], 30.0)}
+    if motion is not None:
+        params, report = motion_params(run, Path(motion), None, 0, None)
+        sources[f"motion: {Path(motion).name}"] = (params, float(report["fps"]))
+    views = list(run.protocol.train_views) + [v for v in run.protocol.test_views if v not in run.protocol.train_views]
+    cameras = [capture.cameras[v].undistorted().scaled(capture.ratio) for v in views]
+    up = capture.floor.up if capture.floor is not None else camera_up(capture.cameras)
+    return ViewerData(
+        run, cameras, sources, np.asarray(up, np.float64), device, Path(run_dir) / "viewer", preview, full
+    )
