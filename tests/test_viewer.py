@@ -1,0 +1,254 @@
+"""narf-view: camera and pose maths against references, camera paths, the command's refusals, and the page in a
+real browser (headless chromium with software WebGL, where installed)."""
+
+import json
+import os
+import shutil
+import socket
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from narf.kinematics import SMPL_PARENTS, bone_lengths
+from pipelines.datasets.camera_path import CameraPath, Keyframe, interpolate, intrinsics, read_camera_path
+from pipelines.datasets.zju_mocap import Camera, SmplParams
+from pipelines.viewer.avatar import BONE_GROUPS, AvatarPose, camera_from_viewer, viewer_from_camera, z_depth
+
+ARTEFACTS = Path(os.environ.get("NARF_TEST_ARTEFACTS", Path(__file__).resolve().parents[1] / "test-artefacts"))
+
+
+def _camera(width=64, height=48) -> Camera:
+    rotation = Rotation.from_euler("xyz", [100, -20, 30], degrees=True).as_matrix()
+    cam_from_world = np.eye(4)
+    cam_from_world[:3, :3], cam_from_world[:3, 3] = rotation, [0.1, -0.2, 3.0]
+    return Camera("c", intrinsics(width, height, 40.0), np.zeros(5), cam_from_world, width, height)
+
+
+def test_viewer_camera_round_trip():
+    camera = _camera()
+    position, wxyz, fov = viewer_from_camera(camera)
+    back = camera_from_viewer(position, wxyz, fov, 64 / 48, 64)
+    # float64 quaternion and matrix round trip: ~1e-15
+    np.testing.assert_allclose(back.cam_from_world, camera.cam_from_world, atol=1e-12)
+    np.testing.assert_allclose(back.K, camera.K, atol=1e-9)
+    assert (back.width, back.height) == (64, 48) and np.degrees(fov) == pytest.approx(40.0)
+    # a point on the optical axis projects to the image centre
+    centre = position + 2.0 * back.cam_from_world[2, :3]
+    x = back.K @ (back.cam_from_world[:3, :3] @ centre + back.cam_from_world[:3, 3])
+    np.testing.assert_allclose(x[:2] / x[2], [31.5, 23.5], atol=1e-9)
+
+
+def test_z_depth_is_along_the_optical_axis():
+    K = intrinsics(5, 3, 60.0)
+    ray_length = np.full((3, 5), 2.0)
+    z = z_depth(ray_length, np.ones((3, 5)), K, far=9.0)
+    u = np.arange(5) - 2.0
+    # pixel (u, v) sees direction (u / f, v / f, 1) normalised: z = 2 / sqrt(1 + (u^2 + v^2) / f^2)
+    expected = 2.0 / np.sqrt(1 + (u[None] ** 2 + (np.arange(3) - 1.0)[:, None] ** 2) / K[0, 0] ** 2)
+    np.testing.assert_allclose(z, expected, rtol=1e-6)
+    assert z_depth(ray_length, np.zeros((3, 5)), K, far=9.0).max() == 9.0
+
+
+def _params(rng) -> SmplParams:
+    return SmplParams(
+        rng.normal(0, 0.3, 72).astype(np.float32),
+        rng.normal(0, 0.5, 3).astype(np.float32),
+        np.array([0.2, 0.1, 1.0], np.float32),
+        rng.normal(0, 0.5, 10).astype(np.float32),
+    )
+
+
+def test_joint_handle_sets_the_joint_rotation_and_keeps_the_rest(body_model):
+    pose = AvatarPose(_params(np.random.default_rng(1)))
+    before = pose.world_from_joint(body_model).double().numpy()
+    wanted = Rotation.from_euler("zyx", [40, -10, 70], degrees=True).as_matrix()
+    for joint in (0, 18):
+        pose.rotate_joint(body_model, joint, wanted)
+        after = pose.world_from_joint(body_model).double().numpy()
+        # float32 body model chaining 5 joints: ~1e-6
+        np.testing.assert_allclose(after[joint, :3, :3], wanted, atol=1e-5)
+        untouched = [j for j in range(24) if j != joint and not _descends(j, joint)]
+        np.testing.assert_allclose(after[untouched], before[untouched], atol=1e-5)
+        np.testing.assert_allclose(after[joint, :3, 3], before[joint, :3, 3], atol=1e-5)  # turns about itself
+        before = after
+
+
+def _descends(j: int, ancestor: int) -> bool:
+    while j >= 0:
+        j = SMPL_PARENTS[j]
+        if j == ancestor:
+            return True
+    return False
+
+
+def test_bone_sliders_scale_their_bones_only(body_model):
+    pose = AvatarPose(_params(np.random.default_rng(2)))
+    joints = pose.world_from_joint(body_model)[..., :3, 3]
+    pose.bone_scales["legs"] = 1.3
+    scaled = pose.world_from_joint(body_model)[..., :3, 3]
+    offsets = lambda p: (p[1:] - p[list(SMPL_PARENTS[1:])]).norm(dim=-1)  # noqa: E731
+    ratio = (offsets(scaled) / offsets(joints)).numpy()
+    legs = np.array([j in BONE_GROUPS["legs"] for j in range(1, 24)])
+    np.testing.assert_allclose(ratio[legs], 1.3, rtol=1e-5)
+    np.testing.assert_allclose(ratio[~legs], 1.0, rtol=1e-5)
+    assert bone_lengths(scaled[None]).shape[-1] == 19
+
+
+def test_camera_path_round_trip_and_interpolation(tmp_path):
+    a, b = _camera(), _camera()
+    turned = np.eye(4)
+    turned[:3, :3] = Rotation.from_euler("y", 90, degrees=True).as_matrix()
+    b = replace(b, cam_from_world=turned @ a.cam_from_world)
+    path = CameraPath(64, 48, [Keyframe(a.cam_from_world, 40.0, 0), Keyframe(b.cam_from_world, 60.0, 10)])
+    file = tmp_path / "path.json"
+    file.write_text(json.dumps(path.to_json()))
+    back = read_camera_path(file)
+    views = interpolate(back, 5)
+    np.testing.assert_allclose(views[0].cam_from_world, a.cam_from_world, atol=1e-12)
+    np.testing.assert_allclose(views[-1].cam_from_world, b.cam_from_world, atol=1e-12)
+    # halfway: the camera has turned 45 degrees about its own y axis, the same centre, fov and frame halfway
+    middle = views[2].cam_from_world[:3, :3] @ a.cam_from_world[:3, :3].T
+    assert Rotation.from_matrix(middle).magnitude() == pytest.approx(np.pi / 4)
+    assert views[2].fov_y_degrees == pytest.approx(50.0) and views[2].frame == 5
+    for bad, message in (
+        ({"format": "x"}, "not a camera path"),
+        ({**path.to_json(), "keyframes": []}, "no keyframes"),
+        ({**path.to_json(), "width": 3}, "width and height"),
+    ):
+        file.write_text(json.dumps(bad))
+        with pytest.raises(ValueError, match=message):
+            read_camera_path(file)
+
+
+def test_render_video_flies_a_camera_path(tiny_run, tmp_path):
+    from pipelines.cli import render_video
+    from pipelines.cli.common import run_cli
+    from pipelines.runs.subject.session import load_run
+
+    camera = load_run(tiny_run).capture.cameras[0]
+    path = CameraPath(32, 24, [Keyframe(camera.cam_from_world, 40.0, 0), Keyframe(camera.cam_from_world, 30.0, 3)])
+    file = tmp_path / "path.json"
+    file.write_text(json.dumps(path.to_json()))
+    out = tmp_path / "path.mp4"
+    args = ["--run", str(tiny_run), "--camera-path", str(file), "--frames", "3", "--out", str(out), "--quiet"]
+    assert run_cli("narf-render-video", render_video.main, args) == 0 and out.stat().st_size > 0
+    path.keyframes[1].frame = 10_000
+    file.write_text(json.dumps(path.to_json()))
+    assert run_cli("narf-render-video", render_video.main, args) == 2
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_view_refuses_a_run_it_cannot_show(tmp_path, capsys):
+    from pipelines.cli import view
+    from pipelines.cli.common import run_cli
+
+    port = _free_port()
+    assert run_cli("narf-view", view.main, ["--run", str(tmp_path / "missing"), "--port", str(port)]) == 2
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    assert run_cli("narf-view", view.main, ["--run", str(foreign), "--port", str(port)]) == 2
+    errors = capsys.readouterr().err.strip().splitlines()
+    assert len(errors) == 2 and all(line.startswith("narf-view: error: ") for line in errors)
+    with socket.socket() as s:  # no server was left listening
+        s.bind(("127.0.0.1", port))
+
+
+CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
+CHROMEDRIVER = shutil.which("chromedriver")
+BROWSER_MISSING = "chromium and chromium-driver are not installed (apt-get install chromium chromium-driver)"
+
+
+def _wait(condition, seconds: float, what: str):
+    deadline = time.monotonic() + seconds
+    while time.monotonic() < deadline:
+        value = condition()
+        if value is not None and value is not False:
+            return value
+        time.sleep(0.1)
+    raise AssertionError(f"timed out after {seconds:g} s waiting for {what}")
+
+
+def _canvas_pixels(driver, name: str) -> np.ndarray:
+    """The page as an RGB array, the left 60 % (away from the control panel), saved as an artefact."""
+    import cv2
+
+    ARTEFACTS.mkdir(parents=True, exist_ok=True)
+    png = driver.get_screenshot_as_png()
+    (ARTEFACTS / f"viewer-{name}.png").write_bytes(png)
+    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
+    return image[:, : int(image.shape[1] * 0.6)].astype(np.float64)
+
+
+@pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None, reason=BROWSER_MISSING)
+def test_the_page_shows_orbits_and_reposes_the_avatar(tiny_run):
+    from selenium import webdriver
+    from selenium.webdriver.chrome.service import Service
+    from selenium.webdriver.common.action_chains import ActionChains
+    from selenium.webdriver.common.by import By
+    from selenium.webdriver.common.keys import Keys
+
+    from pipelines.viewer.app import Viewer, viewer_data
+
+    data = viewer_data(tiny_run, None, "cpu", preview=96, full=160)
+    viewer = Viewer(data, "127.0.0.1", _free_port())
+    options = webdriver.ChromeOptions()
+    for flag in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1000,700"):
+        options.add_argument(flag)
+    options.add_argument("--use-angle=swiftshader")  # software WebGL: no GPU on the test machines
+    options.add_argument("--enable-unsafe-swiftshader")
+    options.binary_location = CHROMIUM
+    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+    try:
+        driver.get(f"http://127.0.0.1:{viewer.server.get_port()}")
+        session = _wait(lambda: next(iter(viewer.sessions.values()), None), 60, "the tab's session")
+        _wait(lambda: session.full_shown == session.version, 60, "the still frame")
+        first = session.last_image.copy()
+        # the page shows the render: the background image covers the canvas (the render's black background,
+        # where viser's own is white), and the avatar's pixels are there
+        page = _wait(
+            lambda: (lambda p: p if (p.sum(-1) < 30).mean() > 0.5 else None)(_canvas_pixels(driver, "1-first")),
+            30,
+            "the rendered image on the page",
+        )
+        assert (first.sum(-1) > 30).mean() > 0.005 and (page.sum(-1) > 30).mean() > 0.001
+        # dragging orbits: the tab's camera moves and a new image arrives
+        position = np.array(session.client.camera.position)
+        canvas = driver.find_element(By.TAG_NAME, "canvas")
+        ActionChains(driver).move_to_element(canvas).click_and_hold().move_by_offset(120, 0).release().perform()
+        _wait(
+            lambda: np.linalg.norm(np.array(session.client.camera.position) - position) > 1e-3, 30, "the camera to move"
+        )
+        _wait(
+            lambda: session.full_shown == session.version and not np.array_equal(session.last_image, first),
+            60,
+            "the orbited frame",
+        )
+        orbited = session.last_image.copy()
+        _canvas_pixels(driver, "2-orbited")
+        # the frame slider re-poses the avatar: focus it and step it with the arrow key
+        slider = driver.find_elements(By.CSS_SELECTOR, "[role=slider]")[0]
+        slider.click()
+        for _ in range(3):
+            slider.send_keys(Keys.ARROW_RIGHT)
+        _wait(lambda: session.index > 0, 30, "the frame slider to move")
+        _wait(
+            lambda: session.full_shown == session.version and not np.array_equal(session.last_image, orbited),
+            60,
+            "the reposed frame",
+        )
+        _canvas_pixels(driver, "3-reposed")
+        assert session.pose.params is data.sources["capture frames"][0][session.index]
+    finally:
+        driver.quit()
+        viewer.stop()
+    assert not viewer.sessions
