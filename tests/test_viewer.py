@@ -248,7 +248,44 @@ def test_the_page_shows_orbits_and_reposes_the_avatar(tiny_run):
         )
         _canvas_pixels(driver, "3-reposed")
         assert session.pose.params is data.sources["capture frames"][0][session.index]
+        # a second tab has a session of its own; closing it frees that session and leaves the first alone
+        first_tab = driver.current_window_handle
+        driver.switch_to.new_window("tab")
+        driver.get(f"http://127.0.0.1:{viewer.server.get_port()}")
+        _wait(lambda: len(viewer.sessions) == 2 or None, 60, "a second session")
+        second = next(s for s in viewer.sessions.values() if s is not session)
+        _wait(
+            lambda: second.full_shown == second.version and second.full_shown > 0 or None, 60, "the second tab's frame"
+        )
+        assert second.index == 0 and session.index > 0
+        driver.close()
+        driver.switch_to.window(first_tab)
+        _wait(lambda: len(viewer.sessions) == 1 or None, 30, "the closed tab's session to go")
+        assert (
+            second.stop.is_set()
+            and not second.thread.is_alive()
+            or _wait(lambda: not second.thread.is_alive() or None, 10, "the closed tab's thread to end")
+        )
     finally:
         driver.quit()
         viewer.stop()
     assert not viewer.sessions
+
+
+def test_ctrl_c_stops_the_server(tiny_run):
+    import signal
+    import subprocess
+    import sys
+
+    import spawn
+
+    argv = [sys.executable, "-c", "from pipelines.cli.view import entrypoint; entrypoint()"]
+    argv += ["--run", str(tiny_run), "--port", str(_free_port())]
+    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    proc = spawn.popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    out, err = spawn.Reader(proc.stdout), spawn.Reader(proc.stderr)
+    _wait(lambda: "serving" in out.text() or proc.poll() is not None or None, 120, "the server to start")
+    proc.send_signal(signal.SIGINT)
+    assert spawn.finish(proc, 30, "narf-view after Ctrl-C") == 130
+    err.thread.join(timeout=5)
+    assert "narf-view: interrupted" in err.text() and "Traceback" not in err.text()
