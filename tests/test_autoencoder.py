@@ -235,3 +235,41 @@ def test_code_refinement_recovers_a_code_and_leaves_the_field_alone(sets, body_m
     assert error(refined) < 0.5 * error(start)
     assert all(torch.equal(v, field.state_dict()[k]) for k, v in before.items())
     assert all(p.requires_grad for p in field.parameters()) and refined.requires_grad is False
+
+
+def test_viewer_offers_the_people_and_blends_their_codes(sets, tmp_path):
+    import browser
+
+    from fitting.evaluate import render_view
+    from pipelines.viewer.app import Viewer, autoencoder_viewer_data
+
+    config = _config(sets, "train.steps=2")
+    start_run(prepare_run_dir(tmp_path / "ae", config, False), "cpu", config, progress=False).fit()
+    data = autoencoder_viewer_data(tmp_path / "ae", "cpu", preview=48, full=64)
+    # 4 people x (2 training + 1 held-out poses) = 12 meshes, all offered (at most 16)
+    assert len(data.people) == 12 and sum("held out" in p.name for p in data.people) == 4
+    assert data.sources[0].count == 12 and len(data.cameras) == 12
+    codes = torch.cat([p.code for p in data.people])
+    assert codes.shape[0] == 12 and not torch.equal(codes[0], codes[1])
+    # a person's skeleton is recovered from its own joint frames: posing it in its own pose gives those frames back
+    pose = data.sources[0].make(3)
+    pose.rest = data.people[3].rest
+    np.testing.assert_allclose(pose.world_from_joint(), data.sources[0].make(3).world_from_joint(), atol=1e-9)
+    render = render_view(data.field, data.cameras[0], pose.pose_batch(), data.config, 0.5 * (codes[:1] + codes[1:2]))
+    assert render["rgb"].shape == (128, 128, 3)
+    if browser.CHROMIUM is None or browser.CHROMEDRIVER is None:
+        return  # the page itself is checked in tests/test_viewer.py where chromium is installed
+    viewer = Viewer(data, "127.0.0.1", browser.free_port())
+    driver = browser.chromium()
+    try:
+        driver.get(f"http://127.0.0.1:{viewer.server.get_port()}")
+        session = browser.wait(lambda: next(iter(viewer.sessions.values()), None), 60, "the tab's session")
+        browser.wait(lambda: session.full_shown == session.version or None, 60, "the first still frame")
+        first = session.last_image.copy()
+        session.person, session.other, session.blend = 0, 5, 1.0  # what the Person controls set
+        session.touch()
+        browser.wait(lambda: session.full_shown == session.version or None, 60, "the blended frame")
+        assert torch.equal(session.latent(), data.people[5].code) and not np.array_equal(session.last_image, first)
+    finally:
+        driver.quit()
+        viewer.stop()

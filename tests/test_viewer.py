@@ -3,22 +3,19 @@ real browser (headless chromium with software WebGL, where installed)."""
 
 import json
 import os
-import shutil
 import socket
-import time
 from dataclasses import replace
-from pathlib import Path
 
+import browser
 import numpy as np
 import pytest
+import torch
 from scipy.spatial.transform import Rotation
 
-from narf.kinematics import SMPL_PARENTS, bone_lengths
+from narf.kinematics import SMPL_PARENTS
 from pipelines.datasets.camera_path import CameraPath, Keyframe, interpolate, intrinsics, read_camera_path
 from pipelines.datasets.zju_mocap import Camera, SmplParams
 from pipelines.viewer.avatar import BONE_GROUPS, AvatarPose, camera_from_viewer, viewer_from_camera, z_depth
-
-ARTEFACTS = Path(os.environ.get("NARF_TEST_ARTEFACTS", Path(__file__).resolve().parents[1] / "test-artefacts"))
 
 
 def _camera(width=64, height=48) -> Camera:
@@ -62,18 +59,42 @@ def _params(rng) -> SmplParams:
     )
 
 
+def _avatar(params, body_model) -> AvatarPose:
+    rest = body_model.rest_joints(torch.as_tensor(params.shapes)[None])[0].double().numpy()
+    return AvatarPose.from_params(params, rest)
+
+
+def test_avatar_pose_is_the_body_models_pose(body_model):
+    from pipelines.body.model import pose_batch
+
+    params = _params(np.random.default_rng(4))
+    mine = _avatar(params, body_model).pose_batch()
+    with torch.no_grad():
+        reference = pose_batch(
+            body_model.pose_zju(
+                *(torch.as_tensor(v)[None] for v in (params.poses, params.rh, params.th, params.shapes))
+            )
+        )
+    # float64 kinematics here against the float32 body model, and the skeleton recovered from the frames: ~1e-6
+    for key in ("world_from_part", "reach", "bone_lengths", "pose_features", "rest_offsets", "world_from_joint"):
+        np.testing.assert_allclose(getattr(mine, key).numpy(), getattr(reference, key).numpy(), atol=2e-5, err_msg=key)
+    # a pose given as joint frames (THUman, SURREAL) comes back as the same frames
+    frames = reference.world_from_joint[0].double().numpy()
+    np.testing.assert_allclose(AvatarPose.from_joints(frames).world_from_joint(), frames, atol=1e-6)
+
+
 def test_joint_handle_sets_the_joint_rotation_and_keeps_the_rest(body_model):
-    pose = AvatarPose(_params(np.random.default_rng(1)))
-    before = pose.world_from_joint(body_model).double().numpy()
+    pose = _avatar(_params(np.random.default_rng(1)), body_model)
+    before = pose.world_from_joint()
     wanted = Rotation.from_euler("zyx", [40, -10, 70], degrees=True).as_matrix()
     for joint in (0, 18):
-        pose.rotate_joint(body_model, joint, wanted)
-        after = pose.world_from_joint(body_model).double().numpy()
-        # float32 body model chaining 5 joints: ~1e-6
-        np.testing.assert_allclose(after[joint, :3, :3], wanted, atol=1e-5)
+        pose.rotate_joint(joint, wanted)
+        after = pose.world_from_joint()
+        # float64 kinematics: ~1e-15 per product
+        np.testing.assert_allclose(after[joint, :3, :3], wanted, atol=1e-10)
         untouched = [j for j in range(24) if j != joint and not _descends(j, joint)]
-        np.testing.assert_allclose(after[untouched], before[untouched], atol=1e-5)
-        np.testing.assert_allclose(after[joint, :3, 3], before[joint, :3, 3], atol=1e-5)  # turns about itself
+        np.testing.assert_allclose(after[untouched], before[untouched], atol=1e-10)
+        np.testing.assert_allclose(after[joint, :3, 3], before[joint, :3, 3], atol=1e-10)  # turns about itself
         before = after
 
 
@@ -86,16 +107,15 @@ def _descends(j: int, ancestor: int) -> bool:
 
 
 def test_bone_sliders_scale_their_bones_only(body_model):
-    pose = AvatarPose(_params(np.random.default_rng(2)))
-    joints = pose.world_from_joint(body_model)[..., :3, 3]
+    pose = _avatar(_params(np.random.default_rng(2)), body_model)
+    joints = pose.world_from_joint()[:, :3, 3]
     pose.bone_scales["legs"] = 1.3
-    scaled = pose.world_from_joint(body_model)[..., :3, 3]
-    offsets = lambda p: (p[1:] - p[list(SMPL_PARENTS[1:])]).norm(dim=-1)  # noqa: E731
-    ratio = (offsets(scaled) / offsets(joints)).numpy()
+    scaled = pose.world_from_joint()[:, :3, 3]
+    offsets = lambda p: np.linalg.norm(p[1:] - p[list(SMPL_PARENTS[1:])], axis=-1)  # noqa: E731
+    ratio = offsets(scaled) / offsets(joints)
     legs = np.array([j in BONE_GROUPS["legs"] for j in range(1, 24)])
-    np.testing.assert_allclose(ratio[legs], 1.3, rtol=1e-5)
-    np.testing.assert_allclose(ratio[~legs], 1.0, rtol=1e-5)
-    assert bone_lengths(scaled[None]).shape[-1] == 19
+    np.testing.assert_allclose(ratio[legs], 1.3, rtol=1e-10)
+    np.testing.assert_allclose(ratio[~legs], 1.0, rtol=1e-10)
 
 
 def test_camera_path_round_trip_and_interpolation(tmp_path):
@@ -141,17 +161,11 @@ def test_render_video_flies_a_camera_path(tiny_run, tmp_path):
     assert run_cli("narf-render-video", render_video.main, args) == 2
 
 
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 def test_view_refuses_a_run_it_cannot_show(tmp_path, capsys):
     from pipelines.cli import view
     from pipelines.cli.common import run_cli
 
-    port = _free_port()
+    port = browser.free_port()
     assert run_cli("narf-view", view.main, ["--run", str(tmp_path / "missing"), "--port", str(port)]) == 2
     foreign = tmp_path / "foreign"
     foreign.mkdir()
@@ -163,36 +177,8 @@ def test_view_refuses_a_run_it_cannot_show(tmp_path, capsys):
         s.bind(("127.0.0.1", port))
 
 
-CHROMIUM = shutil.which("chromium") or shutil.which("chromium-browser")
-CHROMEDRIVER = shutil.which("chromedriver")
-BROWSER_MISSING = "chromium and chromium-driver are not installed (apt-get install chromium chromium-driver)"
-
-
-def _wait(condition, seconds: float, what: str):
-    deadline = time.monotonic() + seconds
-    while time.monotonic() < deadline:
-        value = condition()
-        if value is not None and value is not False:
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"timed out after {seconds:g} s waiting for {what}")
-
-
-def _canvas_pixels(driver, name: str) -> np.ndarray:
-    """The page as an RGB array, the left 60 % (away from the control panel), saved as an artefact."""
-    import cv2
-
-    ARTEFACTS.mkdir(parents=True, exist_ok=True)
-    png = driver.get_screenshot_as_png()
-    (ARTEFACTS / f"viewer-{name}.png").write_bytes(png)
-    image = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)[..., ::-1]
-    return image[:, : int(image.shape[1] * 0.6)].astype(np.float64)
-
-
-@pytest.mark.skipif(CHROMIUM is None or CHROMEDRIVER is None, reason=BROWSER_MISSING)
+@pytest.mark.skipif(browser.CHROMIUM is None or browser.CHROMEDRIVER is None, reason=browser.MISSING)
 def test_the_page_shows_orbits_and_reposes_the_avatar(tiny_run):
-    from selenium import webdriver
-    from selenium.webdriver.chrome.service import Service
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
@@ -200,23 +186,17 @@ def test_the_page_shows_orbits_and_reposes_the_avatar(tiny_run):
     from pipelines.viewer.app import Viewer, viewer_data
 
     data = viewer_data(tiny_run, None, "cpu", preview=96, full=160)
-    viewer = Viewer(data, "127.0.0.1", _free_port())
-    options = webdriver.ChromeOptions()
-    for flag in ("--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--window-size=1000,700"):
-        options.add_argument(flag)
-    options.add_argument("--use-angle=swiftshader")  # software WebGL: no GPU on the test machines
-    options.add_argument("--enable-unsafe-swiftshader")
-    options.binary_location = CHROMIUM
-    driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
+    viewer = Viewer(data, "127.0.0.1", browser.free_port())
+    driver = browser.chromium()
     try:
         driver.get(f"http://127.0.0.1:{viewer.server.get_port()}")
-        session = _wait(lambda: next(iter(viewer.sessions.values()), None), 60, "the tab's session")
-        _wait(lambda: session.full_shown == session.version, 60, "the still frame")
+        session = browser.wait(lambda: next(iter(viewer.sessions.values()), None), 60, "the tab's session")
+        browser.wait(lambda: session.full_shown == session.version, 60, "the still frame")
         first = session.last_image.copy()
         # the page shows the render: the background image covers the canvas (the render's black background,
         # where viser's own is white), and the avatar's pixels are there
-        page = _wait(
-            lambda: (lambda p: p if (p.sum(-1) < 30).mean() > 0.5 else None)(_canvas_pixels(driver, "1-first")),
+        page = browser.wait(
+            lambda: (lambda p: p if (p.sum(-1) < 30).mean() > 0.5 else None)(browser.page_pixels(driver, "1-first")),
             30,
             "the rendered image on the page",
         )
@@ -225,44 +205,45 @@ def test_the_page_shows_orbits_and_reposes_the_avatar(tiny_run):
         position = np.array(session.client.camera.position)
         canvas = driver.find_element(By.TAG_NAME, "canvas")
         ActionChains(driver).move_to_element(canvas).click_and_hold().move_by_offset(120, 0).release().perform()
-        _wait(
+        browser.wait(
             lambda: np.linalg.norm(np.array(session.client.camera.position) - position) > 1e-3, 30, "the camera to move"
         )
-        _wait(
+        browser.wait(
             lambda: session.full_shown == session.version and not np.array_equal(session.last_image, first),
             60,
             "the orbited frame",
         )
         orbited = session.last_image.copy()
-        _canvas_pixels(driver, "2-orbited")
+        browser.page_pixels(driver, "2-orbited")
         # the frame slider re-poses the avatar: focus it and step it with the arrow key
         slider = driver.find_elements(By.CSS_SELECTOR, "[role=slider]")[0]
         slider.click()
         for _ in range(3):
             slider.send_keys(Keys.ARROW_RIGHT)
-        _wait(lambda: session.index > 0, 30, "the frame slider to move")
-        _wait(
+        browser.wait(lambda: session.index > 0, 30, "the frame slider to move")
+        browser.wait(
             lambda: session.full_shown == session.version and not np.array_equal(session.last_image, orbited),
             60,
             "the reposed frame",
         )
-        _canvas_pixels(driver, "3-reposed")
-        assert session.pose.params is data.sources["capture frames"][0][session.index]
+        browser.page_pixels(driver, "3-reposed")
+        expected = data.sources[0].make(session.index).world_from_joint()
+        np.testing.assert_array_equal(session.pose.world_from_joint(), expected)
         # a second tab has a session of its own; closing it frees that session and leaves the first alone
         first_tab = driver.current_window_handle
         driver.switch_to.new_window("tab")
         driver.get(f"http://127.0.0.1:{viewer.server.get_port()}")
-        _wait(lambda: len(viewer.sessions) == 2 or None, 60, "a second session")
+        browser.wait(lambda: len(viewer.sessions) == 2 or None, 60, "a second session")
         second = next(s for s in viewer.sessions.values() if s is not session)
-        _wait(
+        browser.wait(
             lambda: second.full_shown == second.version and second.full_shown > 0 or None, 60, "the second tab's frame"
         )
         assert second.index == 0 and session.index > 0
         driver.close()
         driver.switch_to.window(first_tab)
-        _wait(lambda: len(viewer.sessions) == 1 or None, 30, "the closed tab's session to go")
+        browser.wait(lambda: len(viewer.sessions) == 1 or None, 30, "the closed tab's session to go")
         assert second.stop.is_set()
-        _wait(lambda: not second.thread.is_alive() or None, 10, "the closed tab's thread to end")
+        browser.wait(lambda: not second.thread.is_alive() or None, 10, "the closed tab's thread to end")
     finally:
         driver.quit()
         viewer.stop()
@@ -277,11 +258,11 @@ def test_ctrl_c_stops_the_server(tiny_run):
     import spawn
 
     argv = [sys.executable, "-c", "from pipelines.cli.view import entrypoint; entrypoint()"]
-    argv += ["--run", str(tiny_run), "--port", str(_free_port())]
+    argv += ["--run", str(tiny_run), "--port", str(browser.free_port())]
     env = {**os.environ, "PYTHONUNBUFFERED": "1"}
     proc = spawn.popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
     out, err = spawn.Reader(proc.stdout), spawn.Reader(proc.stderr)
-    _wait(lambda: "serving" in out.text() or proc.poll() is not None or None, 120, "the server to start")
+    browser.wait(lambda: "serving" in out.text() or proc.poll() is not None or None, 120, "the server to start")
     proc.send_signal(signal.SIGINT)
     assert spawn.finish(proc, 30, "narf-view after Ctrl-C") == 130
     err.thread.join(timeout=5)

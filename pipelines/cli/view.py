@@ -22,7 +22,8 @@ def main(argv: list[str] | None = None) -> int:
         "full frame once it rests. Controls: capture-frame slider, --motion playback (play / pause, speed), joint "
         "rotation handles, bone-length sliders, RGB / depth / parts, the training cameras as view presets, a "
         "screenshot (saved under RUN/viewer/screenshots/) and 'save camera path' (RUN/viewer/camera_paths/, for "
-        "narf-render-video --camera-path). Ctrl-C stops the server.",
+        "narf-render-video --camera-path). For an autoencoder run: people of its set to choose (person A, "
+        "whose skeleton the poses go on) and blend (towards person B). Ctrl-C stops the server.",
         formatter_class=HelpFormatter,
     )
     parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")
@@ -38,12 +39,18 @@ def main(argv: list[str] | None = None) -> int:
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
     kind = kind_of_run(args.run)  # a missing or foreign checkpoint fails here, before any server starts
-    if kind.name != "subject":
-        raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-view shows subject runs")
-    from pipelines.viewer.app import Viewer, viewer_data
+    if kind.name not in ("subject", "autoencoder"):
+        raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-view shows subject and autoencoder runs")
+    if kind.name == "autoencoder" and args.motion is not None:
+        raise ValueError(f"{args.run}: {a_run(kind.name)} plays its people's poses; --motion is for subject runs")
+    from pipelines.viewer.app import Viewer, autoencoder_viewer_data, viewer_data
 
-    data = viewer_data(args.run, args.motion, str(auto_device(args.device)), args.preview, args.full)
-    if data.run.config.model.name == "cnn":
+    device = str(auto_device(args.device))
+    if kind.name == "autoencoder":
+        data = autoencoder_viewer_data(args.run, device, args.preview, args.full)
+    else:
+        data = viewer_data(args.run, args.motion, device, args.preview, args.full)
+    if data.config.model.name == "cnn":
         raise ValueError(f"{args.run}: the CNN baseline renders fixed-size images, not views: nothing to orbit")
     viewer = Viewer(data, args.host, args.port)
     print(f"narf-view: serving {args.run} at http://{args.host}:{viewer.server.get_port()} (Ctrl-C stops it)")

@@ -14,7 +14,10 @@ import json
 import sys
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, replace
+from dataclasses import field as dataclass_field
+from functools import lru_cache
 from pathlib import Path
 
 import cv2
@@ -35,23 +38,42 @@ MODES = ("RGB", "depth", "parts")
 
 
 @dataclass
-class ViewerData:
-    """What every tab shares: the loaded run, its capture's cameras (at the fitted ratio), the poses a tab can show
-    (``sources``: name -> list of SmplParams and a frame rate), the world's up axis and the render lock."""
+class PoseSource:
+    """Poses a tab can step through: ``count`` of them at ``fps``, ``make(k)`` the k-th."""
 
-    run: object
+    name: str
+    count: int
+    fps: float
+    make: Callable[[int], AvatarPose]
+
+
+@dataclass
+class Person:
+    """An autoencoder run's person: the code of one training render (1, 2 L), the skeleton and camera of it."""
+
+    name: str
+    code: torch.Tensor
+    rest: np.ndarray
+    camera: object
+
+
+@dataclass
+class ViewerData:
+    """What every tab shares: the field and its config, the poses a tab can show, the cameras (view presets), the
+    people of an autoencoder run (empty for a subject run), the world's up axis, and the render lock."""
+
+    field: torch.nn.Module
+    config: object
+    sources: list[PoseSource]
     cameras: list
-    sources: dict
     up: np.ndarray
     device: str
     out_dir: Path
+    people: list[Person] = dataclass_field(default_factory=list)
     preview: int = 192
     full: int = 512
     settle_seconds: float = 0.25
-    lock: threading.Lock = None
-
-    def __post_init__(self):
-        self.lock = self.lock or threading.Lock()
+    lock: threading.Lock = dataclass_field(default_factory=threading.Lock)
 
 
 class Session:
@@ -59,9 +81,8 @@ class Session:
 
     def __init__(self, data: ViewerData, client: viser.ClientHandle):
         self.data, self.client = data, client
-        self.source = next(iter(data.sources))
-        self.index = 0
-        self.pose = AvatarPose(data.sources[self.source][0][0])
+        self.source, self.index, self.person, self.other, self.blend = data.sources[0], 0, 0, 0, 0.0
+        self.pose = self._posed(0)
         self.mode, self.version, self.shown, self.full_shown = MODES[0], 0, -1, -1
         self.changed_at, self.playing, self.speed = time.monotonic(), False, 1.0
         self.keyframes: list[Keyframe] = []
@@ -82,16 +103,30 @@ class Session:
         self.changed_at = time.monotonic()
         self.wake.set()
 
-    def set_frame(self, source: str, index: int) -> None:
-        params, _ = self.data.sources[source]
-        self.source, self.index = source, int(np.clip(index, 0, len(params) - 1))
-        self.pose = replace(self.pose, params=params[self.index])
+    def _posed(self, index: int) -> AvatarPose:
+        """The source's pose ``index``, on the chosen person's skeleton for an autoencoder run (retargeted)."""
+        pose = self.source.make(index)
+        if self.data.people:
+            pose.rest = self.data.people[self.person].rest
+        return pose
+
+    def set_frame(self, source: PoseSource, index: int) -> None:
+        scales = self.pose.bone_scales
+        self.source, self.index = source, int(np.clip(index, 0, source.count - 1))
+        self.pose = replace(self._posed(self.index), bone_scales=scales)
         self._place_handles()
         self.touch()
 
+    def latent(self) -> torch.Tensor | None:
+        """The code rendered: person A's, blended towards person B's (autoencoder runs), else None."""
+        if not self.data.people:
+            return None
+        a, b = self.data.people[self.person].code, self.data.people[self.other].code
+        return ((1 - self.blend) * a + self.blend * b).to(self.data.device)
+
     def show_camera(self, camera) -> None:
         position, wxyz, fov = viewer_from_camera(camera)
-        centre = self.pose.world_from_joint(self.data.run.body_model)[0, :3, 3].double().numpy()
+        centre = self.pose.world_from_joint()[0, :3, 3]
         with self.client.atomic():
             self.client.camera.up_direction = self.data.up
             self.client.camera.fov = fov
@@ -107,8 +142,8 @@ class Session:
 
     def render(self, camera, abandon_on_change: bool = False) -> dict | None:
         """Render ``camera`` in bands of rows under the shared lock; None when abandoned for a newer change."""
-        run, version = self.data.run, self.version
-        pose = self.pose.pose_batch(run.body_model).to(self.data.device)
+        data, version, latent = self.data, self.version, self.latent()
+        pose = self.pose.pose_batch().to(self.data.device)
         bands, band_rows = [], max(16, camera.height // 4) if abandon_on_change else camera.height
         for top in range(0, camera.height, band_rows):
             rows = min(band_rows, camera.height - top)
@@ -118,7 +153,7 @@ class Session:
             with self.data.lock:
                 if abandon_on_change and version != self.version:
                     return None
-                bands.append(to_numpy(render_view(run.field, band, pose, run.config)))
+                bands.append(to_numpy(render_view(data.field, band, pose, data.config, latent)))
         return {key: np.concatenate([b[key] for b in bands]) for key in bands[0]}
 
     def picture(self, render: dict) -> np.ndarray:
@@ -165,9 +200,8 @@ class Session:
                 time.sleep(0.5)
 
     def _advance(self) -> None:
-        params, fps = self.data.sources[self.source]
-        step = int((time.monotonic() - self._play_started) * fps * self.speed)
-        index = (self._play_from + step) % len(params)
+        step = int((time.monotonic() - self._play_started) * self.source.fps * self.speed)
+        index = (self._play_from + step) % self.source.count
         if index != self.index:
             self.frame_slider.value = index
             self.set_frame(self.source, index)
@@ -176,14 +210,17 @@ class Session:
     def _build_gui(self) -> None:
         gui, data = self.client.gui, self.data
         with gui.add_folder("Pose"):
-            self.source_menu = gui.add_dropdown("source", tuple(data.sources), initial_value=self.source)
-            self.frame_slider = gui.add_slider("frame", 0, len(data.sources[self.source][0]) - 1, 1, 0)
+            names = tuple(source.name for source in data.sources)
+            self.source_menu = gui.add_dropdown("source", names, initial_value=names[0])
+            self.frame_slider = gui.add_slider("frame", 0, max(self.source.count - 1, 1), 1, 0)
             self.play_button = gui.add_button("play / pause")
             self.speed_slider = gui.add_slider("speed", 0.25, 4.0, 0.25, 1.0)
             self.hand_box = gui.add_checkbox("pose by hand (joint handles)", False)
             reset = gui.add_button("reset pose")
         with gui.add_folder("Bone lengths"):
             self.bone_sliders = {name: gui.add_slider(name, 0.5, 1.5, 0.05, 1.0) for name in self.pose.bone_scales}
+        if data.people:
+            self._people_gui()
         with gui.add_folder("View"):
             self.mode_menu = gui.add_dropdown("show", MODES, initial_value=self.mode)
             names = tuple(c.name for c in data.cameras)
@@ -206,10 +243,26 @@ class Session:
         save.on_click(lambda _: self.save_camera_path())
 
     def _switch_source(self) -> None:
-        self.source = self.source_menu.value
-        self.frame_slider.max = len(self.data.sources[self.source][0]) - 1
+        source = next(s for s in self.data.sources if s.name == self.source_menu.value)
+        self.frame_slider.max = max(source.count - 1, 1)
         self.frame_slider.value = 0
-        self.set_frame(self.source, 0)
+        self.set_frame(source, 0)
+
+    def _people_gui(self) -> None:
+        """Person A (whose skeleton the poses go on), person B and the blend of their codes (autoencoder runs)."""
+        gui, names = self.client.gui, tuple(p.name for p in self.data.people)
+        with gui.add_folder("Person"):
+            first = gui.add_dropdown("person A", names, initial_value=names[0])
+            second = gui.add_dropdown("person B", names, initial_value=names[0])
+            blend = gui.add_slider("blend A -> B", 0.0, 1.0, 0.05, 0.0)
+
+        def choose(_):
+            self.person, self.other = names.index(first.value), names.index(second.value)
+            self.set_frame(self.source, self.index)
+
+        first.on_update(choose)
+        second.on_update(choose)
+        blend.on_update(lambda _: (setattr(self, "blend", float(blend.value)), self.touch()))
 
     def _toggle_play(self) -> None:
         self.playing = not self.playing
@@ -228,7 +281,7 @@ class Session:
                 handle.remove()
             self.handles = []
             return
-        world = self.pose.world_from_joint(self.data.run.body_model).double().numpy()
+        world = self.pose.world_from_joint()
         if not self.handles:
             for j, name in enumerate(JOINT_NAMES):
                 handle = self.client.scene.add_transform_controls(
@@ -243,7 +296,7 @@ class Session:
 
     def _turn(self, joint: int, handle) -> None:
         w, x, y, z = handle.wxyz
-        self.pose.rotate_joint(self.data.run.body_model, joint, Rotation.from_quat([x, y, z, w]).as_matrix())
+        self.pose.rotate_joint(joint, Rotation.from_quat([x, y, z, w]).as_matrix())
         self._place_handles()
         self.touch()
 
@@ -261,7 +314,7 @@ class Session:
     def add_keyframe(self) -> None:
         camera = self.current_camera(self.data.full)
         fov = float(np.degrees(self.client.camera.fov))
-        frame = self.index if self.source == "capture frames" else 0
+        frame = self.index if self.source is self.data.sources[0] and not self.data.people else 0
         self.keyframes.append(Keyframe(camera.cam_from_world, fov, frame))
         self.client.add_notification("camera path", f"{len(self.keyframes)} keyframes", auto_close_seconds=2.0)
 
@@ -317,19 +370,62 @@ class Viewer:
 
 
 def viewer_data(run_dir: Path, motion: Path | None, device: str, preview: int, full: int) -> ViewerData:
-    """Load a subject run and the poses its tabs can show: the capture's frames, and ``motion`` placed on its stage."""
+    """A subject run: its capture's frames (and ``motion``, placed on its stage) on the subject's skeleton, the
+    training cameras then the held-out ones as presets, the floor's (or the cameras') up axis."""
     from pipelines.runs.subject.session import load_run
     from pipelines.runs.subject.video import motion_params
 
     run = load_run(Path(run_dir), device)
-    capture = run.capture
-    sources = {"capture frames": ([capture.params(f) for f in range(capture.n_frames)], 30.0)}
+    capture, body_model = run.capture, run.body_model
+    rest = lru_cache(maxsize=8)(
+        lambda key: (
+            body_model.rest_joints(torch.tensor(np.frombuffer(key, np.float32))[None].to(body_model.dtype))[0]
+            .double()
+            .numpy()
+        )
+    )  # noqa: E731
+    on_skeleton = lambda p: AvatarPose.from_params(p, rest(np.asarray(p.shapes, np.float32).tobytes()))  # noqa: E731
+    sources = [PoseSource("capture frames", capture.n_frames, 30.0, lambda k: on_skeleton(capture.params(k)))]
     if motion is not None:
         params, report = motion_params(run, Path(motion), None, 0, None)
-        sources[f"motion: {Path(motion).name}"] = (params, float(report["fps"]))
+        sources.append(
+            PoseSource(
+                f"motion: {Path(motion).name}", len(params), float(report["fps"]), lambda k: on_skeleton(params[k])
+            )
+        )
     views = list(run.protocol.train_views) + [v for v in run.protocol.test_views if v not in run.protocol.train_views]
     cameras = [capture.cameras[v].undistorted().scaled(capture.ratio) for v in views]
     up = capture.floor.up if capture.floor is not None else camera_up(capture.cameras)
+    out = Path(run_dir) / "viewer"
     return ViewerData(
-        run, cameras, sources, np.asarray(up, np.float64), device, Path(run_dir) / "viewer", preview, full
+        run.field, run.config, sources, cameras, np.asarray(up, np.float64), device, out, [], preview, full
+    )
+
+
+def autoencoder_viewer_data(run_dir: Path, device: str, preview: int, full: int, n_people: int = 16) -> ViewerData:
+    """An autoencoder run: up to ``n_people`` people of its set (evenly spread over the meshes, held-out ones
+    included), each encoded from its second-view render; the poses are theirs, put on the chosen person's skeleton;
+    the presets are their render cameras; up is the first person's pelvis-to-neck direction."""
+    from fitting.autoencoder import encode
+    from fitting.evaluate import spread
+    from pipelines.runs.autoencoder.evaluation import load_autoencoder_run
+    from pipelines.runs.autoencoder.session import load_views
+
+    run = load_autoencoder_run(Path(run_dir), device)
+    meshes = spread(list(range(run.dataset.n_meshes)), n_people)
+    views, inputs, poses = load_views(run.dataset, "same_view", meshes, progress=False)
+    with torch.no_grad():
+        codes = encode(run.encoder, inputs.to(device)).cpu()
+    joints = poses.world_from_joint.double().numpy()
+    people = []
+    for k, mesh in enumerate(meshes):
+        held = "" if mesh < run.dataset.n_train_meshes else " (held out)"
+        rest = AvatarPose.from_joints(joints[k]).rest
+        people.append(Person(f"person {mesh}{held}", codes[k : k + 1], rest, views[k].camera))
+    source = PoseSource("the people's poses", len(meshes), 2.0, lambda k: AvatarPose.from_joints(joints[k]))
+    up = joints[0, 12, :3, 3] - joints[0, 0, :3, 3]
+    out = Path(run_dir) / "viewer"
+    cameras = [replace(p.camera, name=p.name) for p in people]
+    return ViewerData(
+        run.field, run.config, [source], cameras, up / np.linalg.norm(up), device, out, people, preview, full
     )

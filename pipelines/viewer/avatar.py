@@ -8,14 +8,14 @@ Cameras follow OpenCV (x right, y down, z forward), as viser's do: viser reports
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from narf.kinematics import SMPL_PARENTS, rigid_from_rotvec_translation
-from pipelines.body.model import BodyModel, pose_batch, posed_from_rest_joints
+from narf.kinematics import SMPL_PARENTS, rest_offsets_from_world, rigid_from_rotvec_translation, world_from_joints
+from pipelines.body.model import pose_batch_from_joints
 from pipelines.datasets.camera_path import intrinsics
 from pipelines.datasets.zju_mocap import Camera, SmplParams
 
@@ -30,55 +30,72 @@ BONE_GROUPS: dict[str, tuple[int, ...]] = {
 
 @dataclass
 class AvatarPose:
-    """One tab's pose: ZJU parameters (the frame shown, with any hand edits) and bone-length factors per group."""
+    """One tab's pose as forward kinematics over a rest skeleton (``narf.kinematics.world_from_joints``):
+    ``G_0 = world_from_smpl [R(r_0) | J_0]``, ``G_j = G_par(j) [R(r_j) | s_j (J_j - J_par(j))]``.
 
-    params: SmplParams
+    Attributes:
+        rotvecs: (24, 3) local axis-angle rotations r_j (SMPL ``poses`` reshaped; hand edits change them).
+        world_from_smpl: (4, 4) the global transform (ZJU ``[R(Rh) | Th]``).
+        rest: (24, 3) rest joints J_j of the skeleton (the subject's shape, or a person's recovered skeleton).
+        bone_scales: factor s per bone group (:data:`BONE_GROUPS`; 1 elsewhere).
+    """
+
+    rotvecs: np.ndarray
+    world_from_smpl: np.ndarray
+    rest: np.ndarray
     bone_scales: dict[str, float] = field(default_factory=lambda: dict.fromkeys(BONE_GROUPS, 1.0))
 
-    def rest_joints(self, body_model: BodyModel) -> torch.Tensor:
-        """(1, 24, 3) the subject's rest joints with each group's offsets from their parents scaled (children
-        follow their parents)."""
-        rest = body_model.rest_joints(torch.as_tensor(self.params.shapes, dtype=body_model.dtype)[None])
+    @classmethod
+    def from_params(cls, params: SmplParams, rest: np.ndarray) -> AvatarPose:
+        """A ZJU frame on the rest joints of its shapes (``BodyModel.rest_joints``)."""
+        world = rigid_from_rotvec_translation(
+            torch.as_tensor(params.rh[None], dtype=torch.float64), torch.as_tensor(params.th[None], dtype=torch.float64)
+        )
+        return cls(np.asarray(params.poses, np.float64).reshape(24, 3), world[0].numpy(), np.asarray(rest, np.float64))
+
+    @classmethod
+    def from_joints(cls, world_from_joint: np.ndarray, rest: np.ndarray | None = None) -> AvatarPose:
+        """Posed joint frames (24, 4, 4) (THUman / SURREAL poses): local rotations ``R_par^T R_j``, the root's in the
+        world; on ``rest`` (24, 3), or the skeleton recovered from the frames (``rest_offsets_from_world``)."""
+        frames = np.asarray(world_from_joint, np.float64)
+        rotations = frames[:, :3, :3].copy()
+        for j in range(1, 24):
+            rotations[j] = frames[SMPL_PARENTS[j], :3, :3].T @ frames[j, :3, :3]
+        if rest is None:
+            rest = rest_offsets_from_world(torch.as_tensor(frames)).numpy()
+        world = np.eye(4)
+        world[:3, 3] = frames[0, :3, 3] - rest[0]
+        return cls(Rotation.from_matrix(rotations).as_rotvec(), world, np.asarray(rest, np.float64))
+
+    def scaled_rest(self) -> np.ndarray:
+        """(24, 3) the rest joints with each group's offsets from their parents scaled (children follow)."""
         scale = np.ones(24)
         for name, joints in BONE_GROUPS.items():
             scale[list(joints)] = self.bone_scales.get(name, 1.0)
-        out = rest.clone()
+        out = self.rest.copy()
         for j in range(1, 24):
             parent = SMPL_PARENTS[j]
-            out[:, j] = out[:, parent] + float(scale[j]) * (rest[:, j] - rest[:, parent])
+            out[j] = out[parent] + scale[j] * (self.rest[j] - self.rest[parent])
         return out
 
-    def world_from_joint(self, body_model: BodyModel) -> torch.Tensor:
-        """(24, 4, 4) the posed joints (chained rotation, origin at the joint)."""
-        poses, rh, th = (
-            torch.as_tensor(v, dtype=body_model.dtype)[None]
-            for v in (self.params.poses, self.params.rh, self.params.th)
-        )
-        with torch.no_grad():
-            body = posed_from_rest_joints(poses, rigid_from_rotvec_translation(rh, th), self.rest_joints(body_model))
-        return body.world_from_joint[0]
+    def world_from_joint(self) -> np.ndarray:
+        """(24, 4, 4) float64 posed joints (chained rotation, origin at the joint)."""
+        rotvecs, rest = torch.as_tensor(self.rotvecs[None]), torch.as_tensor(self.scaled_rest()[None])
+        return world_from_joints(rotvecs, rest, torch.as_tensor(self.world_from_smpl[None]))[0].numpy()
 
-    def pose_batch(self, body_model: BodyModel):
-        """The field's one-frame PoseBatch."""
-        poses, rh, th = (
-            torch.as_tensor(v, dtype=body_model.dtype)[None]
-            for v in (self.params.poses, self.params.rh, self.params.th)
-        )
-        with torch.no_grad():
-            body = posed_from_rest_joints(poses, rigid_from_rotvec_translation(rh, th), self.rest_joints(body_model))
-        return pose_batch(body)
+    def pose_batch(self):
+        """The field's one-frame PoseBatch (float32)."""
+        return pose_batch_from_joints(torch.as_tensor(self.world_from_joint()[None])).to(torch.float32)
 
-    def rotate_joint(self, body_model: BodyModel, joint: int, world_rotation: np.ndarray) -> None:
+    def rotate_joint(self, joint: int, world_rotation: np.ndarray) -> None:
         """Give ``joint`` the global rotation ``world_rotation`` (3, 3), keeping its parent's: the local rotation
-        becomes ``R_parent^T R`` (for the pelvis, the parent is the global ``R(Rh)``)."""
+        becomes ``R_parent^T R`` (for the root, the parent is the global transform's rotation)."""
         if joint == 0:
-            parent = Rotation.from_rotvec(self.params.rh).as_matrix()
+            parent = self.world_from_smpl[:3, :3]
         else:
-            parent = self.world_from_joint(body_model)[SMPL_PARENTS[joint], :3, :3].double().numpy()
-        local = Rotation.from_matrix(parent.T @ world_rotation).as_rotvec()
-        poses = np.array(self.params.poses, dtype=np.float64)
-        poses[3 * joint : 3 * joint + 3] = local
-        self.params = replace(self.params, poses=poses.astype(self.params.poses.dtype))
+            parent = self.world_from_joint()[SMPL_PARENTS[joint], :3, :3]
+        self.rotvecs = self.rotvecs.copy()
+        self.rotvecs[joint] = Rotation.from_matrix(parent.T @ world_rotation).as_rotvec()
 
 
 def camera_from_viewer(position, wxyz, fov_y: float, aspect: float, long_side: int) -> Camera:
