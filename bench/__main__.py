@@ -25,6 +25,7 @@ BENCHMARKS = {
     "autoencoder": "bench.bench_autoencoder",
     "quality": "bench.bench_quality",
     "views": "bench.bench_views",
+    "viewer": "bench.bench_viewer",
 }
 
 

@@ -228,3 +228,15 @@ def test_blender_imports_the_rigged_export(rigged):
     assert report["armatures"] == 1 and report["bones"] == 24 and report["meshes"] == 1
     assert report["colour_attributes"] and report["armature_modifier"] and report["vertex_groups"] >= 19
     assert report["keyframes"] == [3]
+
+
+def test_exported_files_get_the_usual_permissions(tmp_path):
+    import os
+
+    from pipelines.datasets.smpl_files import atomic_write_bytes
+
+    mask = os.umask(0o022)
+    os.umask(mask)
+    atomic_write_bytes(tmp_path / "a.glb", b"x")
+    # a file written through a temporary one is as readable as any new file (0666 less the umask), not 0600
+    assert (tmp_path / "a.glb").stat().st_mode & 0o777 == 0o666 & ~mask
