@@ -4,6 +4,7 @@ the written file, the export of a fitted run, and (where installed) Blender's im
 import json
 import shutil
 import subprocess
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -240,3 +241,67 @@ def test_exported_files_get_the_usual_permissions(tmp_path):
     atomic_write_bytes(tmp_path / "a.glb", b"x")
     # a file written through a temporary one is as readable as any new file (0666 less the umask), not 0600
     assert (tmp_path / "a.glb").stat().st_mode & 0o777 == 0o666 & ~mask
+
+
+THREE = Path(__file__).resolve().parents[1] / ".cache" / "three" / "package"
+THREE_PAGE = """<!doctype html><html><body><script type="importmap">
+{"imports": {"three": "./build/three.module.js", "three/addons/": "./examples/jsm/"}}
+</script><script type="module">
+import * as THREE from "three";
+import { GLTFLoader } from "three/addons/loaders/GLTFLoader.js";
+new GLTFLoader().load("avatar.glb", (gltf) => {
+  const skinned = [];
+  gltf.scene.traverse((o) => { if (o.isSkinnedMesh) skinned.push(o); });
+  const mesh = skinned[0];
+  const mixer = new THREE.AnimationMixer(gltf.scene);
+  const clip = gltf.animations[0];
+  mixer.clipAction(clip).play();
+  const box = (t) => { mixer.setTime(t); gltf.scene.updateMatrixWorld(true);
+    const b = new THREE.Box3(); const v = new THREE.Vector3();
+    for (let i = 0; i < mesh.geometry.attributes.position.count; i += 50) {
+      mesh.getVertexPosition(i, v); v.applyMatrix4(mesh.matrixWorld); b.expandByPoint(v); }
+    return [b.min.toArray(), b.max.toArray()]; };
+  window.result = {skinned: skinned.length, bones: mesh.skeleton.bones.length,
+    names: mesh.skeleton.bones.map((b) => b.name), colours: !!mesh.geometry.attributes.color,
+    duration: clip.duration, tracks: clip.tracks.length, start: box(0), later: box(0.99 * clip.duration)};
+}, undefined, (e) => { window.result = {error: String(e)}; });
+</script></body></html>"""
+
+
+@pytest.mark.skipif(
+    not (THREE / "build" / "three.module.js").is_file(),
+    reason="three.js is not in .cache/three "
+    "(curl -sS https://registry.npmjs.org/three/-/three-0.170.0.tgz | tar -xz -C .cache/three)",
+)
+def test_threejs_loads_and_plays_the_rigged_export(rigged, tmp_path):
+    import functools
+    import http.server
+    import threading
+
+    import browser
+
+    if browser.CHROMIUM is None or browser.CHROMEDRIVER is None:
+        pytest.skip(browser.MISSING)
+    site = tmp_path / "site"
+    shutil.copytree(THREE, site, ignore=shutil.ignore_patterns("src", "*.cjs", "*.min.js", "*webgpu*"))
+    shutil.copy(rigged[0], site / "avatar.glb")
+    (site / "index.html").write_text(THREE_PAGE)
+    handler = functools.partial(http.server.SimpleHTTPRequestHandler, directory=str(site))
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    driver = browser.chromium()
+    try:
+        driver.get(f"http://127.0.0.1:{server.server_address[1]}/index.html")
+        result = browser.wait(lambda: driver.execute_script("return window.result || null"), 60, "GLTFLoader")
+    finally:
+        driver.quit()
+        server.shutdown()
+    assert "error" not in result, result
+    from narf.kinematics import JOINT_NAMES
+
+    # one skinned mesh on the 24 named joints, its colours, and 24 joints x (rotation, translation) tracks over the
+    # three frames at 10 fps (0.2 s); the posed mesh moves from the first frame to
+    # near the last (at the clip's duration a repeating clip wraps to its start)
+    assert result["skinned"] == 1 and result["bones"] == 24 and result["names"] == list(JOINT_NAMES)
+    assert result["colours"] and result["tracks"] == 48 and result["duration"] == pytest.approx(0.2)
+    assert result["start"] != result["later"]
