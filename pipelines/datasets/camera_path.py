@@ -1,4 +1,4 @@
-"""Camera paths saved by ``narf-view`` and rendered by ``narf-render-video --camera-path`` (docs/formats.md §14).
+"""Camera paths saved by ``narf-view`` and rendered by ``narf-render-video --camera-path`` (docs/formats.md §11).
 
 A JSON object::
 
@@ -52,7 +52,7 @@ def intrinsics(width: int, height: int, fov_y_degrees: float) -> np.ndarray:
 
 
 def _fail(path: Path, what: str) -> ValueError:
-    return ValueError(f"{path}: {what} (a camera path saved by narf-view: docs/formats.md §14)")
+    return ValueError(f"{path}: {what} (a camera path saved by narf-view: docs/formats.md §11)")
 
 
 def read_camera_path(path: Path) -> CameraPath:

@@ -1,4 +1,4 @@
-"""A skinned, animated glTF 2.0 binary (``.glb``) writer: one mesh, one skin, one animation (docs/formats.md §13).
+"""A skinned, animated glTF 2.0 binary (``.glb``) writer: one mesh, one skin, one animation (docs/formats.md §10).
 
 The layout follows the glTF 2.0 specification (Khronos, sections *Skins*, *Animations*, *GLB File Format
 Specification*):
