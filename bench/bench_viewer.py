@@ -3,9 +3,11 @@ opens.
 
 A 2-minute CPU-preset fit of the default capture (``narf-fit --max-minutes 2``, fitted fresh under the benchmark's
 cache) is viewed. The preview rate is what one tab's render thread does for each camera move: the pose's inputs, the
-field rendered at the preview size (long side 128 / 192 / 256, 4:3), the picture and depth made and both encoded as
-viser sends them (JPEG, depth as PNG), over 24 cameras of an orbit. The first image is timed in headless chromium
-(software WebGL) from the page request to the first preview sent to that tab, when chromium is installed.
+field rendered at the preview size (long side 128 / 192 / 256, 4:3) and the training sample counts, the picture and
+depth made and both encoded as viser sends them (OpenCV: JPEG quality 90, depth as 24-bit fixed point in a PNG), over
+24 cameras of an orbit. The still frame renders 512 x 384 at the evaluation sample counts. The first image is timed
+in headless chromium (software WebGL) from the page request to the first preview sent to that tab, when chromium is
+installed.
 """
 
 from __future__ import annotations
@@ -50,24 +52,27 @@ def _orbit(data, side: int) -> list:
     return cameras
 
 
-def preview_rate(data, side: int) -> float:
-    """Frames per second of the preview path (module docstring) at long side ``side``."""
-    from viser._image_encoding import _encode_image_binary
+def preview_rate(data, side: int, still: bool = False) -> float:
+    """Frames per second of the preview path (module docstring) at long side ``side``; ``still``: at the evaluation
+    sample counts, as the still frame renders (in one go here, not in bands)."""
+    import cv2
 
     from fitting.evaluate import render_view
     from fitting.plots import to_numpy
+    from pipelines.viewer.app import preview_config
 
     pose = data.sources[0].make(0)
     cameras = _orbit(data, side)
+    config = data.config if still else preview_config(data.config)
     start = time.perf_counter()
     with torch.no_grad():
         for camera in cameras:
-            render = to_numpy(render_view(data.field, camera, pose.pose_batch(), data.config))
+            render = to_numpy(render_view(data.field, camera, pose.pose_batch(), config))
             image = (np.clip(render["rgb"], 0, 1) * 255 + 0.5).astype(np.uint8)
             depth = z_depth(render["depth"], render["mask"], camera.K)
-            _encode_image_binary(image, "jpeg", jpeg_quality=90)
+            cv2.imencode(".jpg", image[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 90])  # as viser encodes them
             packed = np.clip(depth * 100_000, 0, 2**24 - 1).astype(np.uint32).view(np.uint8).reshape(*depth.shape, 4)
-            _encode_image_binary(packed[..., :3], "png")
+            cv2.imencode(".png", packed[..., :3])
     return ORBIT / (time.perf_counter() - start)
 
 
@@ -106,7 +111,7 @@ def run() -> list[dict]:
         rows.append(
             {"benchmark": "narf-view preview", "setting": f"{size}, 2-minute fit", "value": f"{rate:.1f} frames/s"}
         )
-    still = 1 / preview_rate(data, 512)
+    still = 1 / preview_rate(data, 512, still=True)
     rows.append({"benchmark": "narf-view still frame", "setting": "512 x 384", "value": f"{still:.2f} s"})
     first = first_image_seconds(data)
     value = "not measured (no chromium)" if first is None else f"{first:.1f} s"

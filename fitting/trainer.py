@@ -359,7 +359,9 @@ class Trainer:
 
 
 #: What a run folder holds (hidden names too: a checkpoint being written); anything else means it is not one.
-RUN_ENTRIES = frozenset({"checkpoint.pt", "config.yaml", "log.jsonl", "curve.png", "val", "eval", "videos", "meshes"})
+RUN_ENTRIES = frozenset(
+    {"checkpoint.pt", "config.yaml", "log.jsonl", "curve.png", "val", "eval", "videos", "meshes", "viewer"}
+)
 
 
 def prepare_run_dir(out: Path, config: FitConfig, resume: bool, write: bool = True) -> Path:

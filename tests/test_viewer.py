@@ -229,6 +229,31 @@ def test_the_page_shows_orbits_and_reposes_the_avatar(tiny_run):
         browser.page_pixels(driver, "3-reposed")
         expected = data.sources[0].make(session.index).world_from_joint()
         np.testing.assert_array_equal(session.pose.world_from_joint(), expected)
+        # the other controls, set as the page sets them (a GUI value assigned here fires the same callbacks)
+        session.hand_box.value = True  # rotation handles at the 24 joints, placed at the joints
+        assert len(session.handles) == 24
+        np.testing.assert_allclose(session.handles[18].position, session.pose.world_from_joint()[18, :3, 3], atol=1e-6)
+        before, shown = session.pose.world_from_joint(), session.full_shown
+        turned = Rotation.from_euler("x", 60, degrees=True) * Rotation.from_matrix(before[18, :3, :3])
+        x, y, z, w = turned.as_quat()
+        session.handles[18].wxyz = (w, x, y, z)
+        session._turn(18, session.handles[18])  # what dragging the left elbow's handle calls
+        np.testing.assert_allclose(session.pose.world_from_joint()[18, :3, :3], turned.as_matrix(), atol=1e-9)
+        session.bone_sliders["legs"].value = 1.3
+        assert session.pose.bone_scales["legs"] == 1.3
+        session.mode_menu.value = "depth"
+        browser.wait(lambda: session.full_shown > shown and session.full_shown == session.version or None, 60, "depth")
+        browser.page_pixels(driver, "4-posed-by-hand-depth")
+        screenshot = session.screenshot()
+        assert screenshot.parent == tiny_run / "viewer" / "screenshots" and screenshot.stat().st_size > 0
+        session.add_keyframe()
+        session.client.camera.position = np.array(session.client.camera.position) + 0.3
+        session.add_keyframe()
+        saved = read_camera_path(session.save_camera_path())
+        assert len(saved.keyframes) == 2 and saved.keyframes[0].frame == session.index
+        assert not np.allclose(saved.keyframes[0].cam_from_world, saved.keyframes[1].cam_from_world)
+        session.hand_box.value = False
+        assert not session.handles
         # a second tab has a session of its own; closing it frees that session and leaves the first alone
         first_tab = driver.current_window_handle
         driver.switch_to.new_window("tab")

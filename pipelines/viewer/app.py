@@ -37,6 +37,14 @@ from pipelines.viewer.avatar import AvatarPose, camera_from_viewer, viewer_from_
 MODES = ("RGB", "depth", "parts")
 
 
+def preview_config(config):
+    """The config a preview renders with: the training sample counts where they are smaller than the evaluation
+    ones (the field was fitted at them; the CPU preset's 8 + 8 against 16 + 16 halves the work)."""
+    render = config.render
+    coarse, fine = min(render.train_coarse, render.eval_coarse), min(render.train_fine, render.eval_fine)
+    return replace(config, render=replace(render, eval_coarse=coarse, eval_fine=fine))
+
+
 @dataclass
 class PoseSource:
     """Poses a tab can step through: ``count`` of them at ``fps``, ``make(k)`` the k-th."""
@@ -140,20 +148,22 @@ class Session:
         camera = self.client.camera
         return camera_from_viewer(camera.position, camera.wxyz, camera.fov, camera.aspect, long_side)
 
-    def render(self, camera, abandon_on_change: bool = False) -> dict | None:
-        """Render ``camera`` in bands of rows under the shared lock; None when abandoned for a newer change."""
+    def render(self, camera, still: bool = True) -> dict | None:
+        """Render ``camera`` under the shared lock: a preview at the training sample counts in one go, or the still
+        frame at the evaluation counts in bands of rows; None when a newer change (or closing) abandons it."""
         data, version, latent = self.data, self.version, self.latent()
+        config = data.config if still else preview_config(data.config)
         pose = self.pose.pose_batch().to(self.data.device)
-        bands, band_rows = [], max(16, camera.height // 4) if abandon_on_change else camera.height
+        bands, band_rows = [], max(16, camera.height // 4) if still else camera.height
         for top in range(0, camera.height, band_rows):
             rows = min(band_rows, camera.height - top)
             K = camera.K.copy()
             K[1, 2] -= top
             band = replace(camera, K=K, height=rows)
             with self.data.lock:
-                if abandon_on_change and version != self.version:
+                if self.stop.is_set() or (still and version != self.version):
                     return None
-                bands.append(to_numpy(render_view(data.field, band, pose, data.config, latent)))
+                bands.append(to_numpy(render_view(data.field, band, pose, config, latent)))
         return {key: np.concatenate([b[key] for b in bands]) for key in bands[0]}
 
     def picture(self, render: dict) -> np.ndarray:
@@ -167,6 +177,8 @@ class Session:
         return (np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8)
 
     def _show(self, camera, render: dict) -> None:
+        if self.stop.is_set():  # the tab has gone: nothing to send it
+            return
         depth = z_depth(render["depth"], render["mask"], camera.K)
         self.last_image = self.picture(render)
         self.client.scene.set_background_image(self.last_image, format="jpeg", jpeg_quality=90, depth=depth)
@@ -184,11 +196,13 @@ class Session:
             try:
                 if version != self.shown:
                     camera = self.current_camera(self.data.preview)
-                    self._show(camera, self.render(camera))
+                    render = self.render(camera, still=False)
+                    if render is not None:
+                        self._show(camera, render)
                     self.shown = version
                 elif self.full_shown != version and time.monotonic() - self.changed_at > self.data.settle_seconds:
                     camera = self.current_camera(self.data.full)
-                    render = self.render(camera, abandon_on_change=True)
+                    render = self.render(camera)
                     if render is not None and version == self.version:
                         self._show(camera, render)
                         self.full_shown = version
@@ -203,8 +217,7 @@ class Session:
         step = int((time.monotonic() - self._play_started) * self.source.fps * self.speed)
         index = (self._play_from + step) % self.source.count
         if index != self.index:
-            self.frame_slider.value = index
-            self.set_frame(self.source, index)
+            self.frame_slider.value = index  # its callback (set_frame) moves the pose, as a drag of the slider does
 
     # --- controls ----------------------------------------------------------------------------------------------
     def _build_gui(self) -> None:
@@ -243,10 +256,10 @@ class Session:
         save.on_click(lambda _: self.save_camera_path())
 
     def _switch_source(self) -> None:
-        source = next(s for s in self.data.sources if s.name == self.source_menu.value)
-        self.frame_slider.max = max(source.count - 1, 1)
+        self.source = next(s for s in self.data.sources if s.name == self.source_menu.value)
+        self.frame_slider.max = max(self.source.count - 1, 1)
         self.frame_slider.value = 0
-        self.set_frame(source, 0)
+        self.set_frame(self.source, 0)
 
     def _people_gui(self) -> None:
         """Person A (whose skeleton the poses go on), person B and the blend of their codes (autoencoder runs)."""
@@ -304,7 +317,10 @@ class Session:
     def screenshot(self) -> Path:
         """Render the current view at full size, save it under the run's ``viewer/`` folder and send it to the tab."""
         camera = self.current_camera(self.data.full)
-        image = self.picture(self.render(camera))
+        render = self.render(camera)
+        while render is None and not self.stop.is_set():  # the view changed under it: take the newer one
+            render = self.render(self.current_camera(self.data.full))
+        image = self.picture(render)
         ok, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
         path = _unique(self.data.out_dir / "screenshots", "screenshot", ".png")
         atomic_write_bytes(path, png.tobytes())
@@ -348,14 +364,16 @@ class Viewer:
     """The viser server and its tabs."""
 
     def __init__(self, data: ViewerData, host: str = "127.0.0.1", port: int = 8080):
-        self.data, self.sessions = data, {}
+        self.data, self.sessions, self.threads = data, {}, []
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.server.scene.set_up_direction(tuple(data.up))
         self.server.on_client_connect(self._connect)
         self.server.on_client_disconnect(self._disconnect)
 
     def _connect(self, client: viser.ClientHandle) -> None:
-        self.sessions[client.client_id] = Session(self.data, client)
+        session = Session(self.data, client)
+        self.sessions[client.client_id] = session
+        self.threads = [t for t in self.threads if t.is_alive()] + [session.thread]
 
     def _disconnect(self, client: viser.ClientHandle) -> None:
         session = self.sessions.pop(client.client_id, None)
@@ -363,9 +381,13 @@ class Viewer:
             session.close()
 
     def stop(self) -> None:
+        """Close every tab and wait for the render threads (a thread still inside torch when the interpreter exits
+        aborts the process)."""
         for session in list(self.sessions.values()):
             session.close()
         self.sessions.clear()
+        for thread in self.threads:
+            thread.join(timeout=30)
         self.server.stop()
 
 
