@@ -292,3 +292,21 @@ def test_ctrl_c_stops_the_server(tiny_run):
     assert spawn.finish(proc, 30, "narf-view after Ctrl-C") == 130
     err.thread.join(timeout=5)
     assert "narf-view: interrupted" in err.text() and "Traceback" not in err.text()
+
+
+def test_video_and_export_flags_of_the_new_outputs_are_checked(tiny_run, tmp_path, capsys):
+    from pipelines.cli import export_mesh, render_video
+    from pipelines.cli.common import run_cli
+
+    cases = [
+        (render_video, ["--kind", "path"], "give --camera-path FILE"),
+        (render_video, ["--camera-path", str(tmp_path / "missing.json")], "not readable JSON"),
+        (export_mesh, ["--rigged", "--fps", "0", "--out", str(tmp_path / "a.glb")], "--fps must be in (0, 1000]"),
+        (export_mesh, ["--out", str(tmp_path / "a.ply")], "one of --frame N or --motion FILE is required"),
+    ]
+    for module, args, message in cases:
+        name = "narf-render-video" if module is render_video else "narf-export-mesh"
+        assert run_cli(name, module.main, ["--run", str(tiny_run), "--quiet", *args]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1
+    assert not any(tmp_path.iterdir())
