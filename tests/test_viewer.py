@@ -178,14 +178,15 @@ def test_view_refuses_a_run_it_cannot_show(tmp_path, capsys):
 
 
 @pytest.mark.skipif(browser.CHROMIUM is None or browser.CHROMEDRIVER is None, reason=browser.MISSING)
-def test_the_page_shows_orbits_and_reposes_the_avatar(tiny_run):
+def test_the_page_shows_orbits_and_reposes_the_avatar(tiny_run, data_root_64):
     from selenium.webdriver.common.action_chains import ActionChains
     from selenium.webdriver.common.by import By
     from selenium.webdriver.common.keys import Keys
 
     from pipelines.viewer.app import Viewer, viewer_data
 
-    data = viewer_data(tiny_run, None, "cpu", preview=96, full=160)
+    motion = data_root_64 / "synthetic" / "taichi" / "new_params"
+    data = viewer_data(tiny_run, motion, "cpu", preview=96, full=160)
     viewer = Viewer(data, "127.0.0.1", browser.free_port())
     driver = browser.chromium()
     try:
@@ -254,6 +255,14 @@ def test_the_page_shows_orbits_and_reposes_the_avatar(tiny_run):
         assert not np.allclose(saved.keyframes[0].cam_from_world, saved.keyframes[1].cam_from_world)
         session.hand_box.value = False
         assert not session.handles
+        # the motion plays: switch the source, press play, and the frame moves on by itself
+        session.source_menu.value = data.sources[1].name
+        assert session.source is data.sources[1] and session.index == 0
+        session.speed_slider.value = 4.0
+        session._toggle_play()  # what the play / pause button calls
+        browser.wait(lambda: session.index >= 2 or None, 30, "the motion to play")
+        session._toggle_play()
+        assert session.frame_slider.value == session.index
         # a second tab has a session of its own; closing it frees that session and leaves the first alone
         first_tab = driver.current_window_handle
         driver.switch_to.new_window("tab")
