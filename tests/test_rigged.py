@@ -305,3 +305,28 @@ def test_threejs_loads_and_plays_the_rigged_export(rigged, tmp_path):
     assert result["skinned"] == 1 and result["bones"] == 24 and result["names"] == list(JOINT_NAMES)
     assert result["colours"] and result["tracks"] == 48 and result["duration"] == pytest.approx(0.2)
     assert result["start"] != result["later"]
+
+
+VALIDATOR = Path(__file__).resolve().parents[1] / ".cache" / "gltf-validator" / "package" / "index.js"
+VALIDATE = """
+const validator = require(process.argv[1]);
+const data = new Uint8Array(require("fs").readFileSync(process.argv[2]));
+validator.validateBytes(data).then((report) => console.log(JSON.stringify(report.issues)), (e) => {
+  console.log(JSON.stringify({error: String(e)}));
+});
+"""
+
+
+@pytest.mark.skipif(
+    shutil.which("node") is None or not VALIDATOR.is_file(),
+    reason="node or the Khronos glTF Validator is missing (apt-get install nodejs; curl -sS "
+    "https://registry.npmjs.org/gltf-validator/-/gltf-validator-2.0.0-dev.3.10.tgz | tar -xz -C .cache/gltf-validator)",
+)
+def test_khronos_validator_finds_no_issue(rigged):
+    done = subprocess.run(
+        ["node", "-e", VALIDATE, str(VALIDATOR), str(rigged[0])], capture_output=True, text=True, timeout=120
+    )
+    issues = json.loads(done.stdout.strip().splitlines()[-1])
+    # no errors, and no warnings, infos or hints either (unused data, non-unit quaternions, unsorted times, ...)
+    assert issues.get("numErrors") == 0, issues
+    assert (issues["numWarnings"], issues["numInfos"], issues["numHints"]) == (0, 0, 0), issues["messages"]
