@@ -73,6 +73,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.fps is not None and not (args.fps > 0 and args.fps <= 1000):
         raise ValueError(f"--fps must be in (0, 1000], got {args.fps:g}")
+    if args.fps is not None and not (args.rigged and args.motion is not None):
+        raise ValueError("--fps sets the animation's rate of --rigged --motion FILE")
+    if args.level is not None and not (0 < args.level < float("inf")):
+        raise ValueError(f"--level must be a finite density > 0, got {args.level:g}")
     if not args.rigged and args.frame is None and args.motion is None:
         raise ValueError("one of --frame N or --motion FILE is required (or --rigged for the rest pose)")
     if args.frames is not None and args.motion is None:

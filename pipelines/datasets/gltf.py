@@ -94,6 +94,7 @@ class _Buffer:
         self.data, self.views, self.accessors = bytearray(), [], []
 
     def add(self, array: np.ndarray, kind: str, component: int, target: int | None = None, bounds=False) -> int:
+        """Append ``array`` (N rows of ``kind``) as a buffer view and an accessor; returns the accessor's index."""
         dtype = {FLOAT: "<f4", UNSIGNED_SHORT: "<u2", UNSIGNED_INT: "<u4"}[component]
         flat = np.ascontiguousarray(array, dtype=dtype)
         self.data.extend(b"\0" * (-len(self.data) % 4))  # every view starts 4-byte aligned
@@ -102,7 +103,7 @@ class _Buffer:
             view["target"] = target
         self.data.extend(flat.tobytes())
         self.views.append(view)
-        count = flat.shape[0] if kind != "SCALAR" or flat.ndim else 1
+        count = flat.shape[0]
         accessor = {"bufferView": len(self.views) - 1, "componentType": component, "count": count, "type": kind}
         if bounds:  # required for POSITION and animation inputs
             rows = flat.reshape(count, _COMPONENTS[kind])
