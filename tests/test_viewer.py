@@ -312,7 +312,6 @@ def test_video_and_export_flags_of_the_new_outputs_are_checked(tiny_run, tmp_pat
         (render_video, ["--camera-path", str(tmp_path / "missing.json")], "not readable JSON"),
         (export_mesh, ["--rigged", "--fps", "0", "--out", str(tmp_path / "a.glb")], "--fps must be in (0, 1000]"),
         (export_mesh, ["--frame", "0", "--fps", "30", "--out", str(tmp_path / "a.ply")], "--fps sets the animation"),
-        (export_mesh, ["--frame", "0", "--level", "-5", "--out", str(tmp_path / "a.ply")], "--level must be"),
         (export_mesh, ["--out", str(tmp_path / "a.ply")], "one of --frame N or --motion FILE is required"),
     ]
     for module, args, message in cases:
@@ -320,4 +319,9 @@ def test_video_and_export_flags_of_the_new_outputs_are_checked(tiny_run, tmp_pat
         assert run_cli(name, module.main, ["--run", str(tiny_run), "--quiet", *args]) == 2
         err = capsys.readouterr().err.strip()
         assert message in err and len(err.splitlines()) == 1
+    # a flag's value out of range is a usage error (argparse: the usage line, then the error)
+    level = ["--run", str(tiny_run), "--frame", "0", "--level", "-5", "--out", str(tmp_path / "a.ply")]
+    with pytest.raises(SystemExit) as stop:
+        export_mesh.main(level)
+    assert stop.value.code == 2 and "argument --level: expected a finite number > 0" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, at_least, run_cli
+from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
 
 #: Every split name of every run kind (``pipelines.runs.kinds``; kept here so that ``--help`` loads no model code).
 SPLITS = (
@@ -73,7 +73,10 @@ def build_parser() -> argparse.ArgumentParser:
         "--mesh-resolution", type=at_least(8), default=256, help="--mesh: grid samples along the longest side"
     )
     parser.add_argument(
-        "--mesh-level", type=float, default=None, help="--mesh: density iso-level (default: as narf-export-mesh)"
+        "--mesh-level",
+        type=positive_number,
+        default=None,
+        help="--mesh: density iso-level (default: as narf-export-mesh)",
     )
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, at_least, run_cli
+from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
 
 
 def frame_window(text: str) -> tuple[int, int]:
@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--resolution", type=at_least(8), default=256, help="grid samples along the longest side")
     parser.add_argument(
         "--level",
-        type=float,
+        type=positive_number,
         default=None,
         help="density iso-level (1/m); default: the level whose silhouettes best match the fit's own training masks "
         "(4 training frames x up to 4 training cameras; docs/design.md, Meshes out)",
@@ -75,8 +75,6 @@ def main(argv: list[str] | None = None) -> int:
         raise ValueError(f"--fps must be in (0, 1000], got {args.fps:g}")
     if args.fps is not None and not (args.rigged and args.motion is not None):
         raise ValueError("--fps sets the animation's rate of --rigged --motion FILE")
-    if args.level is not None and not (0 < args.level < float("inf")):
-        raise ValueError(f"--level must be a finite density > 0, got {args.level:g}")
     if not args.rigged and args.frame is None and args.motion is None:
         raise ValueError("one of --frame N or --motion FILE is required (or --rigged for the rest pose)")
     if args.frames is not None and args.motion is None:
