@@ -133,14 +133,14 @@ class Session:
         return ((1 - self.blend) * a + self.blend * b).to(self.data.device)
 
     def show_camera(self, camera) -> None:
-        position, wxyz, fov = viewer_from_camera(camera)
-        centre = self.pose.world_from_joint()[0, :3, 3]
+        """Look from a capture camera's centre at the pelvis, upright (the world's up; a rolled or portrait rig
+        camera would show the avatar tilted), with the camera's vertical field of view."""
+        position, _, fov = viewer_from_camera(camera)
         with self.client.atomic():
             self.client.camera.up_direction = self.data.up
             self.client.camera.fov = fov
             self.client.camera.position = position
-            self.client.camera.look_at = centre
-            self.client.camera.wxyz = wxyz
+            self.client.camera.look_at = self.pose.world_from_joint()[0, :3, 3]
         self.touch()
 
     # --- rendering ---------------------------------------------------------------------------------------------
