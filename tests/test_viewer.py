@@ -311,7 +311,7 @@ def test_video_and_export_flags_of_the_new_outputs_are_checked(tiny_run, tmp_pat
         (render_video, ["--kind", "path"], "give --camera-path FILE"),
         (render_video, ["--camera-path", str(tmp_path / "missing.json")], "not readable JSON"),
         (export_mesh, ["--rigged", "--fps", "0", "--out", str(tmp_path / "a.glb")], "--fps must be in (0, 1000]"),
-        (export_mesh, ["--frame", "0", "--fps", "30", "--out", str(tmp_path / "a.ply")], "--fps sets the animation"),
+        (export_mesh, ["--frame", "0", "--fps", "30", "--out", str(tmp_path / "a.ply")], "--fps and --motion-fps set"),
         (export_mesh, ["--out", str(tmp_path / "a.ply")], "one of --frame N or --motion FILE is required"),
     ]
     for module, args, message in cases:

@@ -60,6 +60,12 @@ def main(argv: list[str] | None = None) -> int:
         help="--rigged: a vertex follows the selector's 4 most probable parts, or its most probable part alone",
     )
     parser.add_argument("--fps", type=float, default=None, help="--rigged --motion: frame rate (default: the motion's)")
+    parser.add_argument(
+        "--motion-fps",
+        type=positive_number,
+        default=None,
+        help="--rigged --motion: its frame rate when the file has none (ZJU: 30)",
+    )
     parser.add_argument("--resolution", type=at_least(8), default=256, help="grid samples along the longest side")
     parser.add_argument(
         "--level",
@@ -73,8 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.fps is not None and not (args.fps > 0 and args.fps <= 1000):
         raise ValueError(f"--fps must be in (0, 1000], got {args.fps:g}")
-    if args.fps is not None and not (args.rigged and args.motion is not None):
-        raise ValueError("--fps sets the animation's rate of --rigged --motion FILE")
+    if (args.fps, args.motion_fps) != (None, None) and not (args.rigged and args.motion is not None):
+        raise ValueError("--fps and --motion-fps set the animation's rates of --rigged --motion FILE")
     if not args.rigged and args.frame is None and args.motion is None:
         raise ValueError("one of --frame N or --motion FILE is required (or --rigged for the rest pose)")
     if args.frames is not None and args.motion is None:
@@ -98,6 +104,7 @@ def main(argv: list[str] | None = None) -> int:
             args.resolution,
             args.level,
             args.skin,
+            args.motion_fps,
             device,
             not args.quiet,
         )

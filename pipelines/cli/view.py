@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, at_least, run_cli
+from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -32,10 +32,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--motion", type=Path, default=None, help="an AMASS .npz, ZJU params/ folder or SURREAL _info.mat to play"
     )
+    parser.add_argument(
+        "--motion-fps",
+        type=positive_number,
+        default=None,
+        help="--motion: its frame rate when the file has none (ZJU: 30)",
+    )
     parser.add_argument("--preview", type=at_least(32, 1024), default=192, help="long side of the preview (pixels)")
     parser.add_argument("--full", type=at_least(64, 4096), default=512, help="long side of the still frame (pixels)")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     args = parser.parse_args(argv)
+    if args.motion_fps is not None and args.motion is None:
+        raise ValueError("--motion-fps is the frame rate of a --motion FILE")
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
     kind = kind_of_run(args.run)  # a missing or foreign checkpoint fails here, before any server starts
@@ -49,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     if kind.name == "autoencoder":
         data = autoencoder_viewer_data(args.run, device, args.preview, args.full)
     else:
-        data = viewer_data(args.run, args.motion, device, args.preview, args.full)
+        data = viewer_data(args.run, args.motion, device, args.preview, args.full, args.motion_fps)
     if data.config.model.name == "cnn":
         raise ValueError(f"{args.run}: the CNN baseline renders fixed-size images, not views: nothing to orbit")
     viewer = Viewer(data, args.host, args.port)

@@ -391,7 +391,9 @@ class Viewer:
         self.server.stop()
 
 
-def viewer_data(run_dir: Path, motion: Path | None, device: str, preview: int, full: int) -> ViewerData:
+def viewer_data(
+    run_dir: Path, motion: Path | None, device: str, preview: int, full: int, motion_fps: float | None = None
+) -> ViewerData:
     """A subject run: its capture's frames (and ``motion``, placed on its stage) on the subject's skeleton, the
     training cameras then the held-out ones as presets, the floor's (or the cameras') up axis."""
     from pipelines.runs.subject.session import load_run
@@ -409,7 +411,7 @@ def viewer_data(run_dir: Path, motion: Path | None, device: str, preview: int, f
     on_skeleton = lambda p: AvatarPose.from_params(p, rest(np.asarray(p.shapes, np.float32).tobytes()))  # noqa: E731
     sources = [PoseSource("capture frames", capture.n_frames, 30.0, lambda k: on_skeleton(capture.params(k)))]
     if motion is not None:
-        params, report = motion_params(run, Path(motion), None, 0, None)
+        params, report = motion_params(run, Path(motion), None, 0, None, motion_fps)
         sources.append(
             PoseSource(
                 f"motion: {Path(motion).name}", len(params), float(report["fps"]), lambda k: on_skeleton(params[k])

@@ -82,9 +82,10 @@ def _bind_pose(run, frame: int | None, stage_from_world: np.ndarray, shapes: tor
     return body, stage_from_world
 
 
-def _animation(run, motion: Path, window, fps, stage_from_world: np.ndarray) -> tuple[Animation, dict]:
+def _animation(run, motion: Path, window, fps, motion_fps, stage_from_world: np.ndarray) -> tuple[Animation, dict]:
     start, stop = window or (0, None)
-    params, report = motion_params(run, Path(motion), fps, start, None if stop is None else stop - start)
+    n_frames = None if stop is None else stop - start
+    params, report = motion_params(run, Path(motion), fps, start, n_frames, motion_fps)
     stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
     with torch.no_grad():
         world_from_joint = run.body_model.pose_zju(*stack).world_from_joint.double().numpy()
@@ -102,6 +103,7 @@ def export_rigged(
     resolution: int = 256,
     level: float | None = None,
     skin: str = "selector",
+    motion_fps: float | None = None,
     device: str = "cpu",
     progress: bool = True,
 ) -> tuple[Path, dict]:
@@ -119,7 +121,7 @@ def export_rigged(
     body, bind_from_world = _bind_pose(run, frame, stage_from_world, shapes)
     animation = report = None
     if motion is not None:
-        animation, report = _animation(run, motion, window, fps, stage_from_world)
+        animation, report = _animation(run, motion, window, fps, motion_fps, stage_from_world)
     level, record = resolve_level(run, level, device)
     pose = pose_batch(body).to(device)
     mesh = extract_mesh(run.field, pose, resolution, level, progress=progress)
