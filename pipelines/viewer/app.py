@@ -244,7 +244,7 @@ class Session:
         self.source_menu.on_update(lambda _: self._switch_source())
         self.frame_slider.on_update(lambda _: self.set_frame(self.source, self.frame_slider.value))
         self.play_button.on_click(lambda _: self._toggle_play())
-        self.speed_slider.on_update(lambda _: setattr(self, "speed", self.speed_slider.value))
+        self.speed_slider.on_update(lambda _: self._set_speed(self.speed_slider.value))
         self.hand_box.on_update(lambda _: self._place_handles())
         reset.on_click(lambda _: self.set_frame(self.source, self.index))
         for name, slider in self.bone_sliders.items():
@@ -281,6 +281,11 @@ class Session:
         self.playing = not self.playing
         self._play_started, self._play_from = time.monotonic(), self.index
         self.wake.set()
+
+    def _set_speed(self, speed: float) -> None:
+        """A new playback speed, continuing from the frame shown (not jumping to where it would have been)."""
+        self.speed = float(speed)
+        self._play_started, self._play_from = time.monotonic(), self.index
 
     def _scale_bones(self, name: str, value: float) -> None:
         self.pose.bone_scales[name] = float(value)
