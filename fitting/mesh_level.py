@@ -20,7 +20,6 @@ import torch
 import torch.nn.functional as F
 
 from fitting.mesh import density_grid
-from narf.geometry import check_shape
 from narf.rays import image_pixels, rays_from_pixels
 
 
@@ -66,13 +65,10 @@ def max_density_image(
         (ceil(H / stride), ceil(W / stride)) float32.
     """
     height, width = shape
-    pixels = image_pixels(height, width).reshape(height, width, 2)[::stride, ::stride]
-    out_shape = pixels.shape[:2]
-    origins, dirs = rays_from_pixels(
-        torch.as_tensor(K, dtype=torch.float64),
-        torch.as_tensor(cam_from_world, dtype=torch.float64),
-        pixels.reshape(-1, 2).double(),
-    )
+    out_shape = (-(-height // stride), -(-width // stride))
+    pixels = image_pixels(*out_shape, dtype=torch.float64) * stride  # every stride-th pixel, row-major
+    K64, extrinsics = (torch.as_tensor(m, dtype=torch.float64) for m in (K, cam_from_world))
+    origins, dirs = rays_from_pixels(K64, extrinsics, pixels)
     size = torch.tensor(volume.shape, dtype=torch.float64)
     low = torch.as_tensor(origin, dtype=torch.float64)
     high = low + (size - 1) * spacing
@@ -112,7 +108,8 @@ def silhouette_ious(max_densities: list[np.ndarray], views: list[LevelView], lev
     inter, union = np.zeros(len(levels)), np.zeros(len(levels))
     for image, view in zip(max_densities, views, strict=True):
         mask, keep = view.mask[::stride, ::stride], ~view.ignore[::stride, ::stride]
-        check_shape("mask", torch.as_tensor(mask), tuple(image.shape))
+        if mask.shape != image.shape:
+            raise ValueError(f"a mask sampled every {stride} pixels is {mask.shape}, its silhouette {image.shape}")
         values, inside = image[keep], mask[keep]
         above = values[None, :] > levels[:, None]  # (L, N)
         inter += (above & inside[None]).sum(axis=1)

@@ -1,7 +1,6 @@
 """A skinned, animated glTF 2.0 binary (``.glb``) writer: one mesh, one skin, one animation (docs/formats.md §10).
 
-The layout follows the glTF 2.0 specification (Khronos, sections *Skins*, *Animations*, *GLB File Format
-Specification*):
+The layout (docs/formats.md §10, which restates the rules of glTF 2.0 that it relies on):
 
 * node ``j`` is joint ``j`` (its name, its children), holding the joint's transform in its parent's frame at the
   bind pose (``translation``, ``rotation``); node ``J`` holds the mesh and the skin; the scene's roots are the root
@@ -82,7 +81,7 @@ def continuous_quaternions(rotations: np.ndarray) -> np.ndarray:
 
 
 def srgb_to_linear(colours: np.ndarray) -> np.ndarray:
-    """IEC 61966-2-1: c / 12.92 below 0.04045, ((c + 0.055) / 1.055) ** 2.4 above."""
+    """sRGB to linear (docs/formats.md §10): c / 12.92 below 0.04045, ((c + 0.055) / 1.055) ** 2.4 above."""
     c = np.clip(colours, 0.0, 1.0)
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
@@ -114,8 +113,8 @@ class _Buffer:
 
 def _trs(matrix: np.ndarray) -> dict:
     """A rigid 4x4 as glTF node ``translation`` and ``rotation`` (x, y, z, w)."""
-    quat = Rotation.from_matrix(matrix[:3, :3]).as_quat()
-    return {"translation": matrix[:3, 3].tolist(), "rotation": (quat / np.linalg.norm(quat)).tolist()}
+    quat = Rotation.from_matrix(matrix[:3, :3]).as_quat()  # unit length
+    return {"translation": matrix[:3, 3].tolist(), "rotation": quat.tolist()}
 
 
 def _animation(buffer: _Buffer, skeleton: Skeleton, animation: Animation) -> dict:

@@ -406,14 +406,15 @@ def viewer_data(
 
     run = load_run(Path(run_dir), device)
     capture, body_model = run.capture, run.body_model
-    rest = lru_cache(maxsize=8)(
-        lambda key: (
-            body_model.rest_joints(torch.tensor(np.frombuffer(key, np.float32))[None].to(body_model.dtype))[0]
-            .double()
-            .numpy()
-        )
-    )  # noqa: E731
-    on_skeleton = lambda p: AvatarPose.from_params(p, rest(np.asarray(p.shapes, np.float32).tobytes()))  # noqa: E731
+
+    @lru_cache(maxsize=8)
+    def rest_joints(shapes: bytes) -> np.ndarray:  # the rest skeleton of a shape, computed once per shape
+        betas = torch.tensor(np.frombuffer(shapes, np.float32), dtype=body_model.dtype)[None]
+        return body_model.rest_joints(betas)[0].double().numpy()
+
+    def on_skeleton(params) -> AvatarPose:
+        return AvatarPose.from_params(params, rest_joints(np.asarray(params.shapes, np.float32).tobytes()))
+
     sources = [PoseSource("capture frames", capture.n_frames, 30.0, lambda k: on_skeleton(capture.params(k)))]
     if motion is not None:
         params, report = motion_params(run, Path(motion), None, 0, None, motion_fps)

@@ -76,12 +76,15 @@ def fit_level(run: LoadedRun, device: str, n_frames: int = 4, n_cameras: int = 4
 
 
 def resolve_level(run: LoadedRun, level: float | None, device: str) -> tuple[float, dict]:
-    """``level`` when given, else the fit's own (:func:`fit_level`); with a record for reports."""
+    """``level`` when given, else the fit's own (:func:`fit_level`, chosen once per loaded run: every split of an
+    evaluation uses it); with a record for reports."""
     if level is not None:
         return level, {"level": level, "level_source": "given"}
-    choice = fit_level(run, device)
-    record = {"level": choice.level, "level_source": "training masks", "level_iou": choice.iou}
-    return choice.level, record | {"level_views": choice.n_views}
+    if run.mesh_level is None:
+        choice = fit_level(run, device)
+        record = {"level": choice.level, "level_source": "training masks", "level_iou": choice.iou}
+        run.mesh_level = record | {"level_views": choice.n_views}
+    return run.mesh_level["level"], dict(run.mesh_level)
 
 
 def export_run_meshes(

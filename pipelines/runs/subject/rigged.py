@@ -82,10 +82,10 @@ def _bind_pose(run, frame: int | None, stage_from_world: np.ndarray, shapes: tor
     return body, stage_from_world
 
 
-def _animation(run, motion: Path, window, fps, motion_fps, stage_from_world: np.ndarray) -> tuple[Animation, dict]:
+def _animation(run, motion: Path, window, fps, motion_fps, staged, stage_from_world) -> tuple[Animation, dict]:
     start, stop = window or (0, None)
     n_frames = None if stop is None else stop - start
-    params, report = motion_params(run, Path(motion), fps, start, n_frames, motion_fps)
+    params, report = motion_params(run, Path(motion), fps, start, n_frames, motion_fps, staged)
     stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
     with torch.no_grad():
         world_from_joint = run.body_model.pose_zju(*stack).world_from_joint.double().numpy()
@@ -116,12 +116,13 @@ def export_rigged(
     run = load_run(Path(run_dir), device)
     if run.config.model.name == "cnn":
         raise ValueError(f"{run_dir}: the CNN baseline renders images, not a density field: no mesh to export")
-    stage, _, shapes = capture_stage(run)
+    staged = capture_stage(run)
+    stage, _, shapes = staged
     stage_from_world = export_from_world(stage)
     body, bind_from_world = _bind_pose(run, frame, stage_from_world, shapes)
     animation = report = None
     if motion is not None:
-        animation, report = _animation(run, motion, window, fps, motion_fps, stage_from_world)
+        animation, report = _animation(run, motion, window, fps, motion_fps, staged, stage_from_world)
     level, record = resolve_level(run, level, device)
     pose = pose_batch(body).to(device)
     mesh = extract_mesh(run.field, pose, resolution, level, progress=progress)

@@ -162,7 +162,8 @@ def start(
 
 @dataclass
 class LoadedRun:
-    """A fitted run ready to render: its config, model (eval mode), capture, protocol and body model."""
+    """A fitted run ready to render: its config, model (eval mode), capture, protocol and body model; ``mesh_level``
+    the record of the mesh level chosen from the fit, once it has been (``pipelines.runs.subject.mesh``)."""
 
     config: FitConfig
     field: torch.nn.Module
@@ -170,6 +171,7 @@ class LoadedRun:
     protocol: object
     body_model: BodyModel
     step: int
+    mesh_level: dict | None = None
 
 
 def load_run(run_dir: Path, device="cpu") -> LoadedRun:

@@ -91,12 +91,13 @@ def capture_stage(run: LoadedRun):
     return stage, train_pose, shapes
 
 
-def motion_params(run: LoadedRun, motion_path: Path, fps, start: int, n_frames, motion_fps=None):
+def motion_params(run: LoadedRun, motion_path: Path, fps, start: int, n_frames, motion_fps=None, staged=None):
     """The subject's ZJU parameters performing a motion file at ``fps`` (None: the motion's own rate) from source
     frame ``start`` for at most ``n_frames`` (None: to the end), placed on the capture's stage, and a report of the
-    frames whose parts leave the trained range (``docs/design.md`` *Driving the avatar*)."""
+    frames whose parts leave the trained range (``docs/design.md`` *Driving the avatar*). ``staged``: what
+    :func:`capture_stage` returned, when the caller has it already."""
     body = run.body_model
-    stage, train_pose, shapes = capture_stage(run)
+    stage, train_pose, shapes = staged or capture_stage(run)
     rest_pelvis = body.rest_joints(shapes[:1].to(body.dtype))[0, 0].double().numpy()
     source = load_motion(motion_path, rest_pelvis, motion_fps)
     motion = resample(source, fps or source.fps, start, n_frames)
