@@ -16,7 +16,7 @@ from skimage.metrics import structural_similarity
 from fitting.config import FitConfig
 from narf.cnn_render import render_cnn_image
 from narf.fields import CnnBaseline
-from narf.metrics import mask_l2, psnr_of
+from narf.metrics import mask_l2, psnr, psnr_of
 from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
 from narf.renderer import render_image
 
@@ -91,9 +91,12 @@ def ssim(prediction: np.ndarray, target: np.ndarray) -> float:
     )
 
 
-def frame_metrics(render: dict, gt_rgb: np.ndarray, gt_mask: np.ndarray, region: np.ndarray, bg: float) -> dict:
+def frame_metrics(
+    render: dict, gt_rgb: np.ndarray, gt_mask: np.ndarray, region: np.ndarray, bg: float, gt_band=None
+) -> dict:
     """Both protocols for one view: full image, and the Neural Body crop (PSNR, Mask L2 over R; SSIM on R's
-    bounding rectangle with pixels outside R set to the background)."""
+    bounding rectangle with pixels outside R set to the background); with ``gt_band`` (H, W) bool, also the crop's
+    ``breakdown`` (:func:`crop_error_breakdown`)."""
     rgb, mask = render["rgb"], render["mask"]
     t = lambda a: torch.as_tensor(a)  # noqa: E731
     full = {
@@ -111,7 +114,47 @@ def frame_metrics(render: dict, gt_rgb: np.ndarray, gt_mask: np.ndarray, region:
         "ssim": ssim(pred_crop[box], gt_crop[box]),
         "mask_l2": float(mask_l2(t(mask), t(gt_mask), t(region))),
     }
+    if gt_band is not None:
+        crop["breakdown"] = crop_error_breakdown(rgb, mask, gt_rgb, gt_mask, gt_band, region)
     return {"full": full, "nb_crop": crop}
+
+
+ERROR_CLASSES = ("person", "silhouette", "band", "background")
+
+
+def crop_error_breakdown(
+    rgb: np.ndarray, mask: np.ndarray, gt_rgb: np.ndarray, gt_mask: np.ndarray, gt_band: np.ndarray, region: np.ndarray
+) -> dict:
+    """Where the NB crop's squared error lies (docs/model.md §7, *Error breakdown*).
+
+    Each pixel of R is in one class: ``band`` (the ground truth's boundary band outside its mask, whose colours the
+    protocol keeps), else ``silhouette`` (exactly one of the ground-truth mask and the rendered opacity >= 0.5
+    covers it), else ``person`` (both cover it), else ``background``.
+
+    Args:
+        rgb, gt_rgb: (H, W, 3) in [0, 1]. mask, gt_mask: (H, W) opacity and mask. gt_band, region: (H, W) bool.
+
+    Returns:
+        ``share_<class>``: the class's part of the summed squared error over R (0 when R has no error);
+        ``pixels_<class>``: its part of R's pixels; ``psnr_person``: PSNR over the person pixels (None without any).
+    """
+    error = ((rgb - gt_rgb) ** 2).mean(-1)[region]
+    band = gt_band[region] & ~(gt_mask[region] >= 0.5)
+    gt_person, person = gt_mask[region] >= 0.5, mask[region] >= 0.5
+    classes = {
+        "person": ~band & gt_person & person,
+        "silhouette": ~band & (gt_person != person),
+        "band": band,
+        "background": ~band & ~gt_person & ~person,
+    }
+    total = error.sum()
+    out = {}
+    for name, where in classes.items():
+        out[f"share_{name}"] = float(error[where].sum() / total) if total > 0 else 0.0
+        out[f"pixels_{name}"] = float(where.mean())
+    person_error = error[classes["person"]]
+    out["psnr_person"] = float(psnr(torch.as_tensor(person_error.mean()))) if person_error.size else None
+    return out
 
 
 def _crop_box(region: np.ndarray, min_size: int = 11) -> tuple[slice, slice]:
@@ -128,8 +171,18 @@ def _crop_box(region: np.ndarray, min_size: int = 11) -> tuple[slice, slice]:
 
 
 def average_metrics(records: list[dict], protocol: str) -> dict:
+    """Mean Mask L2, PSNR and SSIM of the views that have ``protocol``; and the mean of each ``breakdown`` entry
+    over the views that have one (``psnr_person`` over those with person pixels)."""
     values = [r[protocol] for r in records if r[protocol] is not None]
-    return {k: float(np.mean([v[k] for v in values])) for k in ("mask_l2", "psnr", "ssim")} if values else {}
+    if not values:
+        return {}
+    out = {k: float(np.mean([v[k] for v in values])) for k in ("mask_l2", "psnr", "ssim")}
+    breakdowns = [v["breakdown"] for v in values if "breakdown" in v]
+    if breakdowns:
+        keys = breakdowns[0].keys()
+        means = {k: [b[k] for b in breakdowns if b[k] is not None] for k in keys}
+        out["breakdown"] = {k: float(np.mean(v)) if v else None for k, v in means.items()}
+    return out
 
 
 def library_versions() -> dict:
@@ -166,6 +219,10 @@ def markdown_table(report: dict) -> str:
             m = report["splits"][split][protocol]
             cells.append(f"{m['mask_l2']:.1f}/{m['psnr']:.2f}/{m['ssim']:.4f}" if m else "-")
         lines.append(f"| {'full image' if protocol == 'full' else 'NB crop'} | " + " | ".join(cells) + " |")
+    breakdown_lines = [_breakdown_line(s, report["splits"][s]["nb_crop"].get("breakdown")) for s in splits]
+    if any(breakdown_lines):
+        lines += ["", "Where the NB crop's squared error lies (docs/model.md §7, *Error breakdown*):", ""]
+        lines += [f"* {line}" for line in breakdown_lines if line]
     for split in splits:
         if mesh := report["splits"][split].get("mesh"):
             lines += [
@@ -182,6 +239,20 @@ def markdown_table(report: dict) -> str:
         "",
     ]
     return "\n".join(lines)
+
+
+def _breakdown_line(split: str, breakdown: dict | None) -> str | None:
+    if not breakdown:
+        return None
+    share = lambda k: f"{100 * breakdown[f'share_{k}']:.0f} %"  # noqa: E731
+    pixels = lambda k: f"{100 * breakdown[f'pixels_{k}']:.1f} %"  # noqa: E731
+    person = breakdown["psnr_person"]
+    return (
+        f"{_SHORT[split]}: person pixels {share('person')} of the error "
+        f"({'-' if person is None else f'{person:.2f} dB'} over them, {pixels('person')} of the crop); silhouette "
+        f"disagreement {share('silhouette')} ({pixels('silhouette')} of the crop); the mask's boundary band "
+        f"{share('band')} ({pixels('band')}); background {share('background')}"
+    )
 
 
 def write_text_atomic(path: Path, text: str) -> None:

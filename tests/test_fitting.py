@@ -14,7 +14,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from fitting.checkpoint import CheckpointError, load_checkpoint
 from fitting.config import ConfigError, load_config
-from fitting.evaluate import frame_metrics
+from fitting.evaluate import average_metrics, frame_metrics
 from fitting.trainer import prepare_run_dir
 from pipelines.cli import eval as cli_eval
 from pipelines.cli import fit as cli_fit
@@ -45,7 +45,14 @@ def test_tiny_fit_loss_falls_and_eval_writes_every_artefact(data_root_64, tmp_pa
     split = report["splits"]["novel_pose_novel_view"]
     assert split["n_views"] == 2 and set(split["full"]) == {"mask_l2", "psnr", "ssim"} and split["nb_crop"]
     assert report["versions"]["scikit-image"]
-    assert (tmp_path / "run" / "eval" / "metrics.md").read_text().count("|") > 10
+    assert set(split["nb_crop"]["breakdown"]) >= {"share_person", "share_silhouette", "share_band", "psnr_person"}
+    assert sum(
+        split["nb_crop"]["breakdown"][f"pixels_{k}"] for k in ("person", "silhouette", "band", "background")
+    ) == (
+        pytest.approx(1.0)  # every pixel of R in one class; mean of two sums of float64 fractions
+    )
+    markdown = (tmp_path / "run" / "eval" / "metrics.md").read_text()
+    assert markdown.count("|") > 10 and "NN: person pixels" in markdown
     assert len(list((tmp_path / "run" / "eval" / "grids").rglob("*.png"))) == 4
 
 
@@ -101,6 +108,42 @@ def test_fit_killed_with_sigkill_resumes_to_the_end(data_root_64, tmp_path):
     assert done.returncode == 0, done.stderr
     assert load_checkpoint(out)["step"] == 400
     assert not list(out.glob(".checkpoint.*"))  # a temporary left by the kill is cleaned by the next save
+
+
+def test_crop_error_breakdown_by_hand():
+    """Eight pixels of R, one class each (docs/model.md §7): person (0,0) (1,0), silhouette (0,1), band (0,2)
+    (1,1), background (0,3) (1,2) (1,3); the colour differences are 0.1, 0.2, 0.3, 0, 0.1, 0.4, 0, 0.05 in every
+    channel, so the squared errors are 0.01, 0.04, 0.09, 0, 0.01, 0.16, 0, 0.0025 (sum 0.3125). R sits in a 12 x 12
+    image (SSIM's window) whose other pixels carry error that the breakdown must ignore."""
+
+    def image(block: np.ndarray, fill) -> np.ndarray:
+        out = np.full((12, 12, *block.shape[2:]), fill, block.dtype)
+        out[3:5, 4:8] = block
+        return out
+
+    gt_mask = image(np.array([[1, 1, 0, 0], [1, 0, 0, 0]], float), 1.0)
+    band = image(np.array([[0, 0, 1, 0], [0, 1, 0, 0]], bool), True)
+    opacity = image(np.array([[0.9, 0.2, 0.7, 0.0], [0.5, 0.8, 0.49, 0.0]]), 0.0)
+    gt = np.full((12, 12, 3), 0.5)
+    pred = image(0.5 + np.array([[0.1, 0.2, 0.3, 0.0], [0.1, 0.4, 0.0, 0.05]])[..., None].repeat(3, -1), 0.0)
+    region = image(np.ones((2, 4), bool), False)
+    b = frame_metrics({"rgb": pred, "mask": opacity}, gt, gt_mask, region, 0.0, band)["nb_crop"]["breakdown"]
+    # float64 sums of eight terms: exact to ~1e-16 relative, pytest.approx's default rtol 1e-6 is ample
+    assert b["share_person"] == pytest.approx(0.02 / 0.3125)
+    assert b["share_silhouette"] == pytest.approx(0.04 / 0.3125)
+    assert b["share_band"] == pytest.approx(0.25 / 0.3125)
+    assert b["share_background"] == pytest.approx(0.0025 / 0.3125)
+    assert [b[f"pixels_{k}"] for k in ("person", "silhouette", "band", "background")] == [0.25, 0.125, 0.25, 0.375]
+    assert b["psnr_person"] == pytest.approx(20.0)  # MSE 0.01 over the two person pixels
+    # a view without person pixels: its psnr_person is None and left out of the mean, its shares are not
+    no_one = np.zeros((12, 12))
+    empty = frame_metrics({"rgb": pred, "mask": no_one}, gt, no_one, region, 0.0, band)["nb_crop"]
+    assert empty["breakdown"]["psnr_person"] is None
+    mean = average_metrics(
+        [{"nb_crop": empty}, {"nb_crop": {"mask_l2": 0, "psnr": 0, "ssim": 0, "breakdown": b}}], "nb_crop"
+    )
+    assert mean["breakdown"]["psnr_person"] == pytest.approx(20.0)
+    assert mean["breakdown"]["pixels_band"] == pytest.approx(0.25)  # the band is the same in both views
 
 
 def test_metrics_against_scikit_image():

@@ -36,7 +36,9 @@ def _view_metrics(run, split: str, items, frames: list[int], out_dir: Path, grid
         pose = poses.select(torch.tensor([frames.index(frame)], device=device))
         render = to_numpy(render_view(field, item.camera, pose, config))
         region = nb_crop_region(item.camera, capture.vertices(frame))
-        records.append({"frame": frame, "camera": cam, **frame_metrics(render, item.image, item.mask, region, bg)})
+        records.append(
+            {"frame": frame, "camera": cam, **frame_metrics(render, item.image, item.mask, region, bg, item.band)}
+        )
         if index < grids:
             save_png(out_dir / "grids" / split / f"frame{frame:05d}_cam{cam:02d}.png", grid(item.image, render))
     return records
