@@ -119,9 +119,6 @@ def frame_metrics(
     return {"full": full, "nb_crop": crop}
 
 
-ERROR_CLASSES = ("person", "silhouette", "band", "background")
-
-
 def crop_error_breakdown(
     rgb: np.ndarray, mask: np.ndarray, gt_rgb: np.ndarray, gt_mask: np.ndarray, gt_band: np.ndarray, region: np.ndarray
 ) -> dict:
