@@ -86,7 +86,7 @@ def test_skinned_glb_follows_the_specification_and_skins_linearly():
     gltf, accessor = _read(data)
     primitive = gltf.meshes[0].primitives[0]
     position = gltf.accessors[primitive.attributes.POSITION]
-    # POSITION and the animation's input need min / max (glTF 2.0, Accessors); float32 in the file
+    # POSITION and the animation's input need min / max (docs/formats.md §10); float32 in the file
     np.testing.assert_allclose(position.min, vertices.min(0), rtol=1e-6)
     assert gltf.accessors[gltf.animations[0].samplers[0].input].max == [pytest.approx(4 / 30)]
     assert [n.name for n in gltf.nodes[:3]] == ["root", "middle", "tip"] and gltf.skins[0].joints == [0, 1, 2]

@@ -36,6 +36,16 @@ def positive_number(text: str) -> float:
     return value
 
 
+def add_motion_fps(parser: argparse.ArgumentParser, applies_to: str = "--motion") -> None:
+    """``--motion-fps``: the frame rate of a motion file that records none (ZJU params folders play at 30)."""
+    parser.add_argument(
+        "--motion-fps",
+        type=positive_number,
+        default=None,
+        help=f"{applies_to}: its frame rate when the file has none (ZJU: 30)",
+    )
+
+
 def at_least(minimum: int, at_most: int | None = None) -> Callable[[str], int]:
     """argparse type: a whole number >= ``minimum`` (and <= ``at_most`` when given)."""
     wanted = f">= {minimum}" if at_most is None else f"in [{minimum}, {at_most}]"

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
+from pipelines.cli.common import HelpFormatter, add_motion_fps, at_least, positive_number, run_cli
 
 
 def frame_window(text: str) -> tuple[int, int]:
@@ -60,12 +60,7 @@ def main(argv: list[str] | None = None) -> int:
         help="--rigged: a vertex follows the selector's 4 most probable parts, or its most probable part alone",
     )
     parser.add_argument("--fps", type=float, default=None, help="--rigged --motion: frame rate (default: the motion's)")
-    parser.add_argument(
-        "--motion-fps",
-        type=positive_number,
-        default=None,
-        help="--rigged --motion: its frame rate when the file has none (ZJU: 30)",
-    )
+    add_motion_fps(parser, "--rigged --motion")
     parser.add_argument("--resolution", type=at_least(8), default=256, help="grid samples along the longest side")
     parser.add_argument(
         "--level",

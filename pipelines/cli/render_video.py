@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
+from pipelines.cli.common import HelpFormatter, add_motion_fps, at_least, positive_number, run_cli
 
 #: The video kinds of subject and autoencoder runs (``pipelines.runs.kinds``; here so ``--help`` loads no model code).
 VIDEO_KINDS = ("bones", "interpolate", "orbit", "path", "poses")
@@ -75,12 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
         "leave the trained range",
     )
     parser.add_argument("--start", type=at_least(0), default=0, help="--motion: first source frame")
-    parser.add_argument(
-        "--motion-fps",
-        type=positive_number,
-        default=None,
-        help="--motion: its frame rate when the file has none (ZJU: 30)",
-    )
+    add_motion_fps(parser)
     parser.add_argument("--scale", type=positive_number, default=1.3, help="bones: largest leg-length factor")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")

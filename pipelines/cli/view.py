@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
+from pipelines.cli.common import HelpFormatter, add_motion_fps, at_least, run_cli
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -32,12 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--motion", type=Path, default=None, help="an AMASS .npz, ZJU params/ folder or SURREAL _info.mat to play"
     )
-    parser.add_argument(
-        "--motion-fps",
-        type=positive_number,
-        default=None,
-        help="--motion: its frame rate when the file has none (ZJU: 30)",
-    )
+    add_motion_fps(parser)
     parser.add_argument("--preview", type=at_least(32, 1024), default=192, help="long side of the preview (pixels)")
     parser.add_argument("--full", type=at_least(64, 4096), default=512, help="long side of the still frame (pixels)")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
