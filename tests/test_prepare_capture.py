@@ -48,11 +48,15 @@ def prepared(recording):
 def test_prepared_capture_matches_the_truth(recording, prepared):
     truth, out = ZjuCapture(recording / "truth"), ZjuCapture(prepared)
     for true_cam, cam in zip(truth.cameras, out.cameras):
-        # qca text (repr floats) -> mm -> m and annots' T in mm: a few ulps of metres
+        # intrinsics pass through (qca text of repr floats); the calibration as given round-trips to 1e-9 m with
+        # --keep-calibration (tests/test_silhouettes.py)
         assert cam.name == true_cam.name and (cam.width, cam.height) == (true_cam.width, true_cam.height)
         np.testing.assert_allclose(cam.K, true_cam.K, rtol=1e-12)
-        np.testing.assert_allclose(cam.cam_from_world, true_cam.cam_from_world, atol=1e-9)
         np.testing.assert_allclose(cam.dist, true_cam.dist, atol=1e-12)
+        # the silhouette stage may move an exact camera only as far as 1 px of keypoint noise on a 256-px image
+        # supports (~0.2 degrees, ~1 cm at 3 m); its prior's scale is 1 degree and 1 cm
+        turn = np.linalg.norm(cv2.Rodrigues(cam.cam_from_world[:3, :3] @ true_cam.cam_from_world[:3, :3].T)[0])
+        assert np.degrees(turn) < 0.2 and np.linalg.norm(cam.centre - true_cam.centre) < 0.01
     joints = true_joints(truth, BodyModel())[:, list(TARGET_JOINTS)]
     error_cm = 100 * np.linalg.norm(np.load(prepared / "keypoints3d.npy") - joints, axis=-1)
     # 1 px of noise is about 1 cm at these cameras (f ~ 280 px at ~3 m): the median stays near it, no joint is far

@@ -4,6 +4,7 @@ stand-in in the cache (``$NARF_CACHE`` or ``~/.cache/narf-avatar``), generated o
 
 from __future__ import annotations
 
+import hashlib
 import os
 import sys
 from pathlib import Path
@@ -49,3 +50,63 @@ def resolve_smpl_file(smpl_dir: str | Path | None = None, gender: str = "neutral
                 return present[name.lower()]
         raise SmplFileError(f"{candidate}: no SMPL model file for gender '{gender}' (looked for {names})")
     return ensure_standin()
+
+
+#: What a run or a capture records of the body model its poses belong to (docs/formats.md §1.11).
+BODY_MODEL_RECORD = "body_model.json"
+
+
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of a file's bytes, in hex."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def body_model_record(path: Path) -> dict:
+    """``{"file", "sha256", "standin"}`` of the body model file ``path`` (``standin``: the generated stand-in)."""
+    path = Path(path).resolve()
+    return {"file": str(path), "sha256": file_sha256(path), "standin": path == standin_path().resolve()}
+
+
+def check_record(record, source: str) -> dict:
+    """A body-model record read from ``source`` (a file or checkpoint), checked: a mapping with a file name, a
+    64-digit hex SHA-256 and a true/false stand-in flag."""
+    ok = (
+        isinstance(record, dict)
+        and isinstance(record.get("file"), str)
+        and isinstance(record.get("sha256"), str)
+        and len(record["sha256"]) == 64
+        and all(c in "0123456789abcdef" for c in record["sha256"])
+        and isinstance(record.get("standin"), bool)
+    )
+    if not ok:
+        raise SmplFileError(f"{source}: not a body-model record (expected file, a 64-digit sha256 and standin)")
+    return record
+
+
+def find_recorded(record: dict, owner: str) -> Path:
+    """The body model file with the recorded hash: the recorded file, then ``$NARF_SMPL_DIR`` (which ``--smpl-dir``
+    sets), then the stand-in when the record names the stand-in. ``owner`` names the run or capture in the error.
+
+    Raises:
+        SmplFileError: no candidate has the recorded hash.
+    """
+    candidates = [Path(record["file"])]
+    if os.environ.get("NARF_SMPL_DIR"):
+        try:
+            candidates.append(resolve_smpl_file(os.environ["NARF_SMPL_DIR"]))
+        except SmplFileError:
+            pass
+    if record["standin"]:
+        candidates.append(ensure_standin())
+    for candidate in dict.fromkeys(candidates):
+        if candidate.is_file() and file_sha256(candidate) == record["sha256"]:
+            return candidate
+    what = "the generated stand-in body" if record["standin"] else f"the body model {record['file']}"
+    raise SmplFileError(
+        f"{owner}: was made with {what} (sha256 {record['sha256'][:12]}...), which is not found or has changed; "
+        "pass --smpl-dir with that file"
+    )

@@ -119,6 +119,19 @@ def _choices(parser: argparse.ArgumentParser) -> None:
         help="body-fit iterations (after 100 for the global placement)",
     )
     parser.add_argument(
+        "--silhouette-iterations",
+        type=at_least(0),
+        default=400,
+        help="last body-fit iterations in which the person masks take part beside the keypoints (robust chamfer "
+        "distances between the projected body and each mask) and each camera's pose is corrected "
+        "(docs/guides/real-captures.md); 0: keypoints only, the calibration as given",
+    )
+    parser.add_argument(
+        "--keep-calibration",
+        action="store_true",
+        help="fit the body to the masks but leave the cameras exactly as the calibration gives them",
+    )
+    parser.add_argument(
         "--smpl-dir",
         type=Path,
         default=None,
@@ -157,7 +170,11 @@ def main(argv: list[str] | None = None) -> int:
         novel_fraction=args.novel_fraction,
         threshold=args.max_error / 100,
         smpl_dir=args.smpl_dir,
-        fit=FitSettings(iterations=args.fit_iterations),
+        fit=FitSettings(
+            iterations=args.fit_iterations,
+            silhouette_iterations=args.silhouette_iterations,
+            refine_cameras=not args.keep_calibration,
+        ),
         floor=args.floor,
         overwrite=args.overwrite,
         progress=not args.quiet,
@@ -177,9 +194,13 @@ def main(argv: list[str] | None = None) -> int:
     for name, camera in report["cameras"].items():
         error, share = camera["body_reprojection_px"], camera["body_reprojection_pct_height"]
         flag = f"  FLAGGED: {camera['flag']}" if "flag" in camera else ""
+        moved = camera.get("calibration_correction")
+        moved = (
+            f", calibration corrected by {moved['turn_degrees']:.2f} deg / {moved['shift_cm']:.1f} cm" if moved else ""
+        )
         print(
             f"  {name}: reprojection {error:.1f} px ({share:.2f} %), IoU {camera['iou_mean']:.2f}, views used "
-            f"{camera['views_used']}{flag}"
+            f"{camera['views_used']}{moved}{flag}"
         )
     return 0
 

@@ -12,6 +12,11 @@ with ``rho(r) = r^2 / (r^2 + 1)`` (Geman-McClure), ``c`` the detector confidence
 on joints that no target observes (wrists, hands, feet, head), and ``d`` the frame-to-frame difference. Joints
 need no vertices (they are regressed from the shaped rest mesh, before pose blend shapes), so each step is one
 forward kinematics pass.
+
+A last stage (``silhouette_iterations``) adds the person masks, ``w_s (E_out + E_in)`` of
+``pipelines.prepare.silhouettes`` on the posed vertices, and corrects every camera's pose
+(:class:`CameraCorrection`) against a prior of ``camera_turn`` degrees and ``camera_shift`` metres: a calibration a
+few pixels off moves every view's silhouette the same way in every frame, which no body pose can absorb.
 """
 
 from __future__ import annotations
@@ -20,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from smplx.lbs import batch_rodrigues
 
 from narf.kinematics import N_JOINTS, rigid_from_rotvec_translation, world_from_joints
 from pipelines.body.model import BodyModel
@@ -46,6 +52,12 @@ class FitSettings:
     smooth: float = 0.5
     shape_prior: float = 1e-3
     offset_prior: float = 5.0
+    silhouette_iterations: int = 400  # the last stage, when the masks take part (pipelines.prepare.silhouettes)
+    silhouette_lr: float = 0.02
+    silhouette_weight: float = 30.0
+    refine_cameras: bool = True  # the last stage also corrects each camera's pose (CameraCorrection)
+    camera_turn: float = 1.0  # degrees: the camera prior's scale of turns ...
+    camera_shift: float = 0.01  # ... and of shifts (metres)
 
 
 @dataclass
@@ -59,6 +71,7 @@ class BodyFit:
     shapes: np.ndarray
     offsets: np.ndarray
     targets: np.ndarray
+    cam_from_world: np.ndarray | None = None  # (V, 3, 4) the corrected cameras, when the fit corrected them
 
 
 def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -126,14 +139,15 @@ class _Problem:
         local = offsets[self.offset_source] * self.offset_sign
         return frames[..., :3, 3] + (frames[..., :3, :3] @ local[..., None])[..., 0]
 
-    def energy(self, poses, rh, th, shapes, offsets) -> torch.Tensor:
+    def energy(self, poses, rh, th, shapes, offsets, P: torch.Tensor | None = None) -> torch.Tensor:
+        """The energy of the module docstring; ``P`` (V, 3, 4): the projections to use (corrected cameras)."""
         s = self.settings
         targets = self.targets(poses, rh, th, shapes, offsets)
         robust = lambda r: r**2 / (r**2 + 1)  # noqa: E731
         r3 = (targets - self.points).norm(dim=-1) / s.scale_3d
         e3 = (self.seen * robust(r3)).sum() / self.seen.sum().clamp(min=1)
         homogeneous = torch.cat([targets, torch.ones_like(targets[..., :1])], dim=-1)
-        image = torch.einsum("vij,ftj->fvti", self.P, homogeneous)
+        image = torch.einsum("vij,ftj->fvti", self.P if P is None else P, homogeneous)
         projected = image[..., :2] / image[..., 2:].clamp(min=1e-3)
         r2 = (projected - self.xy).norm(dim=-1) / (self.heights[None, :, None] * s.scale_2d)
         e2 = (self.conf * robust(r2)).sum() / self.conf.sum().clamp(min=1)
@@ -153,8 +167,58 @@ class _Problem:
         )
 
 
+class CameraCorrection:
+    """A correction of every camera's pose, ``cam_from_world' = [exp(r_v) | s_v] cam_from_world`` (a turn about
+    the camera's centre, then a shift in its frame), with the prior ``mean_v (|r_v| / a)^2 + (|s_v| / b)^2``, a and b
+    the settings' scales: the calibration is trusted to about that much.
+
+    Args:
+        K: (V, 3, 3) intrinsics. cam_from_world: (V, 3, 4) extrinsics of the undistorted cameras.
+    """
+
+    def __init__(self, K: np.ndarray, cam_from_world: np.ndarray, settings: FitSettings):
+        self.K = torch.as_tensor(K, dtype=torch.float32)
+        self.extrinsics = torch.as_tensor(cam_from_world[:, :3], dtype=torch.float32)
+        self.turn = torch.zeros(len(K), 3, requires_grad=True)
+        self.shift = torch.zeros(len(K), 3, requires_grad=True)
+        self.scales = (np.radians(settings.camera_turn), settings.camera_shift)
+
+    def corrected(self) -> torch.Tensor:
+        """(V, 3, 4) corrected ``cam_from_world``."""
+        turn = batch_rodrigues(self.turn)
+        return torch.cat([turn @ self.extrinsics[..., :3], turn @ self.extrinsics[..., 3:] + self.shift[..., None]], -1)
+
+    def projections(self) -> torch.Tensor:
+        """(V, 3, 4) ``K [R' | t']``."""
+        return self.K @ self.corrected()
+
+    def penalty(self) -> torch.Tensor:
+        a, b = self.scales
+        return ((self.turn / a).pow(2).sum(-1) + (self.shift / b).pow(2).sum(-1)).mean()
+
+
+def _stage(energy, variables: list[torch.Tensor], iterations: int, lr: float, tick) -> None:
+    """``iterations`` Adam steps on ``energy()`` over ``variables``, the rate annealed (cosine) to 5 % of ``lr``."""
+    optimiser = torch.optim.Adam(variables, lr=lr)
+    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, iterations, eta_min=lr * 0.05)
+    for _ in range(iterations):
+        optimiser.zero_grad()
+        energy().backward()
+        optimiser.step()
+        schedule.step()
+        tick()
+
+
 def fit_body(
-    body: BodyModel, P, heights, keypoints, points, settings: FitSettings = FitSettings(), progress=None
+    body: BodyModel,
+    P,
+    heights,
+    keypoints,
+    points,
+    settings: FitSettings = FitSettings(),
+    progress=None,
+    silhouettes=None,
+    cameras: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> BodyFit:
     """Fit the body model to a sequence (module docstring).
 
@@ -163,6 +227,10 @@ def fit_body(
         keypoints: (F, V, T, 3) undistorted target pixels and confidences (0: not used).
         points: (F, T, 3) triangulated targets (NaN: missing).
         progress: optional callable(step, total) for a progress bar.
+        silhouettes: optional ``(vertices (F, N, 3) of the keypoint fit) -> term``: a last stage adds
+            ``weight * term(vertices, P)`` (``pipelines.prepare.silhouettes``) to the energy.
+        cameras: (K (V, 3, 3), cam_from_world (V, 3 or 4, 4)) of the undistorted cameras: with ``silhouettes`` and
+            ``settings.refine_cameras``, the last stage also corrects the cameras' poses (:class:`CameraCorrection`).
     """
     problem = _Problem(body, P, heights, keypoints, points, settings)
     n_frames = points.shape[0]
@@ -176,19 +244,35 @@ def fit_body(
     offsets = torch.zeros(len(TARGETS), 3, requires_grad=True)
     mask = torch.ones(N_JOINTS * 3)
     mask[:3] = 0  # poses[:3] stays 0: the global rotation is Rh
-    stages = [([rh, th], settings.global_iterations), ([poses, rh, th, shapes, offsets], settings.iterations)]
-    total, done = sum(n for _, n in stages), 0
-    for variables, iterations in stages:
-        optimiser = torch.optim.Adam(variables, lr=settings.lr)
-        schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, iterations, eta_min=settings.lr * 0.05)
-        for _ in range(iterations):
-            optimiser.zero_grad()
-            problem.energy(poses * mask, rh, th, shapes, offsets).backward()
-            optimiser.step()
-            schedule.step()
-            done += 1
-            if progress is not None:
-                progress(done, total)
+    every = [poses, rh, th, shapes, offsets]
+    keypoint_energy = lambda: problem.energy(poses * mask, rh, th, shapes, offsets)  # noqa: E731
+    total = settings.global_iterations + settings.iterations + (settings.silhouette_iterations if silhouettes else 0)
+    done = [0]
+
+    def tick():
+        done[0] += 1
+        if progress is not None:
+            progress(done[0], total)
+
+    _stage(keypoint_energy, [rh, th], settings.global_iterations, settings.lr, tick)
+    _stage(keypoint_energy, every, settings.iterations, settings.lr, tick)
+    correction = None
+    if silhouettes is not None:
+        posed = lambda: body.pose_zju(poses * mask, rh, th, shapes.expand(n_frames, -1)).vertices  # noqa: E731
+        with torch.no_grad():
+            term = silhouettes(posed().numpy())
+        variables = every
+        if cameras is not None and settings.refine_cameras:
+            correction = CameraCorrection(*cameras, settings)
+            variables = [*every, correction.turn, correction.shift]
+
+        def energy():
+            P = None if correction is None else correction.projections()
+            total = problem.energy(poses * mask, rh, th, shapes, offsets, P)
+            total = total + settings.silhouette_weight * term(posed(), P)
+            return total if correction is None else total + correction.penalty()
+
+        _stage(energy, variables, settings.silhouette_iterations, settings.silhouette_lr, tick)
     with torch.no_grad():
         final = poses * mask
         targets = problem.targets(final, rh, th, shapes, offsets)
@@ -199,4 +283,5 @@ def fit_body(
         shapes=shapes.detach().numpy()[0].astype(np.float32),
         offsets=(offsets[problem.offset_source] * problem.offset_sign).detach().numpy(),
         targets=targets.numpy(),
+        cam_from_world=None if correction is None else correction.corrected().detach().double().numpy(),
     )

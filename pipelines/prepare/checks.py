@@ -17,6 +17,8 @@ FLAG_RATIO = 2.5
 FLAG_IOU = 0.6
 #: or when its person disagrees with the other cameras in more than this fraction of the frames
 FLAG_DISAGREED = 0.2
+#: or when the body fit had to turn it by more than this many degrees or move it by more than this many cm
+FLAG_TURN, FLAG_SHIFT = 2.0, 3.0
 
 
 def project_distorted(camera: Camera, points: np.ndarray) -> np.ndarray:
@@ -77,12 +79,24 @@ def draw_overlay(
 
 
 def flag_cameras(
-    names: list[str], errors: dict[str, float], ious: dict[str, float], disagreed: dict[str, float]
+    names: list[str],
+    errors: dict[str, float],
+    ious: dict[str, float],
+    disagreed: dict[str, float],
+    corrections: dict[str, tuple[float, float]] | None = None,
 ) -> dict[str, str]:
     """Cameras that disagree with the others, with the reason (module constants; ``disagreed``: the fraction of
-    frames where the camera's person did not match the others' beyond the view threshold)."""
+    frames where the camera's person did not match the others' beyond the view threshold; ``corrections``: how far
+    the body fit moved each camera, degrees and cm)."""
     flags = {}
     for name in names:
+        turn, shift = (corrections or {}).get(name, (0.0, 0.0))
+        if turn > FLAG_TURN or shift > FLAG_SHIFT:
+            flags[name] = (
+                f"the body fit had to turn this camera by {turn:.1f} degrees and move it by {shift:.1f} cm to match "
+                "the others: check its calibration (--keep-calibration keeps it as given)"
+            )
+            continue
         if disagreed.get(name, 0.0) > FLAG_DISAGREED:
             flags[name] = (
                 f"its detection disagrees with the other cameras in {100 * disagreed[name]:.0f} % of the frames: "

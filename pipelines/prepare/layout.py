@@ -105,7 +105,8 @@ def _median(values) -> float:
 
 
 def _camera_report(seen, found, triangulated, body, ious) -> dict:
-    """Per camera: size, notes, views used / without a person / disagreeing, reprojection errors and IoU."""
+    """Per camera: size, notes, views used / without a person / disagreeing, reprojection errors, IoU and how far the
+    body fit moved the camera."""
     per_camera = {}
     for v, cam in enumerate(seen.cameras):
         height = cam.height
@@ -121,6 +122,9 @@ def _camera_report(seen, found, triangulated, body, ious) -> dict:
             "iou_mean": float(np.mean(ious[cam.name])) if ious[cam.name] else float("nan"),
             "iou_min": float(np.min(ious[cam.name])) if ious[cam.name] else float("nan"),
         }
+        if cam.name in seen.corrections:  # how far the body fit moved the camera (docs/guides/real-captures.md)
+            turn, shift = seen.corrections[cam.name]
+            per_camera[cam.name]["calibration_correction"] = {"turn_degrees": turn, "shift_cm": shift}
     return per_camera
 
 
@@ -139,7 +143,8 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
     per_camera = _camera_report(seen, found, triangulated, body, ious)
     errors = {n: _median(body[..., v]) for v, n in enumerate(names)}
     disagreed = {n: found.view_notes[v]["disagreed"] / max(1, len(seen.frames[v])) for v, n in enumerate(names)}
-    flags = flag_cameras(names, errors, {n: per_camera[n]["iou_mean"] for n in names}, disagreed)
+    ious = {n: per_camera[n]["iou_mean"] for n in names}
+    flags = flag_cameras(names, errors, ious, disagreed, seen.corrections)
     for name, reason in flags.items():
         per_camera[name]["flag"] = reason
     distance = np.linalg.norm(fitted.targets - found.points, axis=-1)

@@ -32,12 +32,14 @@ class Observations:
         frames: per camera, the source frame indices that were read.
         people: ``people[v][f]`` a list of (T, 3) target arrays (x, y, confidence) in output pixels.
         notes: per camera, lines for the report (size mismatches, resizing).
+        corrections: per camera, how far the body fit moved it: (turn in degrees, centre shift in cm).
     """
 
     cameras: list[Camera]
     frames: list[list[int]]
     people: list[dict[int, list[np.ndarray]]]
     notes: dict[str, list[str]] = field(default_factory=dict)
+    corrections: dict[str, tuple[float, float]] = field(default_factory=dict)
 
 
 def fit_camera_to_recording(camera: Camera, size: tuple[int, int], source: Source) -> tuple[Camera, str | None]:

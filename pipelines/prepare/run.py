@@ -9,18 +9,20 @@ from __future__ import annotations
 
 import json
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.datasets.floor import Floor, camera_up, floor_from_feet, write_floor
 from pipelines.datasets.rig_files import read_rig
 from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.prepare.body_fit import FitSettings, fit_body
 from pipelines.prepare.layout import finish_capture, write_sequence
 from pipelines.prepare.observe import observe
+from pipelines.prepare.silhouettes import silhouette_stage
 from pipelines.prepare.sources import find_sources, match_cameras
 from pipelines.prepare.triangulation import triangulate_people
 
@@ -94,6 +96,7 @@ def prepare_capture(request: PrepareRequest) -> dict:
     shutil.rmtree(staging, ignore_errors=True)
     try:
         report = _build(staging, pairs, detector, body, holdout, calibration, request)
+        (staging / BODY_MODEL_RECORD).write_text(json.dumps(body_model_record(body.path), indent=1))
         (staging / MARKER).write_text(
             json.dumps({"recording": str(request.recording), "calibration": str(calibration)})
         )
@@ -130,9 +133,16 @@ def _build(staging: Path, pairs, detector, body, holdout, calibration, request: 
         raise CaptureError(
             f"{request.recording}: no person is seen by two agreeing views in any of the {len(common)} frames read"
         )
-    steps = request.fit.global_iterations + request.fit.iterations
+    steps = request.fit.global_iterations + request.fit.iterations + request.fit.silhouette_iterations
+    inputs = _fit_inputs(seen.cameras, found)
+    masks = None
+    if request.fit.silhouette_iterations:
+        masks = silhouette_stage(staging, seen.cameras, found, body.faces, inputs[0])
+    rig = (np.stack([c.K for c in seen.cameras]), np.stack([c.cam_from_world for c in seen.cameras]))
     with tqdm(total=steps, desc="fitting the body", disable=not request.progress) as bar:
-        fitted = fit_body(body, *_fit_inputs(seen.cameras, found), request.fit, lambda done, total: bar.update(1))
+        fitted = fit_body(body, *inputs, request.fit, lambda done, total: bar.update(1), masks, rig)
+    if fitted.cam_from_world is not None:  # the capture's cameras are the corrected ones (docs/guides/real-captures.md)
+        seen = corrected_cameras(seen, fitted.cam_from_world)
     shapes = np.repeat(fitted.shapes[None], len(fitted.poses), 0)
     with torch.no_grad():
         vertices = body.pose_zju(fitted.poses, fitted.rh, fitted.th, shapes).vertices.numpy()
@@ -140,6 +150,20 @@ def _build(staging: Path, pairs, detector, body, holdout, calibration, request: 
     floor = request.floor or floor_from_feet(vertices, camera_up(seen.cameras))
     write_floor(staging, floor)
     return finish_capture(staging, seen, found, fitted, vertices, body.faces, holdout, request, calibration, floor)
+
+
+def corrected_cameras(seen, cam_from_world: np.ndarray):
+    """``seen`` with each camera's extrinsics replaced by the body fit's corrected (V, 3, 4) ones, and how far each
+    moved (degrees, centimetres) in ``seen.corrections``."""
+    cameras, corrections = [], {}
+    for camera, corrected in zip(seen.cameras, cam_from_world):
+        pose = np.eye(4)
+        pose[:3] = corrected
+        cosine = (np.trace(corrected[:3, :3].T @ camera.cam_from_world[:3, :3]) - 1) / 2
+        moved = np.linalg.norm(-corrected[:3, :3].T @ corrected[:3, 3] - camera.centre)
+        corrections[camera.name] = (float(np.degrees(np.arccos(np.clip(cosine, -1, 1)))), float(100 * moved))
+        cameras.append(replace(camera, cam_from_world=pose))
+    return replace(seen, cameras=cameras, corrections=corrections)
 
 
 def _fit_inputs(cameras, found):

@@ -22,6 +22,7 @@ import trimesh
 from tqdm import tqdm
 
 from fitting.mesh import vertex_normals
+from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.body.model import BodyModel
 from pipelines.datasets.capture import make_protocol
 from pipelines.datasets.easymocap import write_easymocap_cameras
@@ -319,6 +320,7 @@ def generate_capture(
             progress=progress,
             close_ups=config.calib_close_ups,
         )
+    (partial / BODY_MODEL_RECORD).write_text(json.dumps(body_model_record(body.path), indent=1))
     (partial / MARKER).write_text(
         json.dumps({"version": GENERATOR_VERSION, "config": asdict(config), "smpl": str(body.path)}, indent=2)
     )
