@@ -97,7 +97,7 @@ def render_seconds(run_dir: Path) -> dict[int, float]:
     run = load_run(run_dir)
     frame, cam = run.protocol.split("novel_pose_novel_view")[0]
     camera = run.capture.load_frame(frame, cam).camera
-    poses, _, _ = poses_for_frames(run.capture, run.body_model, [frame])
+    poses, _, _ = poses_for_frames(run, run.body_model, [frame])
     seconds = {}
     for size in (256, 512):
         scale = np.diag([size / camera.width, size / camera.height, 1.0])

@@ -99,9 +99,8 @@ def refine_code(
     )
     count = height * width
     ones, frames = torch.ones(count, device=device), torch.zeros(count, dtype=torch.long, device=device)
-    pixels = RayBatch(
-        origins, dirs, frames, image.reshape(-1, 3).float().to(device), mask.reshape(-1).float().to(device), ones
-    )
+    rgb, silhouette = image.reshape(-1, 3).float().to(device), mask.reshape(-1).float().to(device)
+    pixels = RayBatch(origins, dirs, frames, rgb, silhouette, ones, frames)
     generator = torch.Generator(device).manual_seed(seed)
     latent = code.detach().clone().requires_grad_(True)
     optimiser = torch.optim.Adam([latent], lr=REFINE_LR)

@@ -99,6 +99,16 @@ class TrainConfig:
     precision: Literal["fp32", "bf16"] = "fp32"  #: fp32 (the reference) or bf16 (autocast of the forward pass)
     compile: bool = False  #: torch.compile the field's forward pass (dynamic shapes; the eager path is the reference)
     deterministic: bool = True  #: deterministic kernels, so a resumed fit ends where an uninterrupted one would
+    pose_correction: bool = False  #: subject fits: correct each training frame's body pose while fitting
+    pose_lr: float = 2e-4  #: Adam learning rate of the pose corrections (radians, metres)
+    pose_start: int = 1000  #: the step from which the poses are corrected (the field takes shape first)
+    pose_prior: float = 1.0  #: pull of each knot's correction towards the capture's pose
+    pose_smooth: float = 1.0  #: pull of neighbouring knots' corrections towards each other
+    pose_knot_every: int = 4  #: capture frames between pose-correction knots (1: every frame its own)
+    camera_colour: bool = False  #: subject fits: a colour gain and bias per training camera, in the loss only
+    colour_lr: float = 1e-3  #: Adam learning rate of the camera colour transforms
+    colour_prior: float = 1e-3  #: pull of each camera's transform towards the identity
+    random_background: bool = False  #: random background colour per ray; the mask's band leaves the colour loss
 
 
 @dataclass
@@ -233,6 +243,9 @@ KIND_ONLY = {
     "train.colour_jitter": "autoencoder",
     "data.train_meshes": "autoencoder",
     "data.renders_per_mesh": "autoencoder",
+    "train.pose_correction": "subject",
+    "train.camera_colour": "subject",
+    "train.random_background": "subject",
 }
 #: The range of each numeric setting, as a test and its words (the message names the key, the range and the value).
 RANGES = {
@@ -272,6 +285,13 @@ RANGES = {
     "train.checkpoint_minutes": (lambda v: v >= 0, ">= 0 (0: after every step)"),
     "train.validate_every": (lambda v: v >= 0, ">= 0 (0: never)"),
     "train.log_every": (lambda v: v >= 1, ">= 1"),
+    "train.pose_lr": (lambda v: v > 0, "> 0"),
+    "train.pose_start": (lambda v: v >= 0, ">= 0"),
+    "train.pose_prior": (lambda v: v >= 0, ">= 0"),
+    "train.pose_smooth": (lambda v: v >= 0, ">= 0"),
+    "train.pose_knot_every": (lambda v: v >= 1, ">= 1"),
+    "train.colour_lr": (lambda v: v > 0, "> 0"),
+    "train.colour_prior": (lambda v: v >= 0, ">= 0"),
 }
 
 
@@ -316,3 +336,6 @@ def validate_config(config: FitConfig) -> None:
         raise ConfigError("render.occupancy: the occupancy grid is for per-subject fits (densities differ per person)")
     if config.train.colour_jitter and config.model.name == "cnn":
         raise ConfigError("train.colour_jitter: only the NeRF-type autoencoders use it")
+    for key in ("pose_correction", "camera_colour", "random_background"):
+        if getattr(config.train, key) and config.model.name in IMAGE_MODELS:
+            raise ConfigError(f"train.{key}: the CNN baseline renders no rays; set it false (--set train.{key}=false)")

@@ -6,11 +6,12 @@ Built by ``pipelines.runs.*.session`` from views they load; this module reads no
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
+from fitting.corrections import CapturePoses
 from fitting.view_store import BAND_BIT, POOL_BACKGROUND, POOL_BITS, POOL_BODY, POOL_BORDER, ViewStore
 from narf.fields.common import PoseBatch
 
@@ -18,7 +19,7 @@ from narf.fields.common import PoseBatch
 @dataclass
 class RayBatch:
     """origins, dirs (R, 3); frames (R,) index into the pose batch; rgb (R, 3), mask (R,), mask_weight (R,)
-    (0 on the 5-px boundary band, skipped by the mask loss)."""
+    (0 on the 5-px boundary band, skipped by the mask loss); cameras (R,) the training camera of each ray's view."""
 
     origins: torch.Tensor
     dirs: torch.Tensor
@@ -26,6 +27,7 @@ class RayBatch:
     rgb: torch.Tensor
     mask: torch.Tensor
     mask_weight: torch.Tensor
+    cameras: torch.Tensor
 
     def take(self, index) -> RayBatch:
         """The rays ``index`` (a slice or an index tensor) of the batch."""
@@ -46,9 +48,10 @@ class TrainingSet:
         poses: PoseBatch of the training frames.
         device: where rays and targets are sent.
         store_dir: folder of the store's anonymous file (the system's temporary folder by default).
+        camera_of_view: index of each view's training camera (0..C-1; all 0 when not given), for per-camera colour.
     """
 
-    def __init__(self, views, frame_of_view: list[int], poses: PoseBatch, device, store_dir=None):
+    def __init__(self, views, frame_of_view: list[int], poses: PoseBatch, device, store_dir=None, camera_of_view=None):
         self.device = device
         self.poses = poses.to(device)
         self.store = ViewStore(store_dir)
@@ -68,6 +71,11 @@ class TrainingSet:
         self.frame_of_image = torch.as_tensor(frame_of_view, dtype=torch.long, device=device)
         if len(self.frame_of_image) != len(self.store):
             raise ValueError(f"{len(self.store)} views but {len(self.frame_of_image)} frame indices")
+        cameras = [0] * len(self.store) if camera_of_view is None else list(camera_of_view)
+        self.camera_of_image = torch.as_tensor(cameras, dtype=torch.long, device=device)
+        if len(self.camera_of_image) != len(self.store):
+            raise ValueError(f"{len(self.store)} views but {len(self.camera_of_image)} camera indices")
+        self.n_cameras = int(self.camera_of_image.max()) + 1
 
     def __len__(self) -> int:
         return len(self.store)
@@ -128,7 +136,9 @@ class TrainingSet:
         dirs = (rotation.transpose(1, 2) @ dirs_cam[..., None])[..., 0]
         dirs = dirs / dirs.norm(dim=-1, keepdim=True)
         origins = -(rotation.transpose(1, 2) @ self.cam_from_world[images, :3, 3:4])[..., 0]
-        return RayBatch(origins, dirs, self.frame_of_image[images], rgb, mask, mask_weight)
+        return RayBatch(
+            origins, dirs, self.frame_of_image[images], rgb, mask, mask_weight, self.camera_of_image[images]
+        )
 
 
 @dataclass
@@ -142,6 +152,10 @@ class FitData:
         validation: callable returning (ground-truth image, camera, one-frame PoseBatch) of a held-out view,
             or None.
         description: one line naming the capture, for logs.
+        capture_poses: the training frames' body parameters, which pose correction starts from (None: the data
+            has none, e.g. posed joint frames only).
+        validation_frame: the training-frame index of the validation view's pose (None: not a training frame).
+        provenance: what the fit depends on outside its config (the body model's record), saved in the checkpoint.
     """
 
     training: TrainingSet
@@ -149,3 +163,6 @@ class FitData:
     frames: list[int]
     validation: Callable | None = None
     description: str = ""
+    capture_poses: CapturePoses | None = None
+    validation_frame: int | None = None
+    provenance: dict = field(default_factory=dict)

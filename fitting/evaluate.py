@@ -29,6 +29,14 @@ _SHORT = {
     "novel_pose_novel_view": "NN",
     "novel_pose": "novel pose (NB)",
     "novel_view": "novel view (NB)",
+    "capture": "another capture",
+}
+#: What a report's ``poses`` entry says under its table.
+POSE_NOTES = {
+    "corrected": "Poses: the same-pose splits show the training frames in the run's corrected poses "
+    "(RUN/refined_params); the novel-pose splits keep the capture's, since correcting them would need their images "
+    "(docs/model.md §6).",
+    "capture": "Poses: the capture's own (the fit did not correct them).",
 }
 
 
@@ -200,7 +208,7 @@ def spread(items: list, limit: int | None) -> list:
 
 def markdown_table(report: dict) -> str:
     """Supplement layout: one row per protocol, cells Mask L2 (x10^4) / PSNR / SSIM per split."""
-    splits = [s for s in (*EVAL_SPLITS, "novel_pose", "novel_view") if s in report["splits"]]
+    splits = [s for s in (*EVAL_SPLITS, "novel_pose", "novel_view", "capture") if s in report["splits"]]
     size = f"{report['image_size']}^2 bone maps" if report["model"] == "cnn" else f"width {report['width']}"
     lines = [
         f"# {report['model']} ({size}), step {report['step']}: {report['subject']}",
@@ -228,6 +236,11 @@ def markdown_table(report: dict) -> str:
                 f"samples, level {mesh['level']:g}): distance to the true surface mean {mesh['mean_mm']:.1f} mm, "
                 f"95th percentile {mesh['p95_mm']:.1f} mm; normal consistency {mesh['normal_consistency']:.3f}",
             ]
+    if "capture" in report["splits"]:
+        other = report["splits"]["capture"]
+        lines += ["", f"Another capture: {other['capture']} (every frame a novel pose, every camera, its own poses)."]
+    if report.get("poses") in POSE_NOTES:
+        lines += ["", POSE_NOTES[report["poses"]]]
     versions = ", ".join(f"{k} {v}" for k, v in report["versions"].items())
     lines += [
         "",

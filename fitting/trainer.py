@@ -16,10 +16,12 @@ from tqdm import tqdm
 
 from fitting.checkpoint import save_checkpoint
 from fitting.config import FitConfig
+from fitting.corrections import CameraColour, PoseCorrection, corrected_colour_error
 from fitting.data import FitData
 from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
 from fitting.plots import write_curve, write_validation
 from narf.fields import IMAGE_MODELS, MODEL_OPTIONS, build_model
+from narf.fields.common import PoseBatch
 from narf.metrics import psnr
 from narf.occupancy import OccupancyGrid, field_ray_bounds, refresh_cells
 from narf.renderer import bind_field, bind_grid_proposal, render_rays
@@ -57,18 +59,27 @@ def ray_loss(
     uniforms=None,
     normalisers: tuple[float, torch.Tensor] | None = None,
     randomized: bool = True,
+    camera_colour=None,
+    backgrounds: torch.Tensor | None = None,
 ):
     """L = mean 1/3 |C - C_gt|^2 + lambda_mask mean (M - M_gt)^2 (band skipped). Returns loss, colour MSE.
 
     ``latent``: optional (F, 2 * latent_dim) autoencoder codes, one per frame of ``poses``. ``uniforms``: the rays'
     sample draws (``render_rays``). ``normalisers``: (3 R, sum of mask weights) of the global batch when ``batch``
     is one process's share of it; both terms are then that share's contribution to the global means.
-    ``randomized`` False: deterministic samples (``render_rays``), as full-image renders take them."""
+    ``randomized`` False: deterministic samples (``render_rays``), as full-image renders take them.
+    ``camera_colour``: a ``fitting.corrections.CameraColour`` applied to the rendered colour of each ray's camera.
+    ``backgrounds``: (R, 3) a background colour per ray, which also replaces the target outside the mask; the
+    boundary band, whose target keeps the recording's own background, then leaves the colour loss as well
+    (docs/model.md §6). Ray bounds and the grid proposal take the poses without gradient."""
     per_ray = poses.select(batch.frames)
-    near, far, hit = field_ray_bounds(field, batch.origins, batch.dirs, per_ray)
+    near, far, hit = field_ray_bounds(field, batch.origins, batch.dirs, per_ray.detach())
     background = 1.0 if config.data.white_background else 0.0
+    plain = camera_colour is None and backgrounds is None
     # training renders only; validate_config ties the switch to render.occupancy, so the field has its grid
-    proposal = bind_grid_proposal(field, poses, batch.frames) if config.render.grid_proposal and randomized else None
+    proposal = None
+    if config.render.grid_proposal and randomized:
+        proposal = bind_grid_proposal(field, poses.detach(), batch.frames)
     out = render_rays(
         bind_field(field, batch.dirs, poses, batch.frames, latent),
         batch.origins,
@@ -78,14 +89,17 @@ def ray_loss(
         hit,
         n_coarse,
         n_fine,
-        background=background,
+        background=background if plain else 0.0,
         randomized=randomized,
         generator=generator,
         uniforms=uniforms,
         proposal_fn=proposal,
     )
     colour_count, mask_count = normalisers or (out.rgb.numel(), batch.mask_weight.sum().clamp_min(1))
-    colour = (out.rgb - batch.rgb).pow(2).sum() / colour_count
+    if plain:
+        colour = (out.rgb - batch.rgb).pow(2).sum() / colour_count
+    else:
+        colour = corrected_colour_error(out, batch, background, camera_colour, backgrounds, colour_count, mask_count)
     mask_term = (batch.mask_weight * (out.mask - batch.mask).pow(2)).sum() / mask_count
     return colour + config.train.mask_weight * mask_term, colour
 
@@ -147,10 +161,12 @@ class Trainer:
             # compile the bound forward, not the module, so state_dict keys stay those of the eager field
             self.field.forward = torch.compile(self.field.forward, dynamic=True)
         self._build_extra_modules()
+        self._build_corrections(data)
         self.rays_per_step = config.train.images_per_step * config.train.rays_per_image
         # fused: one kernel for all parameters (0.25 against 0.99 ms a CPU-preset step; same update rule)
+        groups = self._parameter_groups() + self._correction_groups()
         self.optimiser = torch.optim.Adam(
-            self._parameter_groups(), lr=config.train.lr, betas=(0.9, 0.999), eps=config.train.adam_eps, fused=True
+            groups, lr=config.train.lr, betas=(0.9, 0.999), eps=config.train.adam_eps, fused=True
         )
         decay, floor = config.train.lr_decay, config.train.lr_min / config.train.lr
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimiser, lambda step: max(decay**step, floor))
@@ -166,6 +182,53 @@ class Trainer:
     def _build_extra_modules(self) -> None:
         """Subclasses add trained modules here (after the seed, before the optimiser)."""
 
+    def _build_corrections(self, data: FitData) -> None:
+        """The input corrections the config asks for (``fitting.corrections``; both start at zero and draw no
+        random numbers, so the field's initialisation is the same with or without them)."""
+        t = self.config.train
+        self.pose_correction = self.camera_colour = None
+        if t.pose_correction:
+            if data.capture_poses is None:
+                raise ValueError("train.pose_correction: this data has no body parameters to correct")
+            self.pose_correction = PoseCorrection(data.capture_poses, t.pose_knot_every).to(self.device)
+        if t.camera_colour:
+            self.camera_colour = CameraColour(data.training.n_cameras).to(self.device)
+
+    def _correction_groups(self) -> list[dict]:
+        """Optimiser groups of the input corrections, each with its own learning rate (decayed as the field's)."""
+        t, groups = self.config.train, []
+        if self.pose_correction is not None:
+            groups.append({"params": list(self.pose_correction.parameters()), "lr": t.pose_lr})
+        if self.camera_colour is not None:
+            groups.append({"params": list(self.camera_colour.parameters()), "lr": t.colour_lr})
+        return groups
+
+    def _correction_state(self) -> dict:
+        """The corrections' part of the checkpoint."""
+        modules = {"pose_correction": self.pose_correction, "camera_colour": self.camera_colour}
+        return {name: module.state_dict() for name, module in modules.items() if module is not None}
+
+    def poses_at(self, index: torch.Tensor | None = None, grad: bool = True) -> PoseBatch:
+        """The PoseBatch of training frames ``index`` (all when None): corrected once ``train.pose_start`` is
+        reached, else the capture's. ``grad`` False: without gradient (occupancy refreshes, validation)."""
+        base = self.data.poses
+        if index is None:
+            index = torch.arange(base.reach.shape[0], device=self.device)
+        if self.pose_correction is None or self.step < self.config.train.pose_start:
+            return base.select(index)
+        with torch.set_grad_enabled(grad and torch.is_grad_enabled()):
+            return self.pose_correction.pose_batch(index, base)
+
+    def correction_penalty(self, frames: torch.Tensor | None = None) -> torch.Tensor | float:
+        """The pulls of the active corrections towards zero (``fitting.corrections``), summed; the pose pull over the
+        training frames ``frames`` (those of the step)."""
+        t, total = self.config.train, 0.0
+        if self.pose_correction is not None and self.step >= t.pose_start:
+            total = total + self.pose_correction.penalty(t.pose_prior, t.pose_smooth, frames)
+        if self.camera_colour is not None:
+            total = total + self.camera_colour.penalty(t.colour_prior)
+        return total
+
     def _parameter_groups(self) -> list[dict]:
         """Optimiser parameter groups; the field's use ``train.lr``."""
         return [{"params": list(self.field.parameters())}]
@@ -180,6 +243,10 @@ class Trainer:
 
     def _restore(self, state: dict) -> None:
         self.field.load_state_dict(state["model"])
+        for name in ("pose_correction", "camera_colour"):
+            module = getattr(self, name)
+            if module is not None:
+                module.load_state_dict(state[name])
         self.optimiser.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         self.generator.set_state(state["rng"]["sampler"])
@@ -201,7 +268,9 @@ class Trainer:
                 "optimizer": self.optimiser.state_dict(),
                 "scheduler": self.scheduler.state_dict(),
                 "frames": self.frames,
+                "provenance": self.fit_data.provenance,
                 "rng": {"sampler": self.generator.get_state(), "torch": torch.get_rng_state()},
+                **self._correction_state(),
                 **self._extra_state(),
             },
         )
@@ -226,19 +295,30 @@ class Trainer:
         )
         n = batch.origins.shape[0]
         uniforms = [torch.rand(n, k, generator=self.generator).to(self.device) for k in (r.train_coarse, r.train_fine)]
+        backgrounds = None
+        if t.random_background:
+            backgrounds = torch.rand(n, 3, generator=self.generator).to(self.device)
+        poses, index = self.data.poses, None
+        if self.pose_correction is not None and self.step >= t.pose_start:  # only the frames this batch draws
+            index, batch.frames = torch.unique(batch.frames, return_inverse=True)
+            poses = self.poses_at(index)
         share = self.processes.share(n)
         with self.autocast():
             loss, colour = ray_loss(
                 self.config,
                 self.field,
                 batch.take(share),
-                self.data.poses,
+                poses,
                 self.generator,
                 r.train_coarse,
                 r.train_fine,
                 uniforms=[u[share] for u in uniforms],
                 normalisers=(3 * n, batch.mask_weight.sum().clamp_min(1)),
+                camera_colour=self.camera_colour,
+                backgrounds=None if backgrounds is None else backgrounds[share],
             )
+        # every process adds the penalty; the summed gradients then hold it once
+        loss = loss + self.correction_penalty(index) / self.processes.world_size
         return self.optimise(loss, colour)
 
     def autocast(self):
@@ -263,7 +343,10 @@ class Trainer:
 
     def _occupancy_row(self) -> dict:
         grid = getattr(self.field, "occupancy", None)
-        return {} if grid is None else {"occupied": round(grid.occupied_fraction(), 4)}
+        row = {} if grid is None else {"occupied": round(grid.occupied_fraction(), 4)}
+        if self.pose_correction is not None:
+            row.update({k: round(v, 4) for k, v in self.pose_correction.magnitude().items()})
+        return row
 
     def refresh_occupancy(self) -> None:
         """Every ``render.occupancy_every`` steps, measure the next 1/``occupancy_rounds`` of the occupancy cells (a
@@ -274,7 +357,7 @@ class Trainer:
         seed = self.config.train.seed
         round_index = (self.step // r.occupancy_every) % r.occupancy_rounds
         cells = self._cell_order.chunk(r.occupancy_rounds)[round_index].to(self.device)
-        poses, field = self.data.poses, self.field
+        poses, field = self.poses_at(grad=False), self.field
         up = torch.tensor([[0.0, 0.0, 1.0]], device=self.device)
 
         def density(points: torch.Tensor, frame: int) -> torch.Tensor:  # the points as one ray of many samples
@@ -344,6 +427,8 @@ class Trainer:
             return None
         item = self.fit_data.validation()
         image, camera, pose = item[:3]
+        if self.fit_data.validation_frame is not None:  # the frame's corrected pose once the poses are corrected
+            pose = self.poses_at(torch.tensor([self.fit_data.validation_frame], device=self.device), grad=False)
         self.field.eval()
         path = write_validation(
             self.field,
@@ -360,7 +445,19 @@ class Trainer:
 
 #: What a run folder holds (hidden names too: a checkpoint being written); anything else means it is not one.
 RUN_ENTRIES = frozenset(
-    {"checkpoint.pt", "config.yaml", "log.jsonl", "curve.png", "val", "eval", "videos", "meshes", "viewer"}
+    {
+        "checkpoint.pt",
+        "config.yaml",
+        "log.jsonl",
+        "curve.png",
+        "val",
+        "eval",
+        "videos",
+        "meshes",
+        "viewer",
+        "refined_params",
+        "body_model.json",
+    }
 )
 
 

@@ -97,9 +97,22 @@ def world_from_joints(
         (B, 24, 4, 4) ``world_from_joint``: chained rotation, origin at the posed joint.
     """
     check_shape("joint_rotvecs", joint_rotvecs, (-1, N_JOINTS, 3))
-    check_shape("rest_joints", rest_joints, (joint_rotvecs.shape[0], N_JOINTS, 3))
     n_batch = joint_rotvecs.shape[0]
     rot_mats = batch_rodrigues(joint_rotvecs.reshape(-1, 3)).reshape(n_batch, N_JOINTS, 3, 3)
+    return world_from_joint_rotations(rot_mats, rest_joints, world_from_smpl)
+
+
+def world_from_joint_rotations(
+    rot_mats: torch.Tensor, rest_joints: torch.Tensor, world_from_smpl: torch.Tensor | None = None
+) -> torch.Tensor:
+    """:func:`world_from_joints` with the local rotations given as matrices R(theta_j) (B, 24, 3, 3).
+
+    Returns:
+        (B, 24, 4, 4) ``world_from_joint``.
+    """
+    check_shape("rot_mats", rot_mats, (-1, N_JOINTS, 3, 3))
+    check_shape("rest_joints", rest_joints, (rot_mats.shape[0], N_JOINTS, 3))
+    n_batch = rot_mats.shape[0]
     parents = torch.tensor(SMPL_PARENTS, dtype=torch.long, device=rest_joints.device)
     posed_joints, skinning = batch_rigid_transform(rot_mats, rest_joints, parents, dtype=rest_joints.dtype)
     smpl_from_joint = skinning.clone()

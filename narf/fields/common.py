@@ -52,6 +52,10 @@ class PoseBatch:
     def to(self, device) -> PoseBatch:
         return self._map(lambda v: v.to(device))
 
+    def detach(self) -> PoseBatch:
+        """The same poses without gradient."""
+        return self._map(torch.Tensor.detach)
+
 
 def part_local(points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch) -> tuple[torch.Tensor, torch.Tensor]:
     """Points and directions in every part frame: x_i = R_i^T (x - t_i) / s, d_i = R_i^T d.

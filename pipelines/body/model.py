@@ -19,6 +19,7 @@ import torch
 from smplx.lbs import lbs
 from smplx.utils import Struct
 
+from fitting.corrections import CapturePoses
 from narf.fields.common import PoseBatch
 from narf.geometry import so3_log
 from narf.kinematics import (
@@ -60,7 +61,8 @@ class PosedBody:
 
 
 def _as_tensor(name: str, value, shape_tail: tuple[int, ...], dtype: torch.dtype) -> torch.Tensor:
-    tensor = torch.as_tensor(np.asarray(value), dtype=dtype)
+    """``value`` as a (B, *shape_tail) tensor of ``dtype`` (tensors keep their gradient), checked."""
+    tensor = value.to(dtype) if isinstance(value, torch.Tensor) else torch.as_tensor(np.asarray(value), dtype=dtype)
     if tensor.ndim == len(shape_tail):
         tensor = tensor[None]
     if tensor.ndim != len(shape_tail) + 1 or tuple(tensor.shape[1:]) != shape_tail:
@@ -226,3 +228,17 @@ def pose_batch_from_joints(world_from_joint: torch.Tensor) -> PoseBatch:
         rest / reach[:, None, None],
         world_from_joint,
     )
+
+
+def capture_poses(source, body_model: BodyModel, frames: list[int]) -> CapturePoses:
+    """The body parameters of ``frames`` of ``source`` (anything with ``params(frame)``: a capture, a loaded run) that
+    pose correction starts from (``fitting.corrections``)."""
+    params = [source.params(f) for f in frames]
+    poses, rh, th, shapes = (
+        torch.as_tensor(np.stack([getattr(p, k) for p in params]), dtype=body_model.dtype)
+        for k in ("poses", "rh", "th", "shapes")
+    )
+    with torch.no_grad():
+        rest_joints = body_model.rest_joints(shapes)
+    world_from_smpl = rigid_from_rotvec_translation(rh, th)
+    return CapturePoses(poses.reshape(-1, 24, 3), world_from_smpl, rest_joints, torch.as_tensor(frames))

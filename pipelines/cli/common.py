@@ -46,6 +46,24 @@ def add_motion_fps(parser: argparse.ArgumentParser, applies_to: str = "--motion"
     )
 
 
+def add_smpl_dir(parser: argparse.ArgumentParser) -> None:
+    """``--smpl-dir`` of a command that loads a run (:func:`use_smpl_dir`)."""
+    parser.add_argument(
+        "--smpl-dir",
+        default=None,
+        help="where the run's body model now is, when it has moved (checked against the hash the run recorded)",
+    )
+
+
+def use_smpl_dir(path: str | None) -> None:
+    """A command's ``--smpl-dir``: ``$NARF_SMPL_DIR`` for this process, where a run's recorded body model is also
+    looked for (the run's recorded hash decides whether it is the same file: docs/guides/fitting.md)."""
+    if path:
+        if not os.path.exists(path):
+            raise FileNotFoundError(f"{path}: no such SMPL model file or folder (--smpl-dir)")
+        os.environ["NARF_SMPL_DIR"] = str(path)
+
+
 def at_least(minimum: int, at_most: int | None = None) -> Callable[[str], int]:
     """argparse type: a whole number >= ``minimum`` (and <= ``at_most`` when given)."""
     wanted = f">= {minimum}" if at_most is None else f"in [{minimum}, {at_most}]"

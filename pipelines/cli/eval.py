@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
+from pipelines.cli.common import HelpFormatter, add_smpl_dir, at_least, positive_number, run_cli, use_smpl_dir
 
 #: Every split name of every run kind (``pipelines.runs.kinds``; kept here so that ``--help`` loads no model code).
 SPLITS = (
@@ -78,6 +78,15 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="--mesh: density iso-level (default: as narf-export-mesh)",
     )
+    parser.add_argument(
+        "--capture",
+        type=Path,
+        default=None,
+        metavar="OTHER",
+        help="subject runs: evaluate on another prepared recording of the same person (same rig or another): every "
+        "frame is a novel pose, every camera is evaluated, as the split 'capture'; instead of --split",
+    )
+    add_smpl_dir(parser)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     return parser
@@ -91,9 +100,14 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
+    if args.capture is not None and args.split:
+        raise ValueError("--capture evaluates the other recording as the split 'capture'; leave --split out")
+    if args.capture is not None and not args.capture.is_dir():
+        raise FileNotFoundError(f"{args.capture}: no such capture folder")
+    use_smpl_dir(args.smpl_dir)
     kind = kind_of_run(args.run)
     request = EvalRequest(
-        splits=kind.expand(args.run, args.split),
+        splits=("capture",) if args.capture is not None else kind.expand(args.run, args.split),
         limit=args.limit,
         device=str(auto_device(args.device)),
         progress=not args.quiet,
@@ -103,6 +117,7 @@ def main(argv: list[str] | None = None) -> int:
         mesh_level=args.mesh_level,
         surreal=args.surreal,
         refine_steps=args.refine_steps,
+        capture=args.capture,
     )
     print(kind.markdown(kind.evaluate(args.run, request)))
     print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")

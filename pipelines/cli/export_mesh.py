@@ -6,7 +6,15 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, add_motion_fps, at_least, positive_number, run_cli
+from pipelines.cli.common import (
+    HelpFormatter,
+    add_motion_fps,
+    add_smpl_dir,
+    at_least,
+    positive_number,
+    run_cli,
+    use_smpl_dir,
+)
 
 
 def frame_window(text: str) -> tuple[int, int]:
@@ -69,9 +77,11 @@ def main(argv: list[str] | None = None) -> int:
         help="density iso-level (1/m); default: the level whose silhouettes best match the fit's own training masks "
         "(4 training frames x up to 4 training cameras; docs/design.md, Meshes out)",
     )
+    add_smpl_dir(parser)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
+    use_smpl_dir(args.smpl_dir)
     if args.fps is not None and not (args.fps > 0 and args.fps <= 1000):
         raise ValueError(f"--fps must be in (0, 1000], got {args.fps:g}")
     if (args.fps, args.motion_fps) != (None, None) and not (args.rigged and args.motion is not None):

@@ -7,7 +7,15 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, add_motion_fps, at_least, positive_number, run_cli
+from pipelines.cli.common import (
+    HelpFormatter,
+    add_motion_fps,
+    add_smpl_dir,
+    at_least,
+    positive_number,
+    run_cli,
+    use_smpl_dir,
+)
 
 #: The video kinds of subject and autoencoder runs (``pipelines.runs.kinds``; here so ``--help`` loads no model code).
 VIDEO_KINDS = ("bones", "interpolate", "orbit", "path", "poses")
@@ -77,6 +85,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--start", type=at_least(0), default=0, help="--motion: first source frame")
     add_motion_fps(parser)
     parser.add_argument("--scale", type=positive_number, default=1.3, help="bones: largest leg-length factor")
+    add_smpl_dir(parser)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -88,6 +97,7 @@ def main(argv: list[str] | None = None) -> int:
     from pipelines.runs.requests import VideoRequest, a_run
 
     args = build_parser().parse_args(argv)
+    use_smpl_dir(args.smpl_dir)
     if args.camera_path is not None:
         args.kind = "path"
     elif args.kind == "path":

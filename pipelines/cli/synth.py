@@ -11,6 +11,7 @@ from pathlib import Path
 from pipelines.cli.common import HelpFormatter, at_least, run_cli
 from pipelines.datasets.subjects import data_root, synthetic_path
 from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
+from pipelines.synthetic.degrade import Degradation, degrade_capture
 from pipelines.synthetic.rigid import RigidSynthConfig, generate_rigid, is_rigid_complete
 from pipelines.synthetic.surreal import SurrealSynthConfig, generate_surreal, is_surreal_complete
 from pipelines.synthetic.thuman import ThumanSynthConfig, generate_thuman, is_thuman_complete
@@ -105,7 +106,44 @@ def build_parser() -> argparse.ArgumentParser:
         default=None,
         help="SMPL model file or folder (default: $NARF_SMPL_DIR, else the generated stand-in)",
     )
+    g = Degradation()
+    parser.add_argument(
+        "--degrade",
+        type=Path,
+        default=None,
+        metavar="CAPTURE",
+        help="instead of rendering, write a copy of the capture CAPTURE into --out with its inputs broken the way real "
+        "recordings are (every joint turned, the body moved, each camera's colours scaled and offset) and the truth "
+        "in degraded.json (docs/guides/synthetic-data.md)",
+    )
+    parser.add_argument(
+        "--pose-noise", type=float, default=g.pose_degrees, help="--degrade: degrees each joint of each frame turns"
+    )
+    parser.add_argument(
+        "--shift-noise", type=float, default=g.shift_m, help="--degrade: metres each frame's body moves"
+    )
+    parser.add_argument(
+        "--colour-spread",
+        type=float,
+        default=g.colour_spread,
+        help="--degrade: camera gains exp(u), u uniform in [-s, s], biases in [-s/4, s/4] (0: colours kept)",
+    )
     return parser
+
+
+def _degrade(args) -> int:
+    if args.out is None:
+        raise ValueError("--degrade writes a new capture: give --out")
+    if not (args.degrade / "annots.npy").is_file():
+        raise FileNotFoundError(f"{args.degrade}: no annots.npy (not a ZJU-MoCap capture)")
+    degradation = Degradation(args.pose_noise, args.shift_noise, args.colour_spread, args.seed)
+    degradation.validate()
+    out = degrade_capture(args.degrade, args.out, degradation)
+    print(
+        f"narf-synth: wrote {out} ({args.pose_noise:g} degrees per joint, {args.shift_noise:g} m, colour spread "
+        f"{args.colour_spread:g}; the truth in {out / 'degraded.json'})"
+    )
+    return 0
 
 
 def _other_dataset(args) -> int:
@@ -138,6 +176,8 @@ def _other_dataset(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.degrade is not None:
+        return _degrade(args)
     if args.dataset != "zju":
         return _other_dataset(args)
     d = SynthConfig()

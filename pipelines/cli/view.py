@@ -7,7 +7,7 @@ import sys
 import time
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, add_motion_fps, at_least, run_cli
+from pipelines.cli.common import HelpFormatter, add_motion_fps, add_smpl_dir, at_least, run_cli, use_smpl_dir
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -35,8 +35,10 @@ def main(argv: list[str] | None = None) -> int:
     add_motion_fps(parser)
     parser.add_argument("--preview", type=at_least(32, 1024), default=192, help="long side of the preview (pixels)")
     parser.add_argument("--full", type=at_least(64, 4096), default=512, help="long side of the still frame (pixels)")
+    add_smpl_dir(parser)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     args = parser.parse_args(argv)
+    use_smpl_dir(args.smpl_dir)
     if args.motion_fps is not None and args.motion is None:
         raise ValueError("--motion-fps is the frame rate of a --motion FILE")
     if not args.run.is_dir():

@@ -114,9 +114,14 @@ def fit(request: FitRequest, announce: Callable[[str], None] | None = None) -> F
         scale = f", {processes.world_size} processes" if processes.distributed else ""
         description = trainer.fit_data.description
         announce(f"{c.model.name} ({size}) on {description}, device {device}{scale}, torch {torch.__version__}")
+    publish = KINDS[trainer.config.kind].publish if processes.is_main else None
     try:
         result = trainer.fit(request.max_minutes)
     except KeyboardInterrupt as interrupt:  # the trainer has saved a checkpoint on its way out
+        if publish is not None:
+            publish(run_dir)
         raise FitInterrupted(run_dir, trainer.step) from interrupt
+    if publish is not None:
+        publish(run_dir)
     shutdown(processes)
     return FitOutcome(run_dir, result.step, result.loss, result.psnr, result.finished, processes.is_main)

@@ -39,6 +39,8 @@ class RunKind:
         evaluate: ``(run_dir, EvalRequest) -> report``; ``markdown``: ``report -> table``.
         videos: the ``narf-render-video --kind`` values; ``render``: ``(run_dir, VideoRequest) -> mp4 path``.
         export: ``narf-export-mesh``'s work, or None where the kind has no mesh export; ``rigged``: its ``--rigged``.
+        publish: ``run_dir -> ...``, run after every fit (finished or stopped): writes what the checkpoint holds for
+            other tools (a subject run's corrected poses), or None.
     """
 
     name: str
@@ -56,6 +58,7 @@ class RunKind:
     render: Callable | None = None
     export: Callable | None = None
     rigged: Callable | None = None
+    publish: Callable[[Path], object] | None = None
 
     def preset(self, model: str | None, gpu: bool) -> str:
         """The default preset for ``model`` on this device."""
@@ -94,6 +97,7 @@ KINDS: dict[str, RunKind] = {
         render=subject_video.render,
         export=subject_mesh.export_run_meshes,
         rigged=subject_rigged.export_rigged,
+        publish=subject_session.write_refined_params,
     ),
     "autoencoder": RunKind(
         name="autoencoder",

@@ -55,8 +55,9 @@ class FitOutcome:
 @dataclass(frozen=True)
 class EvalRequest:
     """An evaluation: ``splits`` (already expanded), at most ``limit`` views per split, ``grids`` image grids per
-    split; per-subject runs: ``mesh`` (surface distance, at ``mesh_resolution`` / ``mesh_level``); autoencoder runs:
-    ``surreal`` (cross_dataset set) and ``refine_steps``."""
+    split; per-subject runs: ``mesh`` (surface distance, at ``mesh_resolution`` / ``mesh_level``) and ``capture``
+    (another recording of the person, split ``capture``); autoencoder runs: ``surreal`` (cross_dataset set) and
+    ``refine_steps``."""
 
     splits: tuple[str, ...]
     limit: int | None = None
@@ -68,6 +69,7 @@ class EvalRequest:
     mesh_level: float | None = None
     surreal: str | None = None
     refine_steps: int = 0
+    capture: Path | None = None
 
 
 @dataclass(frozen=True)

@@ -415,7 +415,7 @@ def viewer_data(
     def on_skeleton(params) -> AvatarPose:
         return AvatarPose.from_params(params, rest_joints(np.asarray(params.shapes, np.float32).tobytes()))
 
-    sources = [PoseSource("capture frames", capture.n_frames, 30.0, lambda k: on_skeleton(capture.params(k)))]
+    sources = [PoseSource("capture frames", capture.n_frames, 30.0, lambda k: on_skeleton(run.params(k)))]
     if motion is not None:
         params, report = motion_params(run, Path(motion), None, 0, None, motion_fps)
         sources.append(

@@ -325,7 +325,10 @@ def evaluate_autoencoder_run(
 def evaluate(run_dir: Path, request: EvalRequest) -> dict:
     """``evaluate_autoencoder_run`` for a request (the kind table's entry point)."""
     r = request
-    refuse_options(run_dir, "autoencoder", {"--mesh": r.mesh}, "subject runs (an autoencoder run has no true surfaces)")
+    options = {"--mesh": r.mesh, "--capture": r.capture}
+    refuse_options(
+        run_dir, "autoencoder", options, "subject runs (an autoencoder run has no true surfaces or captures)"
+    )
     if r.refine_steps and "cross_dataset" not in r.splits:
         raise ValueError(f"{run_dir}: --refine-steps refines SURREAL codes; it needs --split cross_dataset or all")
     return evaluate_autoencoder_run(

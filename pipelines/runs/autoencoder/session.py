@@ -129,7 +129,7 @@ def build_autoencoder_data(config: FitConfig, device, progress: bool = True) -> 
         list(range(len(views))),
         validation,
         f"{dataset.root}: {len(views)} training renders of {dataset.n_train_meshes} meshes",
-        encoder_inputs.to(device),
+        encoder_inputs=encoder_inputs.to(device),
     )
 
 

@@ -115,6 +115,6 @@ def markdown_rigid(report: dict) -> str:
 def evaluate(run_dir: Path, request: EvalRequest) -> dict:
     """``evaluate_rigid_run`` for a request (the kind table's entry point); its one split is ``test``."""
     r = request
-    options = {"--mesh": r.mesh, "--surreal": r.surreal, "--refine-steps": r.refine_steps}
+    options = {"--mesh": r.mesh, "--surreal": r.surreal, "--refine-steps": r.refine_steps, "--capture": r.capture}
     refuse_options(run_dir, "rigid", options, "subject and autoencoder runs")
     return evaluate_rigid_run(run_dir, r.limit, r.device, r.progress, r.grids)

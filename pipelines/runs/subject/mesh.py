@@ -55,7 +55,7 @@ def write_mesh(path: Path, mesh: ExtractedMesh) -> list[Path]:
 
 
 def _capture_pose(run: LoadedRun, frame: int, device: str):
-    pose, _, _ = poses_for_frames(run.capture, run.body_model, [frame])
+    pose, _, _ = poses_for_frames(run, run.body_model, [frame])
     return pose.to(device)
 
 

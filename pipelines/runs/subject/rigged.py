@@ -76,7 +76,7 @@ def _bind_pose(run, frame: int | None, stage_from_world: np.ndarray, shapes: tor
         return body, shift
     if not 0 <= frame < run.capture.n_frames:
         raise CaptureError(f"{run.capture.root}: frame {frame} out of range (0..{run.capture.n_frames - 1})")
-    p = run.capture.params(frame)
+    p = run.params(frame)
     with torch.no_grad():
         body = body_model.pose_zju(*(torch.as_tensor(v)[None] for v in (p.poses, p.rh, p.th, p.shapes)))
     return body, stage_from_world

@@ -3,27 +3,33 @@ stand-in), pose its frames, fit the part boxes, load the training views, and sta
 
 from __future__ import annotations
 
+import json
+import os
+import shutil
 import sys
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
+from fitting.checkpoint import CheckpointError, load_checkpoint
 from fitting.config import FitConfig
+from fitting.corrections import pose_correction_from_state
 from fitting.data import FitData, TrainingSet
 from fitting.distributed import SINGLE
-from fitting.fitted import load_fitted
+from fitting.fitted import load_fitted, run_config
 from fitting.trainer import Trainer
 from narf.fields.common import PoseBatch
-from pipelines.body.model import BodyModel, pose_batch
+from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record, check_record, file_sha256, find_recorded
+from pipelines.body.model import BodyModel, capture_poses, pose_batch
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.smpl_files import cache_dir
 from pipelines.datasets.subjects import data_root, find_subject, real_candidates, synthetic_path
-from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.datasets.zju_mocap import CaptureError, SmplParams
 from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
 
 
@@ -74,9 +80,10 @@ def open_capture(config: FitConfig, quiet: bool = False) -> ZjuCapture:
     )
 
 
-def poses_for_frames(capture: ZjuCapture, body_model: BodyModel, frames: list[int]):
-    """PoseBatch, posed bodies and betas (F, 10) of capture frames, from their SMPL parameters."""
-    params = [capture.params(f) for f in frames]
+def poses_for_frames(source, body_model: BodyModel, frames: list[int]):
+    """PoseBatch, posed bodies and betas (F, 10) of capture frames, from their SMPL parameters; ``source``: the
+    capture, or a loaded run (:class:`LoadedRun`: corrected poses on its training frames)."""
+    params = [source.params(f) for f in frames]
     stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
     with torch.no_grad():
         bodies = body_model.pose_zju(*stack)
@@ -117,18 +124,53 @@ def decoded_views(capture: ZjuCapture, items: list[tuple[int, int]], progress: b
             yield pending.popleft().result()
 
 
-def build_fit_data(config: FitConfig, device, progress: bool = True) -> FitData:
-    """Load the protocol's training views (Neural Body order) into the view store, their poses and the part boxes."""
+def capture_body_record(capture: ZjuCapture) -> dict | None:
+    """The capture's record of the body model its params belong to (``body_model.json``), or None."""
+    path = capture.root / BODY_MODEL_RECORD
+    if not path.is_file():
+        return None
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError) as err:
+        raise CaptureError(f"{path}: unreadable ({err})") from None
+    return check_record(record, str(path))
+
+
+def fit_body_model(capture: ZjuCapture, state: dict | None) -> BodyModel:
+    """The body model of a fit: a resumed run's recorded one; else the one ``--smpl-dir`` / ``$NARF_SMPL_DIR`` names,
+    which must be the capture's when the capture records one; else the capture's recorded one, or the stand-in."""
+    recorded = ((state or {}).get("provenance") or {}).get("body_model")
+    if recorded is not None:
+        return BodyModel(find_recorded(check_record(recorded, "the checkpoint"), "the run being resumed"))
+    record = capture_body_record(capture)
+    if record is None:
+        return BodyModel()
+    if not os.environ.get("NARF_SMPL_DIR"):
+        return BodyModel(find_recorded(record, str(capture.root)))
+    body = BodyModel()
+    if file_sha256(body.path) != record["sha256"]:
+        raise CaptureError(
+            f"{capture.root / BODY_MODEL_RECORD}: the capture's params belong to {record['file']} (sha256 "
+            f"{record['sha256'][:12]}...), not to {body.path}; fit with that body model (--smpl-dir)"
+        )
+    return body
+
+
+def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict | None = None) -> FitData:
+    """Load the protocol's training views (Neural Body order) into the view store, their poses and the part boxes.
+    ``state``: the checkpoint of a fit being resumed (its body model is the recorded one)."""
     capture = open_capture(config)
     protocol = capture.protocol(config.data.protocol)
     frames = list(protocol.train_frames[:: config.data.frame_stride])
-    body_model = BodyModel()
+    body_model = fit_body_model(capture, state)
     poses = training_poses(capture, body_model, frames)
     _, bodies, shapes = poses_for_frames(capture, body_model, box_frames(frames, config.data.box_frames))
     boxes = fit_boxes(body_model, bodies, shapes, config.model.box_scale_pad, config.model.box_abs_pad)
     items = [(i, f, c) for i, f in enumerate(frames) for _, c in protocol.usable([f], protocol.train_views)]
     views = decoded_views(capture, [(f, c) for _, f, c in items], progress)
-    training = TrainingSet(views, [i for i, _, _ in items], poses, device, store_dir=cache_dir() / "views")
+    slots = [list(protocol.train_views).index(c) for _, _, c in items]  # each view's training camera, 0..C-1
+    store = cache_dir() / "views"
+    training = TrainingSet(views, [i for i, _, _ in items], poses, device, store_dir=store, camera_of_view=slots)
     held_frame = frames[len(frames) // 2]
     held_view = protocol.test_views[0] if protocol.test_views else protocol.train_views[0]
 
@@ -142,6 +184,9 @@ def build_fit_data(config: FitConfig, device, progress: bool = True) -> FitData:
         frames,
         validation,
         f"{capture.root}: {len(training)} training images ({len(frames)} frames x {len(protocol.train_views)} views)",
+        capture_poses(capture, body_model, frames) if config.train.pose_correction else None,
+        frames.index(held_frame),
+        {"body_model": body_model_record(body_model.path)},
     )
 
 
@@ -150,7 +195,7 @@ def start(
 ) -> Trainer:
     """A Trainer (the CNN baseline: a CnnTrainer) on the config's capture; ``state``: the checkpoint it resumes.
     ``processes``: this process's place in a data-parallel fit (``fitting.distributed``)."""
-    data = build_fit_data(config, device, progress and processes.is_main)
+    data = build_fit_data(config, device, progress and processes.is_main, state)
     if config.model.name == "cnn":
         from fitting.cnn_trainer import CnnTrainer
 
@@ -162,8 +207,9 @@ def start(
 
 @dataclass
 class LoadedRun:
-    """A fitted run ready to render: its config, model (eval mode), capture, protocol and body model; ``mesh_level``
-    the record of the mesh level chosen from the fit, once it has been (``pipelines.runs.subject.mesh``)."""
+    """A fitted run ready to render: its config, model (eval mode), capture, protocol and body model; ``refined``
+    the corrected body parameters of its training frames (empty without pose correction); ``mesh_level`` the record
+    of the mesh level chosen from the fit, once it has been (``pipelines.runs.subject.mesh``)."""
 
     config: FitConfig
     field: torch.nn.Module
@@ -172,11 +218,62 @@ class LoadedRun:
     body_model: BodyModel
     step: int
     mesh_level: dict | None = None
+    refined: dict[int, SmplParams] = field(default_factory=dict)
+    other: ZjuCapture | None = None  #: another capture being evaluated (``narf-eval --capture``)
+
+    def params(self, frame: int) -> SmplParams:
+        """A frame's body parameters as the run shows it: corrected for a training frame of a fit that corrected its
+        poses, the capture's otherwise (held-out frames have no images to correct them with)."""
+        return self.refined[frame] if frame in self.refined else self.capture.params(frame)
+
+
+def refined_params(state: dict, capture: ZjuCapture, path: Path) -> dict[int, SmplParams]:
+    """The corrected parameters of a checkpoint's training frames (capture frame -> SmplParams), {} without."""
+    try:
+        correction = pose_correction_from_state(state)
+    except (KeyError, RuntimeError, TypeError, ValueError) as err:
+        raise CheckpointError(f"{path}: its pose correction is unreadable ({err})") from None
+    if correction is None:
+        return {}
+    poses, rh, th = (v.float().numpy() for v in correction.zju_params())
+    frames = [int(f) for f in correction.frames]
+    return {f: SmplParams(poses[i], rh[i], th[i], capture.params(f).shapes) for i, f in enumerate(frames)}
 
 
 def load_run(run_dir: Path, device="cpu") -> LoadedRun:
-    """Load a run folder written by ``narf-fit --out`` (checkpoint, config, and the capture it was fitted on)."""
+    """Load a run folder written by ``narf-fit --out`` (checkpoint, config, the capture it was fitted on, its body
+    model and its corrected poses)."""
     fitted = load_fitted(run_dir, device, kind="subject")  # the kind is checked before a capture is read or generated
+    record = (fitted.state.get("provenance") or {}).get("body_model")
+    source = f"{Path(run_dir) / 'checkpoint.pt'}"
+    body = BodyModel(find_recorded(check_record(record, source), str(run_dir))) if record else BodyModel()
     capture = open_capture(fitted.config, quiet=True)
     protocol = capture.protocol(fitted.config.data.protocol)
-    return LoadedRun(fitted.config, fitted.field, capture, protocol, BodyModel(), fitted.step)
+    refined = refined_params(fitted.state, capture, Path(source))
+    return LoadedRun(fitted.config, fitted.field, capture, protocol, body, fitted.step, refined=refined)
+
+
+REFINED = "refined_params"
+
+
+def write_refined_params(run_dir: Path) -> Path | None:
+    """Write the run's corrected training poses as ZJU-MoCap params (``RUN/refined_params/<i>.npy``, docs/formats.md
+    §1.6, named as the capture names its params files) for other tools; staged, then moved into place. None for a
+    fit without pose correction."""
+    from pipelines.datasets.zju_mocap import param_index_from_image, write_params
+
+    run_dir = Path(run_dir)
+    state = load_checkpoint(run_dir)
+    if state.get("pose_correction") is None:
+        return None
+    config = run_config(state, run_dir)
+    capture = open_capture(config, quiet=True)
+    refined = refined_params(state, capture, run_dir / "checkpoint.pt")
+    out, partial = run_dir / REFINED, run_dir / f".{REFINED}.partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir()
+    for frame, params in refined.items():
+        write_params(partial / f"{param_index_from_image(capture.ims[frame][0])[1]}.npy", params)
+    shutil.rmtree(out, ignore_errors=True)
+    partial.rename(out)
+    return out

@@ -83,7 +83,7 @@ def capture_stage(run: LoadedRun):
     """The capture's stage (``pipelines.body.motion.stage_of``) from up to 100 training frames, with their
     PoseBatch and betas (F, 10)."""
     frames = box_frames(list(run.protocol.train_frames), 100)
-    train_pose, train_bodies, shapes = poses_for_frames(run.capture, run.body_model, frames)
+    train_pose, train_bodies, shapes = poses_for_frames(run, run.body_model, frames)
     pelvis = train_bodies.world_from_joint[:, 0].double().numpy()  # world rotation R(Rh) R(poses[:3]), position
     root_world = Rotation.from_matrix(pelvis[:, :3, :3]).as_rotvec()
     vertices = train_bodies.vertices.double().numpy()
@@ -153,7 +153,7 @@ def render_video(
     if not 0 <= view < capture.n_cameras:
         raise ValueError(f"camera {view} out of range ({capture.n_cameras} cameras)")
     camera = capture.load_frame(held, view).camera
-    base = capture.params(held)
+    base = run.params(held)
     shapes = torch.as_tensor(base.shapes)[None]
     frames_out = []
     if kind == "path":
@@ -162,7 +162,7 @@ def render_video(
         params, report = motion_params(run, Path(motion), fps, start, n_frames, motion_fps)
         _report_motion(report, Path(out).with_suffix(".json"))
     elif kind == "poses":
-        params = [capture.params(f) for f in list(protocol.novel_frames or protocol.train_frames)[:n_frames]]
+        params = [run.params(f) for f in list(protocol.novel_frames or protocol.train_frames)[:n_frames]]
     else:
         params = [base] * n_frames
     if kind == "orbit":
@@ -206,7 +206,7 @@ def path_views(run: LoadedRun, camera_path: Path | None, n_frames: int) -> tuple
         )
         for v in views
     ]
-    return [run.capture.params(v.frame) for v in views], cameras
+    return [run.params(v.frame) for v in views], cameras
 
 
 def _report_motion(report: dict, path: Path) -> None:

@@ -1,0 +1,223 @@
+"""What a subject fit corrects in its inputs while it fits (docs/model.md §6, *Input corrections*): the body pose of
+every training frame (:class:`PoseCorrection`) and the colour of every training camera (:class:`CameraColour`).
+
+Both start at zero correction, are pulled back towards it by a penalty, and have their own learning rate; the
+trainer adds their parameters to its optimiser and their penalties to its loss (``fitting.trainer``)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import torch
+from smplx.lbs import batch_rodrigues
+from torch import nn
+
+from narf.fields.common import PoseBatch
+from narf.geometry import check_shape, so3_log
+from narf.kinematics import N_JOINTS, part_pose_features, parts_from_joints, world_from_joint_rotations
+
+
+@dataclass
+class CapturePoses:
+    """The capture's body parameters of the F training frames, which pose correction starts from.
+
+    Attributes:
+        rotvecs: (F, 24, 3) local axis-angle rotations (SMPL ``poses`` reshaped).
+        world_from_smpl: (F, 4, 4) the global transform ``[R(Rh) | Th]`` (docs/formats.md §1.6).
+        rest_joints: (F, 24, 3) the shaped rest joints in the SMPL frame.
+        frames: (F,) capture frame index of each training frame (neighbours in time are smoothed together).
+    """
+
+    rotvecs: torch.Tensor
+    world_from_smpl: torch.Tensor
+    rest_joints: torch.Tensor
+    frames: torch.Tensor
+
+    def __post_init__(self):
+        check_shape("rotvecs", self.rotvecs, (-1, N_JOINTS, 3))
+        n_frames = self.rotvecs.shape[0]
+        check_shape("world_from_smpl", self.world_from_smpl, (n_frames, 4, 4))
+        check_shape("rest_joints", self.rest_joints, (n_frames, N_JOINTS, 3))
+        check_shape("frames", self.frames, (n_frames,))
+
+
+def knots(frames: torch.Tensor, every: int) -> tuple[torch.Tensor, torch.Tensor, int]:
+    """Where each training frame lies among correction knots placed every ``every`` capture frames from the first
+    training frame: (left knot (F,), weight of the right knot (F,), number of knots). ``every`` 1: a knot per frame."""
+    position = (frames - frames.min()).double() / every
+    n_knots = int(position.max().floor()) + 2
+    left = position.floor().long().clamp(max=n_knots - 2)
+    return left, (position - left).to(torch.get_default_dtype()), n_knots
+
+
+class PoseCorrection(nn.Module):
+    """Per-frame corrections of the capture's body poses (docs/model.md §6).
+
+    Frame f's joints j >= 1 turn by ``R_j' = R_j exp(delta_fj)`` (in the parent's frame, as SMPL's local rotations),
+    and its whole body turns by ``exp(omega_f)`` about its pelvis p_f and moves by ``tau_f``:
+    ``world_from_smpl' = [exp(omega_f) | p_f + tau_f - exp(omega_f) p_f] world_from_smpl``. All start at zero.
+    The corrections are interpolated linearly in time between knots every ``knot_every`` capture frames (1: each
+    training frame has its own), so that a knot gathers the rays of the frames around it.
+
+    Args:
+        capture: the training frames' parameters (:class:`CapturePoses`); kept as buffers, so the checkpoint holds
+            what the corrections apply to.
+        knot_every: capture frames between knots.
+    """
+
+    def __init__(self, capture: CapturePoses, knot_every: int = 1):
+        super().__init__()
+        self.register_buffer("rotvecs", capture.rotvecs.clone())
+        self.register_buffer("world_from_smpl", capture.world_from_smpl.clone())
+        self.register_buffer("rest_joints", capture.rest_joints.clone())
+        self.register_buffer("frames", capture.frames.clone())
+        left, weight, n_knots = knots(capture.frames, knot_every)
+        self.register_buffer("knot_left", left)
+        self.register_buffer("knot_weight", weight.to(capture.rotvecs.dtype))
+        dtype = capture.rotvecs.dtype
+        self.joints = nn.Parameter(torch.zeros(n_knots, N_JOINTS - 1, 3, dtype=dtype))
+        self.root = nn.Parameter(torch.zeros(n_knots, 3, dtype=dtype))
+        self.shift = nn.Parameter(torch.zeros(n_knots, 3, dtype=dtype))
+
+    def values(self, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The corrections (joint turns (n, 23, 3), root turn (n, 3), shift (n, 3)) of training frames ``index``."""
+        left, weight = self.knot_left[index], self.knot_weight[index]
+
+        def blend(knot_values: torch.Tensor) -> torch.Tensor:
+            w = weight.reshape(-1, *(1,) * (knot_values.dim() - 1))
+            return (1 - w) * knot_values[left] + w * knot_values[left + 1]
+
+        return blend(self.joints), blend(self.root), blend(self.shift)
+
+    def _pelvis(self, index: torch.Tensor) -> torch.Tensor:
+        """(n, 3) world position of the pelvis before correction, ``world_from_smpl J_0``."""
+        world = self.world_from_smpl[index]
+        return (world[:, :3, :3] @ self.rest_joints[index, 0, :, None])[..., 0] + world[:, :3, 3]
+
+    def _corrected(self, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Corrected local rotations ``R_j exp(delta_j)`` (n, 24, 3, 3) (joint 0 unchanged) and ``world_from_smpl``
+        (n, 4, 4) of training frames ``index`` (n,)."""
+        joints, root, shift = self.values(index)
+        n = index.numel()
+        base = batch_rodrigues(self.rotvecs[index].reshape(-1, 3)).reshape(n, N_JOINTS, 3, 3)
+        delta = batch_rodrigues(joints.reshape(-1, 3)).reshape(n, N_JOINTS - 1, 3, 3)
+        turn = batch_rodrigues(root)
+        pelvis = self._pelvis(index)
+        fix = torch.eye(4, dtype=turn.dtype, device=turn.device).repeat(n, 1, 1)
+        fix[:, :3, :3] = turn
+        fix[:, :3, 3] = pelvis + shift - (turn @ pelvis[..., None])[..., 0]
+        return torch.cat([base[:, :1], base[:, 1:] @ delta], dim=1), fix @ self.world_from_smpl[index]
+
+    def world_from_joint(self, index: torch.Tensor) -> torch.Tensor:
+        """(n, 24, 4, 4) corrected joint frames of training frames ``index``."""
+        local, world_from_smpl = self._corrected(index)
+        return world_from_joint_rotations(local, self.rest_joints[index], world_from_smpl)
+
+    def pose_batch(self, index: torch.Tensor, base: PoseBatch) -> PoseBatch:
+        """The field's inputs for training frames ``index`` (n,), corrected: ``base`` (the capture's PoseBatch of all
+        training frames) with new part transforms and joint frames. Bone lengths, reach and rest offsets do not
+        depend on the pose. The pose features xi follow the corrected pose but pass no gradient back to it: the
+        correction is driven by where the body is, not by what colour its pose gives it."""
+        world_from_joint = self.world_from_joint(index)
+        world_from_part = parts_from_joints(world_from_joint)
+        selected = base.select(index)
+        features = part_pose_features(world_from_part.detach(), selected.reach)
+        return replace(
+            selected, world_from_part=world_from_part, pose_features=features, world_from_joint=world_from_joint
+        )
+
+    def penalty(self, prior: float, smooth: float, index: torch.Tensor | None = None) -> torch.Tensor:
+        """``prior mean_k |c_k|^2 + smooth mean_k |c_(k+1) - c_k|^2`` over the knots k that training frames ``index``
+        (all when None) rest on, c_k their corrections (joint and root turns in radians, shift in metres). Taken over
+        the frames a step draws, the pulls meet each knot as often as its frames' images do."""
+        values = torch.cat([self.joints.flatten(1), self.root, self.shift], dim=1)  # (K, 75)
+        left = self.knot_left if index is None else self.knot_left[index]
+        chosen = torch.zeros(values.shape[0], dtype=torch.bool, device=values.device)
+        chosen[left] = True
+        chosen[left + 1] = True
+        term = prior * values[chosen].pow(2).sum(dim=1).mean()
+        starts = torch.nonzero(chosen[:-1] | chosen[1:])[:, 0]
+        if smooth and starts.numel():
+            step = values[starts + 1] - values[starts]
+            term = term + smooth * step.pow(2).sum(dim=1).mean()
+        return term
+
+    @torch.no_grad()
+    def zju_params(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The corrected poses in the ZJU-MoCap convention (docs/formats.md §1.6): poses (F, 72), Rh (F, 3),
+        Th (F, 3), so that ``R(Rh) SMPL(poses) + Th`` is the corrected body."""
+        index = torch.arange(self.rotvecs.shape[0], device=self.rotvecs.device)
+        local, world = self._corrected(index)
+        poses = torch.cat([self.rotvecs[:, :1], so3_log(local[:, 1:])], dim=1).reshape(-1, 72)
+        return poses, so3_log(world[:, :3, :3]), world[:, :3, 3].clone()
+
+    @torch.no_grad()
+    def magnitude(self) -> dict[str, float]:
+        """Largest and mean correction of the training frames: joint and root turns in degrees, shift in
+        centimetres (for logs)."""
+        joints, root, shift = self.values(torch.arange(self.frames.numel(), device=self.frames.device))
+        turns = torch.cat([joints.reshape(-1, 3), root], dim=0).norm(dim=-1).rad2deg()
+        shifts = shift.norm(dim=-1) * 100
+        return {
+            "pose_turn_max_deg": float(turns.max()),
+            "pose_turn_mean_deg": float(turns.mean()),
+            "pose_shift_max_cm": float(shifts.max()),
+            "pose_shift_mean_cm": float(shifts.mean()),
+        }
+
+
+class CameraColour(nn.Module):
+    """A colour transform per training camera, applied to the rendered colour in the training loss only
+    (docs/model.md §6): ``C' = g_c * C + M b_c`` per channel, with C the colour on black, M the opacity,
+    ``g_c = exp(l_c - mean_k l_k)`` and ``b_c = d_c - mean_k d_k``. The mean transform over the cameras is the
+    identity, so the field learns the cameras' common colour, which held-out cameras, videos and meshes show.
+
+    Args:
+        n_cameras: training cameras (indices 0..n-1 in the ray batch's ``cameras``).
+    """
+
+    def __init__(self, n_cameras: int):
+        super().__init__()
+        self.log_gain = nn.Parameter(torch.zeros(n_cameras, 3))
+        self.offset = nn.Parameter(torch.zeros(n_cameras, 3))
+
+    def transforms(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """gains (C, 3) and biases (C, 3) with the mean transform at identity."""
+        gains = torch.exp(self.log_gain - self.log_gain.mean(dim=0))
+        return gains, self.offset - self.offset.mean(dim=0)
+
+    def forward(self, rgb_on_black: torch.Tensor, opacity: torch.Tensor, cameras: torch.Tensor) -> torch.Tensor:
+        """rgb_on_black (R, 3) = sum w c, opacity (R,), cameras (R,) -> the colour camera c would record (R, 3)."""
+        gains, biases = self.transforms()
+        return gains[cameras] * rgb_on_black + opacity[:, None] * biases[cameras]
+
+    def penalty(self, weight: float) -> torch.Tensor:
+        """``weight mean_c (|log g_c|^2 + |b_c|^2)``: a pull towards the identity."""
+        gains, biases = self.transforms()
+        return weight * (gains.log().pow(2).sum(dim=1) + biases.pow(2).sum(dim=1)).mean()
+
+
+def pose_correction_from_state(state: dict) -> PoseCorrection | None:
+    """The pose correction a checkpoint holds (None for a fit without one); its knots are the saved ones."""
+    saved = state.get("pose_correction")
+    if saved is None:
+        return None
+    capture = CapturePoses(*(saved[k] for k in ("rotvecs", "world_from_smpl", "rest_joints", "frames")))
+    module = PoseCorrection(capture)
+    for name in ("joints", "root", "shift"):  # sized by the saved knots, whatever knot_every made them
+        setattr(module, name, nn.Parameter(torch.zeros_like(saved[name])))
+    module.load_state_dict(saved)
+    return module
+
+
+def corrected_colour_error(out, batch, background, camera_colour, backgrounds, colour_count, mask_count):
+    """The colour term of ``fitting.trainer.ray_loss`` with a camera colour transform (:class:`CameraColour`) and / or
+    random backgrounds (R, 3): ``out`` was rendered on black, so C = T_c(sum w c) + (1 - M) bg, against the mask's
+    colour inside it and bg outside; the band's rays leave the term when the backgrounds are random.
+    ``colour_count`` / ``mask_count``: the normalisers of ``ray_loss``."""
+    rgb = out.rgb if camera_colour is None else camera_colour(out.rgb, out.mask, batch.cameras)
+    if backgrounds is None:
+        return (rgb + (1 - out.mask)[:, None] * background - batch.rgb).pow(2).sum() / colour_count
+    target = torch.where(batch.mask[:, None] > 0.5, batch.rgb, backgrounds)
+    error = (rgb + (1 - out.mask)[:, None] * backgrounds - target).pow(2).sum(dim=-1)
+    return (batch.mask_weight * error).sum() / (3 * mask_count)
