@@ -83,6 +83,7 @@ class TrainConfig:
     steps: int = 20000  #: optimisation steps
     images_per_step: int = 16  #: images per batch (paper 16)
     rays_per_image: int = 64  #: rays per image (paper 576)
+    views_per_frame: int = 1  #: >1: each step's images are this many views each of fewer frames (pose correction)
     body_fraction: float = 0.7  #: share of rays on body pixels
     border_fraction: float = 0.2  #: share on a band around the silhouette; the rest on background in the box
     lr: float = 0.01  #: Adam learning rate (equalized-lr layers assume 0.01)
@@ -273,6 +274,7 @@ RANGES = {
     "train.steps": (lambda v: v >= 0, ">= 0"),
     "train.images_per_step": (lambda v: v >= 1, ">= 1"),
     "train.rays_per_image": (lambda v: v >= 1, ">= 1"),
+    "train.views_per_frame": (lambda v: v >= 1, ">= 1"),
     "train.body_fraction": (lambda v: 0 <= v <= 1, "in [0, 1]"),
     "train.border_fraction": (lambda v: 0 <= v <= 1, "in [0, 1]"),
     "train.lr": (lambda v: v > 0, "> 0"),

@@ -63,10 +63,15 @@ class PoseCorrection(nn.Module):
         capture: the training frames' parameters (:class:`CapturePoses`); kept as buffers, so the checkpoint holds
             what the corrections apply to.
         knot_every: capture frames between knots.
+        centred: the corrections' mean over the knots is held at zero. A correction shared by every frame (a joint
+            turned, the body moved, the same in all frames) is the field's to learn: its parts can turn or move
+            inside their own frames and render the same images, so nothing in the images fixes the mean, and
+            without this it drifts with the optimiser's noise.
     """
 
-    def __init__(self, capture: CapturePoses, knot_every: int = 1):
+    def __init__(self, capture: CapturePoses, knot_every: int = 1, centred: bool = True):
         super().__init__()
+        self.centred = centred
         self.register_buffer("rotvecs", capture.rotvecs.clone())
         self.register_buffer("world_from_smpl", capture.world_from_smpl.clone())
         self.register_buffer("rest_joints", capture.rest_joints.clone())
@@ -79,6 +84,12 @@ class PoseCorrection(nn.Module):
         self.root = nn.Parameter(torch.zeros(n_knots, 3, dtype=dtype))
         self.shift = nn.Parameter(torch.zeros(n_knots, 3, dtype=dtype))
 
+    def knot_values(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The knots' corrections (joint turns (K, 23, 3), root turns (K, 3), shifts (K, 3)); with ``centred``, the
+        parameters less their mean over the knots."""
+        values = (self.joints, self.root, self.shift)
+        return tuple(v - v.mean(dim=0) for v in values) if self.centred else values
+
     def values(self, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The corrections (joint turns (n, 23, 3), root turn (n, 3), shift (n, 3)) of training frames ``index``."""
         left, weight = self.knot_left[index], self.knot_weight[index]
@@ -87,7 +98,7 @@ class PoseCorrection(nn.Module):
             w = weight.reshape(-1, *(1,) * (knot_values.dim() - 1))
             return (1 - w) * knot_values[left] + w * knot_values[left + 1]
 
-        return blend(self.joints), blend(self.root), blend(self.shift)
+        return tuple(blend(v) for v in self.knot_values())
 
     def _pelvis(self, index: torch.Tensor) -> torch.Tensor:
         """(n, 3) world position of the pelvis before correction, ``world_from_smpl J_0``."""
@@ -130,7 +141,8 @@ class PoseCorrection(nn.Module):
         """``prior mean_k |c_k|^2 + smooth mean_k |c_(k+1) - c_k|^2`` over the knots k that training frames ``index``
         (all when None) rest on, c_k their corrections (joint and root turns in radians, shift in metres). Taken over
         the frames a step draws, the pulls meet each knot as often as its frames' images do."""
-        values = torch.cat([self.joints.flatten(1), self.root, self.shift], dim=1)  # (K, 75)
+        joints, root, shift = self.knot_values()
+        values = torch.cat([joints.flatten(1), root, shift], dim=1)  # (K, 75)
         left = self.knot_left if index is None else self.knot_left[index]
         chosen = torch.zeros(values.shape[0], dtype=torch.bool, device=values.device)
         chosen[left] = True

@@ -93,10 +93,12 @@ class TrainingSet:
         body_fraction: float,
         border_fraction: float,
         generator: torch.Generator,
+        views_per_frame: int = 1,
     ) -> RayBatch:
         """Draw ``n_images`` images and mask-guided pixels from each (body, border ring, background in the box); an
-        empty pool draws from the body pool, and an image with no body pixel from its whole box."""
-        chosen = torch.randint(0, len(self), (n_images,), generator=generator).tolist()
+        empty pool draws from the body pool, and an image with no body pixel from its whole box. ``views_per_frame``
+        k > 1: the images are k views each of n_images / k frames (:meth:`choose_images`)."""
+        chosen = self.choose_images(n_images, views_per_frame, generator)
         n_body = int(round(rays_per_image * body_fraction))
         n_border = int(round(rays_per_image * border_fraction))
         counts = (n_body, n_border, rays_per_image - n_body - n_border)
@@ -127,6 +129,22 @@ class TrainingSet:
         )
         pixels = [torch.as_tensor(np.concatenate(a), dtype=torch.long) for a in (images, rows, cols)]
         return self.rays(*(a.to(self.device) for a in pixels), *(t.to(self.device) for t in targets))
+
+    def choose_images(self, n_images: int, views_per_frame: int, generator: torch.Generator) -> list[int]:
+        """``n_images`` training images drawn uniformly (``views_per_frame`` 1), or ``n_images // k`` frames drawn
+        uniformly and k of each frame's views without repeats (as many as it has when fewer), so that a step sees
+        each of its frames from several cameras: a pose correction then gets one gradient from every side."""
+        if views_per_frame <= 1:
+            return torch.randint(0, len(self), (n_images,), generator=generator).tolist()
+        if not hasattr(self, "_views_of_frame"):
+            frames = self.frame_of_image.cpu().numpy()
+            self._views_of_frame = [np.flatnonzero(frames == f) for f in np.unique(frames)]
+        groups = self._views_of_frame
+        picked = torch.randint(0, len(groups), (max(n_images // views_per_frame, 1),), generator=generator).tolist()
+        chosen = []
+        for group in (groups[i] for i in picked):
+            chosen += group[torch.randperm(len(group), generator=generator)[:views_per_frame].numpy()].tolist()
+        return chosen
 
     def rays(self, images, rows, cols, rgb, mask, mask_weight) -> RayBatch:
         """Rays through pixels (``rows``, ``cols``) of training ``images`` (R,) each, with their targets."""

@@ -291,7 +291,7 @@ class Trainer:
         """One step on the global batch; each process renders its share (``fitting.distributed``)."""
         t, r = self.config.train, self.config.render
         batch = self.data.sample(
-            t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction, self.generator
+            t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction, self.generator, t.views_per_frame
         )
         n = batch.origins.shape[0]
         uniforms = [torch.rand(n, k, generator=self.generator).to(self.device) for k in (r.train_coarse, r.train_fine)]

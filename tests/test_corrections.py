@@ -78,7 +78,7 @@ def test_penalty_by_hand():
     assert left.tolist() == [0, 1, 0, 5] and weight.tolist() == [0.0, 0.0, 0.5, 0.0] and n_knots == 7
     n = 4
     capture = CapturePoses(torch.zeros(n, 24, 3), torch.eye(4).repeat(n, 1, 1), torch.zeros(n, 24, 3), frames)
-    correction = PoseCorrection(capture, knot_every=2)
+    correction = PoseCorrection(capture, knot_every=2, centred=False)
     with torch.no_grad():
         correction.shift[:, 0] = torch.tensor([1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0])
     # frame 2 (index 2) is halfway between knots 0 and 1
@@ -86,6 +86,27 @@ def test_penalty_by_hand():
     # frames 0, 1 (index 2) rest on knots 0, 1: |c|^2 = 1, 4 -> 2.5; pairs (0, 1), (1, 2): 1, 4 -> 2.5
     got = correction.penalty(2.0, 3.0, torch.tensor([0, 2]))
     assert float(got) == pytest.approx(2.0 * 2.5 + 3.0 * 2.5)
+
+
+def test_centred_corrections_have_zero_mean_over_the_knots():
+    """Centred, the knots' corrections are the parameters less their mean (exact in float64 up to rounding), and a
+    correction shared by every knot moves no frame."""
+    from fitting.corrections import CapturePoses
+
+    n = 5
+    capture = CapturePoses(
+        torch.zeros(n, 24, 3, dtype=torch.float64),
+        torch.eye(4, dtype=torch.float64).repeat(n, 1, 1),
+        torch.zeros(n, 24, 3, dtype=torch.float64),
+        torch.arange(n),
+    )
+    correction = PoseCorrection(capture)
+    with torch.no_grad():
+        correction.shift.copy_(torch.randn(correction.shift.shape, dtype=torch.float64) + 3.0)
+        correction.joints.fill_(0.25)
+    joints, root, shift = (v.detach() for v in correction.knot_values())
+    torch.testing.assert_close(shift.mean(dim=0), torch.zeros(3, dtype=torch.float64), rtol=0, atol=1e-12)
+    assert joints.abs().max() == 0 and root.abs().max() == 0
 
 
 def test_camera_colour_has_identity_mean_and_applies_to_the_body_only():

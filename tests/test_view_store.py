@@ -122,3 +122,21 @@ def test_a_view_of_the_wrong_type_is_refused(tmp_path):
     store = ViewStore(tmp_path)
     with pytest.raises(ValueError, match="uint8"):
         store.add(np.zeros((4, 4, 3), np.float32), np.zeros((4, 4), bool), np.zeros((4, 4), bool))
+
+
+def test_views_per_frame_draws_several_views_of_each_frame(tmp_path):
+    """k views each of n / k frames, no view twice within a frame (a frame with fewer views gives all it has); k = 1
+    draws exactly as ``torch.randint`` over the images does, so a fit that does not ask keeps its batches."""
+    rng = np.random.default_rng(3)
+    views = [_view(rng, 48, 40, (10, 30, 12, 20)) for _ in range(7)]
+    frames = [0, 0, 0, 1, 1, 1, 2]  # frame 2 has one view
+    training = TrainingSet(views, frames, SimpleNamespace(to=lambda device: None), "cpu", store_dir=tmp_path)
+    for seed in range(20):
+        chosen, groups = training.choose_images(6, 3, torch.Generator().manual_seed(seed)), 0
+        while chosen:  # the frames' groups, one after the other
+            size = 1 if frames[chosen[0]] == 2 else 3
+            group, chosen, groups = chosen[:size], chosen[size:], groups + 1
+            assert len({frames[i] for i in group}) == 1 and len(set(group)) == size, group
+        assert groups == 2
+    plain = training.choose_images(5, 1, torch.Generator().manual_seed(1))
+    assert plain == torch.randint(0, 7, (5,), generator=torch.Generator().manual_seed(1)).tolist()

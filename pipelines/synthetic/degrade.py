@@ -63,7 +63,7 @@ def perturbed_params(capture: ZjuCapture, body: BodyModel, degradation: Degradat
     """Every frame's parameters with the pose noise of ``degradation`` (as :class:`fitting.corrections.PoseCorrection`
     applies a correction: joints turned in their parent's frame, the body about its pelvis)."""
     frames = list(range(capture.n_frames))
-    noise = PoseCorrection(capture_poses(capture, body, frames)).double()
+    noise = PoseCorrection(capture_poses(capture, body, frames), centred=False).double()
     generator = torch.Generator().manual_seed(degradation.seed)
     with torch.no_grad():
         noise.joints.copy_(_turns(generator, tuple(noise.joints.shape[:2]), np.radians(degradation.pose_degrees)))
