@@ -209,6 +209,28 @@ def _stage(energy, variables: list[torch.Tensor], iterations: int, lr: float, ti
         tick()
 
 
+def _silhouette_stage(problem, posed, silhouettes, every, mask, cameras, settings, tick):
+    """The last stage of :func:`fit_body`: keypoints plus ``settings.silhouette_weight`` times the silhouette term
+    built at the keypoint fit's vertices, over ``every`` variable (poses, rh, th, shapes, offsets) and, with
+    ``cameras`` and ``settings.refine_cameras``, the cameras' poses. Returns the :class:`CameraCorrection` or None."""
+    poses, rh, th, shapes, offsets = every
+    with torch.no_grad():
+        term = silhouettes(posed().numpy())
+    correction, variables = None, every
+    if cameras is not None and settings.refine_cameras:
+        correction = CameraCorrection(*cameras, settings)
+        variables = [*every, correction.turn, correction.shift]
+
+    def energy():
+        P = None if correction is None else correction.projections()
+        total = problem.energy(poses * mask, rh, th, shapes, offsets, P)
+        total = total + settings.silhouette_weight * term(posed(), P)
+        return total if correction is None else total + correction.penalty()
+
+    _stage(energy, variables, settings.silhouette_iterations, settings.silhouette_lr, tick)
+    return correction
+
+
 def fit_body(
     body: BodyModel,
     P,
@@ -259,20 +281,7 @@ def fit_body(
     correction = None
     if silhouettes is not None:
         posed = lambda: body.pose_zju(poses * mask, rh, th, shapes.expand(n_frames, -1)).vertices  # noqa: E731
-        with torch.no_grad():
-            term = silhouettes(posed().numpy())
-        variables = every
-        if cameras is not None and settings.refine_cameras:
-            correction = CameraCorrection(*cameras, settings)
-            variables = [*every, correction.turn, correction.shift]
-
-        def energy():
-            P = None if correction is None else correction.projections()
-            total = problem.energy(poses * mask, rh, th, shapes, offsets, P)
-            total = total + settings.silhouette_weight * term(posed(), P)
-            return total if correction is None else total + correction.penalty()
-
-        _stage(energy, variables, settings.silhouette_iterations, settings.silhouette_lr, tick)
+        correction = _silhouette_stage(problem, posed, silhouettes, every, mask, cameras, settings, tick)
     with torch.no_grad():
         final = poses * mask
         targets = problem.targets(final, rh, th, shapes, offsets)
