@@ -1,4 +1,5 @@
-"""Run benchmarks and print one Markdown table: ``python -m bench [synth ...]`` (default: all).
+"""Run benchmarks and print one Markdown table: ``python -m bench [synth ...]`` (default: all but ``levers``, the
+fit's input corrections, which takes about two hours and runs only when named).
 
 Each benchmark's rows are saved under ``$NARF_CACHE/rows/`` as it finishes, so that an interrupted run loses only the
 benchmark it was in (the time-to-quality benchmark, the longest, also keeps each finished configuration): ``--reuse``
@@ -26,7 +27,10 @@ BENCHMARKS = {
     "quality": "bench.bench_quality",
     "views": "bench.bench_views",
     "viewer": "bench.bench_viewer",
+    "levers": "bench.bench_levers",
 }
+#: Benchmarks that run only when named (hours of fitting: docs/results/real-capture.md).
+ON_REQUEST = ("levers",)
 
 
 def _rows(name: str, saved: Path, reuse: bool, machine: str) -> list[dict]:
@@ -47,7 +51,12 @@ def main() -> None:
     parser = argparse.ArgumentParser(prog="python -m bench", description=__doc__)
     # no argparse ``choices``: with nargs="*" it checks the empty default against them (and would list it in --help)
     names = ", ".join(BENCHMARKS)
-    parser.add_argument("names", nargs="*", metavar="NAME", help=f"benchmarks to run, of {names} (default: all)")
+    parser.add_argument(
+        "names",
+        nargs="*",
+        metavar="NAME",
+        help=f"benchmarks to run, of {names} (default: all but {', '.join(ON_REQUEST)})",
+    )
     parser.add_argument("--reuse", action="store_true", help="take the saved rows of benchmarks already run here")
     args = parser.parse_args()
     unknown = [name for name in args.names if name not in BENCHMARKS]
@@ -63,7 +72,7 @@ def main() -> None:
 
     rows_dir = Path(os.environ["NARF_CACHE"]) / "rows"
     rows = []
-    for name in args.names or list(BENCHMARKS):
+    for name in args.names or [name for name in BENCHMARKS if name not in ON_REQUEST]:
         rows += _rows(name, rows_dir / f"{name}.json", args.reuse, machine())
     columns = list(dict.fromkeys(k for row in rows for k in row))
     print("| " + " | ".join(columns) + " |")

@@ -29,7 +29,7 @@ _SHORT = {
     "novel_pose_novel_view": "NN",
     "novel_pose": "novel pose (NB)",
     "novel_view": "novel view (NB)",
-    "capture": "another capture",
+    "capture": "capture (another recording)",
 }
 #: What a report's ``poses`` entry says under its table.
 POSE_NOTES = {
