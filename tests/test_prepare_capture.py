@@ -16,8 +16,9 @@ from pipelines.body.motion import stage_of
 from pipelines.cli import prepare_capture
 from pipelines.cli.common import run_cli
 from pipelines.datasets.capture import ZjuCapture
-from pipelines.datasets.keypoints import TARGET_JOINTS, to_targets, write_openpose
+from pipelines.datasets.keypoints import TARGET_JOINTS, read_openpose, to_targets, write_openpose
 from pipelines.datasets.rig_files import read_qualisys, read_rig, read_toml, write_qualisys
+from pipelines.prepare.checks import project_distorted
 from pipelines.prepare.triangulate import project, triangulate, triangulate_robust
 from pipelines.synthetic.capture import SynthConfig, generate_capture
 from pipelines.synthetic.recording import true_joints, write_recording
@@ -152,6 +153,74 @@ def test_keypoint_layouts_map_to_the_same_targets():
     body25[17], body25[18] = (10, 20, 0.9), (30, 40, 0.8)  # ears -> head = their midpoint, least confidence
     head = to_targets(body25, "body25")[list(TARGET_JOINTS).index(15)]
     np.testing.assert_allclose(head, [20, 30, 0.8])
+
+
+def test_every_layout_gives_the_same_targets_and_25_points_are_told_apart(recording):
+    """Keypoints of each layout placed on the true joints (as ``write_recording`` does) read back as the same targets,
+    wherever the layout has them; the 25-point check tells BODY_25 from BODY_25B on every camera of the synthetic
+    recording, and says nothing when the points it needs are not seen."""
+    from pipelines.datasets.keypoints import TARGETS, keypoints_from_joints, layout_of_25
+
+    truth = ZjuCapture(recording / "truth")
+    joints = true_joints(truth, BodyModel())
+    for camera in truth.cameras:
+        pixels = [project_distorted(camera, j) for j in joints]
+        reference = to_targets(np.stack([keypoints_from_joints(p, "body25") for p in pixels]), "body25")
+        for layout in ("body25b", "halpe26", "coco17", "coco18"):
+            got = to_targets(np.stack([keypoints_from_joints(p, layout) for p in pixels]), layout)
+            has = [t for t, target in enumerate(TARGETS) if layout in target.sources]
+            np.testing.assert_array_equal(got[:, has], reference[:, has])
+            assert (got[:, [t for t in range(len(TARGETS)) if t not in has], 2] == 0).all()
+        for layout in ("body25", "body25b"):
+            assert layout_of_25([keypoints_from_joints(p, layout) for p in pixels]) == layout, (camera.name, layout)
+    legs_only = np.zeros((10, 25, 3))
+    legs_only[:, 9:15] = (100.0, 200.0, 0.9)
+    assert layout_of_25(list(legs_only)) is None
+
+
+def test_body25b_files_prepare_the_truth_and_are_never_read_as_body25(recording, tmp_path, capsys):
+    """Pose2Sim's BODY_25B files (its names: ``cam.0003.json`` in ``cam_json/``) prepare the same capture as BODY_25
+    ones; forced to BODY_25, or left undecidable, they are refused in one line."""
+    rec = write_recording(recording / "truth", tmp_path / "rec", noise_px=NOISE_PX, layout="body25b")
+    for path in sorted((rec / "keypoints").rglob("*_keypoints.json")):
+        frame = int(path.name.split("_")[-2])
+        path.rename(path.with_name(f"{path.parent.name[:-5]}.{frame:04d}.json"))
+    flags = ["--keypoints", rec / "keypoints", "--masks", rec / "masks", "--quiet", "--silhouette-iterations", "0"]
+    assert "--keypoint-layout body25b" in _error(
+        capsys, [rec, "--out", tmp_path / "x", *flags, "--keypoint-layout", "body25"]
+    )
+    assert (
+        run_cli(
+            "narf-prepare-capture", prepare_capture.main, [str(a) for a in [rec, "--out", tmp_path / "out", *flags]]
+        )
+        == 0
+    )
+    assert "give --keypoints too" in _error(capsys, [rec, "--out", tmp_path / "z", "--keypoint-layout", "body25"])
+    truth = ZjuCapture(recording / "truth")
+    joints = true_joints(truth, BodyModel())[:, list(TARGET_JOINTS)]
+    error_cm = 100 * np.linalg.norm(np.load(tmp_path / "out" / "keypoints3d.npy") - joints, axis=-1)
+    # the same bound as BODY_25's (test_prepared_capture_matches_the_truth): BODY_25B has no pelvis point
+    assert np.nanmedian(error_cm) < 2.0 and np.nanmax(error_cm) < 6.0, error_cm
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert all("keypoints read as OpenPose BODY_25B" in c["notes"] for c in report["cameras"].values())
+    for path in (rec / "keypoints").rglob("*.json"):
+        people = [p.copy() for p in read_openpose(path)]
+        for p in people:
+            p[:9, 2] = 0  # face and arms unseen: neither test can run
+        write_openpose(path, people)
+    assert "cannot tell BODY_25 from BODY_25B" in _error(capsys, [rec, "--out", tmp_path / "y", *flags])
+
+
+def test_a_capture_whose_every_camera_is_flagged_is_refused_unless_kept():
+    from pipelines.datasets.zju_mocap import CaptureError
+    from pipelines.prepare.run import PrepareRequest, _refuse_all_flagged
+
+    report = {"cameras": {"a": {}, "b": {}}, "flagged_cameras": {"a": "turned", "b": "turned"}}
+    with pytest.raises(CaptureError, match="every camera is flagged .a: turned.; nothing was written"):
+        _refuse_all_flagged(report, PrepareRequest(recording=Path("rec"), out=Path("out")))
+    _refuse_all_flagged(report, PrepareRequest(recording=Path("rec"), out=Path("out"), keep_flagged=True))
+    report["flagged_cameras"].pop("b")
+    _refuse_all_flagged(report, PrepareRequest(recording=Path("rec"), out=Path("out")))
 
 
 def _error(capsys, argv) -> str:

@@ -87,7 +87,15 @@ def build_parser() -> argparse.ArgumentParser:
         "--keypoints",
         type=Path,
         default=None,
-        help="OpenPose BODY_25/COCO JSON, one sub-folder per camera (default: mediapipe)",
+        help="OpenPose-style JSON keypoints (BODY_25, BODY_25B, COCO-18, COCO-17, HALPE_26), one sub-folder per "
+        "camera (default: mediapipe)",
+    )
+    parser.add_argument(
+        "--keypoint-layout",
+        choices=("body25", "body25b", "coco18", "coco17", "halpe26"),
+        default=None,
+        help="the layout of --keypoints (default: from the number of points; 25 points are told apart from their "
+        "positions, and refused when they cannot be)",
     )
     parser.add_argument(
         "--masks", type=Path, default=None, help="person mask images, one sub-folder per camera (default: mediapipe)"
@@ -127,6 +135,11 @@ def _choices(parser: argparse.ArgumentParser) -> None:
         "(docs/guides/real-captures.md); 0: keypoints only, the calibration as given",
     )
     parser.add_argument(
+        "--keep-flagged",
+        action="store_true",
+        help="write the capture even when every camera is flagged, for inspection (by default it is refused)",
+    )
+    parser.add_argument(
         "--keep-calibration",
         action="store_true",
         help="fit the body to the masks but leave the cameras exactly as the calibration gives them",
@@ -155,6 +168,8 @@ def main(argv: list[str] | None = None) -> int:
     from pipelines.prepare.run import PrepareRequest, prepare_capture
 
     args = build_parser().parse_args(argv)
+    if args.keypoint_layout is not None and args.keypoints is None:
+        raise ValueError("--keypoint-layout describes --keypoints files; give --keypoints too")
     request = PrepareRequest(
         recording=args.recording,
         out=args.out,
@@ -164,6 +179,8 @@ def main(argv: list[str] | None = None) -> int:
         stride=args.stride,
         longest_side=args.resolution,
         keypoints=args.keypoints,
+        keypoint_layout=args.keypoint_layout,
+        keep_flagged=args.keep_flagged,
         masks=args.masks,
         camera_map=args.camera_map,
         holdout_camera=args.holdout_camera,

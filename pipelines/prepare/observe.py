@@ -13,7 +13,16 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipelines.datasets.keypoints import frame_number, read_openpose, to_targets
+from pipelines.datasets.keypoints import (
+    FILE_LAYOUTS,
+    LAYOUT_HINTS,
+    LAYOUT_NAMES,
+    LAYOUT_SIZES,
+    frame_number,
+    layout_of_25,
+    read_openpose,
+    to_targets,
+)
 from pipelines.datasets.rig_files import natural_key
 from pipelines.datasets.zju_mocap import Camera, CaptureError
 from pipelines.prepare.sources import IMAGE_SUFFIXES, Source, read_frames, recording_size
@@ -78,14 +87,13 @@ def camera_folder(root: Path, name: str) -> Path:
 
 
 class _Keypoints:
-    """Keypoint targets of one camera, from OpenPose files or the detector."""
+    """Keypoint targets of one camera, from OpenPose-style files of the recording's ``layout`` (:func:`file_layout`)
+    or the detector."""
 
-    def __init__(self, folder: Path | None, camera: str, detector):
-        self.detector, self.files = detector, None
+    def __init__(self, folder: Path | None, camera: str, detector, layout: str = "blazepose"):
+        self.detector, self.files, self.layout = detector, None, layout
         if folder is not None:
-            self.files = _numbered_files(camera_folder(folder, camera), (".json",))
-            if not self.files:
-                raise CaptureError(f"{camera_folder(folder, camera)}: no OpenPose *_keypoints.json files")
+            self.files = keypoint_files(folder, camera)
 
     def __call__(self, frame: int, rgb: np.ndarray, scale: float) -> tuple[list[np.ndarray], np.ndarray | None]:
         if self.files is None:
@@ -94,11 +102,63 @@ class _Keypoints:
         path = self.files.get(frame)
         if path is None:
             return [], None
-        people, layout = read_openpose(path)
-        targets = [to_targets(p, layout) for p in people]
+        people = read_openpose(path)
+        if people and len(people[0]) != LAYOUT_SIZES[self.layout]:
+            raise CaptureError(
+                f"{path}: {len(people[0])} points per person where the recording's files are "
+                f"{LAYOUT_NAMES[self.layout]} ({LAYOUT_SIZES[self.layout]} points)"
+            )
+        targets = [to_targets(p, self.layout) for p in people]
         for t in targets:
             t[:, :2] *= scale
         return targets, None
+
+
+def keypoint_files(folder: Path, camera: str) -> dict[int, Path]:
+    """Camera ``camera``'s keypoint files under ``folder``, by frame number."""
+    where = camera_folder(folder, camera)
+    files = _numbered_files(where, (".json",))
+    if not files:
+        raise CaptureError(f"{where}: no OpenPose *_keypoints.json files")
+    return files
+
+
+def file_layout(folder: Path, cameras: list[str], given: str | None, sample: int = 30) -> str:
+    """The keypoint layout of the recording's files under ``folder`` (one detector made them all): ``given``
+    (``--keypoint-layout``) when their size agrees, else the only layout of their size; 25 points are checked
+    (``layout_of_25``) over every camera together, and refused when the check cannot tell, or when it contradicts
+    ``given``. Reads up to ``sample`` files per camera, spread over the recording."""
+    people, size_of = [], {}
+    for camera in cameras:
+        files = list(keypoint_files(folder, camera).values())
+        for path in files[:: max(1, len(files) // sample)]:
+            found = read_openpose(path)
+            if found and size_of.setdefault(len(found[0]), path) and len(size_of) > 1:
+                sizes = " and ".join(f"{k} ({p})" for k, p in size_of.items())
+                raise CaptureError(f"{folder}: files of different layouts: {sizes} points per person")
+            people += found
+    if not people:
+        return given or "body25"
+    size = len(people[0])
+    if given is not None and LAYOUT_SIZES[given] != size:
+        raise CaptureError(
+            f"{folder}: {size} points per person, but --keypoint-layout {given} has {LAYOUT_SIZES[given]}"
+        )
+    candidates = FILE_LAYOUTS[size]
+    if len(candidates) == 1:
+        return candidates[0]
+    told = layout_of_25(people)
+    if given is not None and told is not None and told != given:
+        raise CaptureError(
+            f"{folder}: these 25-point keypoints are {LAYOUT_NAMES[told]} ({LAYOUT_HINTS[told]}), not "
+            f"{LAYOUT_NAMES[given]}; give --keypoint-layout {told}"
+        )
+    if given is None and told is None:
+        raise CaptureError(
+            f"{folder}: 25-point keypoints, and their points cannot tell BODY_25 from BODY_25B; give "
+            "--keypoint-layout body25 or body25b"
+        )
+    return given or told
 
 
 def observe(
@@ -110,10 +170,12 @@ def observe(
     masks: Path | None,
     detector,
     progress,
+    keypoint_layout: str | None = None,
 ) -> Observations:
     """Read every camera, write ``<camera>/<frame:06d>.jpg`` and ``mask_raw/<camera>/<frame:06d>.png`` under
     ``out`` (named by source frame index; renumbered later), and collect people (module docstring)."""
     cameras, frames, people, notes = [], [], [], {}
+    layout = "blazepose" if keypoints is None else file_layout(keypoints, [s.name for _, s in pairs], keypoint_layout)
     for camera, source in pairs:
         size = recording_size(source)
         camera, note = fit_camera_to_recording(camera, size, source)
@@ -122,7 +184,9 @@ def observe(
         if scale < 1:
             camera = camera.scaled(scale)
             notes[camera.name].append(f"frames resized by {scale:.4g} to {camera.width}x{camera.height}")
-        found = _Keypoints(keypoints, source.name, detector)
+        found = _Keypoints(keypoints, source.name, detector, layout)
+        if found.files is not None:
+            notes[camera.name].append(f"keypoints read as {LAYOUT_NAMES[found.layout]}")
         mask_files = _numbered_files(camera_folder(masks, source.name), IMAGE_SUFFIXES) if masks else None
         (out / camera.name).mkdir(parents=True, exist_ok=True)
         (out / "mask_raw" / camera.name).mkdir(parents=True, exist_ok=True)

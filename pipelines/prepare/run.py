@@ -42,6 +42,7 @@ class PrepareRequest:
     stride: int = 1
     longest_side: int | None = None
     keypoints: Path | None = None
+    keypoint_layout: str | None = None  # None: from the files' size (25 points checked)
     masks: Path | None = None
     camera_map: dict[str, str] | None = None
     holdout_camera: str | None = None
@@ -51,6 +52,7 @@ class PrepareRequest:
     fit: FitSettings = field(default_factory=FitSettings)
     floor: Floor | None = None  # None: found from the fitted feet
     overwrite: bool = False
+    keep_flagged: bool = False  # write the capture even when every camera is flagged (for inspection)
     progress: bool = True
 
 
@@ -72,6 +74,18 @@ def _check_out(out: Path, overwrite: bool) -> None:
         raise CaptureError(f"{out}: exists and is not a capture prepared by this tool; choose a new --out")
     if out.exists() and not overwrite:
         raise CaptureError(f"{out}: already prepared; pass --overwrite to replace it")
+
+
+def _refuse_all_flagged(report: dict, request: PrepareRequest) -> None:
+    """A capture whose every camera is flagged is not a capture: refused, unless ``keep_flagged`` asks for it."""
+    flagged = report["flagged_cameras"]
+    if request.keep_flagged or len(flagged) < len(report["cameras"]):
+        return
+    name, reason = next(iter(flagged.items()))
+    raise CaptureError(
+        f"{request.recording}: every camera is flagged ({name}: {reason}); nothing was written "
+        "(--keep-flagged writes it for inspection)"
+    )
 
 
 def prepare_capture(request: PrepareRequest) -> dict:
@@ -96,6 +110,7 @@ def prepare_capture(request: PrepareRequest) -> dict:
     shutil.rmtree(staging, ignore_errors=True)
     try:
         report = _build(staging, pairs, detector, body, holdout, calibration, request)
+        _refuse_all_flagged(report, request)
         (staging / BODY_MODEL_RECORD).write_text(json.dumps(body_model_record(body.path), indent=1))
         (staging / MARKER).write_text(
             json.dumps({"recording": str(request.recording), "calibration": str(calibration)})
@@ -124,6 +139,7 @@ def _build(staging: Path, pairs, detector, body, holdout, calibration, request: 
             request.masks,
             detector,
             bar.update,
+            request.keypoint_layout,
         )
     common = sorted(set.intersection(*(set(f) for f in seen.frames)))
     if not common:

@@ -1,6 +1,7 @@
 """A synthetic capture written back as a raw recording, the way a studio hands one over (docs/guides/real-captures.md):
-one mp4 per camera, a Qualisys ``.qca.txt`` of the true cameras, OpenPose BODY_25 JSON projected from the true
-joints with pixel noise, and the true person masks. ``narf-prepare-capture`` on it must give back the truth.
+one mp4 per camera, a Qualisys ``.qca.txt`` of the true cameras, OpenPose-style JSON (BODY_25 unless asked)
+projected from the true joints with pixel noise, and the true person masks. ``narf-prepare-capture`` on it must give
+back the truth.
 """
 
 from __future__ import annotations
@@ -14,11 +15,9 @@ import torch
 from fitting.video import write_mp4
 from pipelines.body.model import BodyModel
 from pipelines.datasets.capture import ZjuCapture
-from pipelines.datasets.keypoints import TARGETS, write_openpose
+from pipelines.datasets.keypoints import keypoints_from_joints, write_openpose
 from pipelines.datasets.rig_files import write_qualisys
 from pipelines.prepare.checks import project_distorted
-
-BODY25_JOINTS = 25
 
 
 def true_joints(capture: ZjuCapture, body: BodyModel) -> np.ndarray:
@@ -29,19 +28,12 @@ def true_joints(capture: ZjuCapture, body: BodyModel) -> np.ndarray:
         return body.pose_zju(*stack).world_from_joint[..., :3, 3].numpy()
 
 
-def body25_from_joints(pixels: np.ndarray, confidence: float = 0.9) -> np.ndarray:
-    """(24, 2) projected SMPL joints -> (25, 3) BODY_25 keypoints: each point a target reads is placed on the
-    target's joint (both ears on the head joint, both toes on the foot joint); the others are not seen (c = 0)."""
-    keypoints = np.zeros((BODY25_JOINTS, 3))
-    for target in TARGETS:
-        for index in target.sources.get("body25", ()):
-            keypoints[index] = (*pixels[target.joint], confidence)
-    return keypoints
-
-
-def write_recording(capture_root: Path, out: Path, noise_px: float = 1.0, seed: int = 0, fps: int = 30) -> Path:
+def write_recording(
+    capture_root: Path, out: Path, noise_px: float = 1.0, seed: int = 0, fps: int = 30, layout: str = "body25"
+) -> Path:
     """Write ``out/videos/<camera>.mp4``, ``out/calibration/Calib.qca.txt``, ``out/keypoints/<camera>_json/`` and
-    ``out/masks/<camera>/`` from a synthetic ZJU-layout capture (module docstring). Returns ``out``."""
+    ``out/masks/<camera>/`` from a synthetic ZJU-layout capture (module docstring); the keypoints in ``layout``
+    (``pipelines.datasets.keypoints.LAYOUT_SIZES``). Returns ``out``."""
     capture = ZjuCapture(capture_root, ratio=1.0, mask_source="mask")
     rng = np.random.default_rng(seed)
     joints = true_joints(capture, BodyModel())
@@ -58,6 +50,6 @@ def write_recording(capture_root: Path, out: Path, noise_px: float = 1.0, seed: 
             cv2.imwrite(str(out / "masks" / camera.name / f"{f:06d}.png"), (mask > 0).astype(np.uint8) * 255)
             pixels = project_distorted(camera, joints[f]) + rng.normal(0.0, noise_px, (len(joints[f]), 2))
             path = out / "keypoints" / f"{camera.name}_json" / f"{camera.name}_{f:012d}_keypoints.json"
-            write_openpose(path, [body25_from_joints(pixels)])
+            write_openpose(path, [keypoints_from_joints(pixels, layout)])
         write_mp4(out / "videos" / f"{camera.name}.mp4", frames, fps=fps)
     return out
