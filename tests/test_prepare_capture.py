@@ -69,7 +69,8 @@ def test_prepared_capture_matches_the_truth(recording, prepared):
     assert np.median(distance_cm) < 3.0 and np.percentile(distance_cm, 95) < 10.0
     report = json.loads((prepared / "report.json").read_text())
     assert report["frames"]["kept"] == 10 and not report["flagged_cameras"]
-    for camera in report["cameras"].values():
+    for name, camera in report["cameras"].items():
+        assert (camera["recording"], camera["matched_by"]) == (f"{name}.mp4", "name")
         # median 2D error of 1-px Gaussian noise is 1.18 px; the fit adds little
         assert camera["body_reprojection_px"] < 2.5 and camera["iou_mean"] > 0.75
     splits = json.loads((prepared / "splits.json").read_text())
@@ -314,3 +315,27 @@ def test_a_bad_floor_file_names_itself(tmp_path):
         (tmp_path / "floor.json").write_text(text)
         with pytest.raises(CaptureError, match="floor.json"):
             read_floor(tmp_path / "floor.json")
+
+
+def test_camera_names_match_up_to_case_separators_and_padding():
+    """Pose2Sim names a camera ``cam_01`` in its calibration and ``cam01.mp4`` on disk: matched by name, whatever
+    the order; the report says how; a recording behind two cameras through --camera-map is refused."""
+    from types import SimpleNamespace
+
+    from pipelines.datasets.zju_mocap import CaptureError
+    from pipelines.prepare.sources import Source, match_cameras, name_key
+
+    assert {name_key(n) for n in ("cam_01", "cam01", "Cam1", "CAM-001", "cam 1")} == {"cam1"}
+    assert name_key("cam10") != name_key("cam1")
+    cameras = [SimpleNamespace(name=n) for n in ("cam_01", "cam_02", "cam_10")]
+    sources = [Source(n, Path(f"{n}.mp4"), True) for n in ("cam10", "cam2", "Cam01", "extra")]
+    matched = match_cameras(cameras, sources)
+    assert [(c.name, s.name) for c, s, _ in matched] == [("cam_01", "Cam01"), ("cam_02", "cam2"), ("cam_10", "cam10")]
+    assert {how for _, _, how in matched} == {"name, up to case, separators and zero padding"}
+    # two recordings with one key are not guessed between: counts differ, so no order rule either
+    with pytest.raises(CaptureError, match="give --camera-map"):
+        match_cameras(cameras[:1], [Source(n, Path(n), True) for n in ("cam1", "cam_1")])
+    pairs = match_cameras(cameras[:2], [Source(n, Path(n), True) for n in ("a", "b")])
+    assert [how for _, _, how in pairs] == ["order (natural sort of both)"] * 2
+    with pytest.raises(CaptureError, match="recording cam2 behind several cameras .cam_01, cam_02."):
+        match_cameras(cameras, sources, {"cam_01": "cam2", "cam_02": "cam2"})

@@ -215,8 +215,9 @@ def main(argv: list[str] | None = None) -> int:
         moved = (
             f", calibration corrected by {moved['turn_degrees']:.2f} deg / {moved['shift_cm']:.1f} cm" if moved else ""
         )
+        source = f" ({camera['recording']}, matched by {camera['matched_by']})" if "recording" in camera else ""
         print(
-            f"  {name}: reprojection {error:.1f} px ({share:.2f} %), IoU {camera['iou_mean']:.2f}, views used "
+            f"  {name}{source}: reprojection {error:.1f} px ({share:.2f} %), IoU {camera['iou_mean']:.2f}, views used "
             f"{camera['views_used']}{moved}{flag}"
         )
     return 0

@@ -112,6 +112,7 @@ def _camera_report(seen, found, triangulated, body, ious) -> dict:
         height = cam.height
         per_camera[cam.name] = {
             "size": [cam.width, cam.height],
+            **seen.recordings.get(cam.name, {}),
             "notes": seen.notes.get(cam.name, []),
             "views_used": int(found.used[:, v].sum()),
             "views_without_person": found.view_notes[v]["no_person"],

@@ -42,6 +42,7 @@ class Observations:
         people: ``people[v][f]`` a list of (T, 3) target arrays (x, y, confidence) in output pixels.
         notes: per camera, lines for the report (size mismatches, resizing).
         corrections: per camera, how far the body fit moved it: (turn in degrees, centre shift in cm).
+        recordings: per camera, its recording's file or folder name and how the two were matched.
     """
 
     cameras: list[Camera]
@@ -49,6 +50,7 @@ class Observations:
     people: list[dict[int, list[np.ndarray]]]
     notes: dict[str, list[str]] = field(default_factory=dict)
     corrections: dict[str, tuple[float, float]] = field(default_factory=dict)
+    recordings: dict[str, dict] = field(default_factory=dict)
 
 
 def fit_camera_to_recording(camera: Camera, size: tuple[int, int], source: Source) -> tuple[Camera, str | None]:

@@ -95,7 +95,8 @@ def prepare_capture(request: PrepareRequest) -> dict:
     out = Path(request.out)
     _check_out(out, request.overwrite)
     calibration = request.calibration or find_calibration(Path(request.recording))
-    pairs = match_cameras(read_rig(calibration), find_sources(request.recording), request.camera_map)
+    matched = match_cameras(read_rig(calibration), find_sources(request.recording), request.camera_map)
+    pairs = [(camera, source) for camera, source, _ in matched]
     names = [c.name for c, _ in pairs]
     if len(set(names)) != len(names) or any("/" in n or n.startswith(".") for n in names):
         raise CaptureError(f"{calibration}: camera names must be distinct folder names, got {names}")
@@ -109,7 +110,7 @@ def prepare_capture(request: PrepareRequest) -> dict:
     staging = out.parent / f".{out.name}.partial"
     shutil.rmtree(staging, ignore_errors=True)
     try:
-        report = _build(staging, pairs, detector, body, holdout, calibration, request)
+        report = _build(staging, matched, detector, body, holdout, calibration, request)
         _refuse_all_flagged(report, request)
         (staging / BODY_MODEL_RECORD).write_text(json.dumps(body_model_record(body.path), indent=1))
         (staging / MARKER).write_text(
@@ -124,9 +125,10 @@ def prepare_capture(request: PrepareRequest) -> dict:
     return report
 
 
-def _build(staging: Path, pairs, detector, body, holdout, calibration, request: PrepareRequest) -> dict:
+def _build(staging: Path, matched, detector, body, holdout, calibration, request: PrepareRequest) -> dict:
     from tqdm import tqdm
 
+    pairs = [(camera, source) for camera, source, _ in matched]
     wanted = range(request.start, request.stop if request.stop is not None else 10**9, request.stride)
     total = len(pairs) * len(wanted) if request.stop is not None else None
     with tqdm(total=total, desc="reading frames", unit="view", disable=not request.progress) as bar:
@@ -141,6 +143,7 @@ def _build(staging: Path, pairs, detector, body, holdout, calibration, request: 
             bar.update,
             request.keypoint_layout,
         )
+    seen.recordings = {c.name: {"recording": s.path.name, "matched_by": how} for c, s, how in matched}
     common = sorted(set.intersection(*(set(f) for f in seen.frames)))
     if not common:
         raise CaptureError(f"{request.recording}: the cameras share no frame in {wanted.start}:{request.stop or ''}")

@@ -7,6 +7,7 @@ its 100 frames), image folders are read in natural order of their file names.
 
 from __future__ import annotations
 
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,31 +57,57 @@ def _images(folder: Path) -> list[Path]:
     )
 
 
+def name_key(name: str) -> str:
+    """A camera name without case, separators or zero padding: ``cam_01``, ``Cam1`` and ``CAM-001`` -> ``cam1``."""
+    text = re.sub(r"[\s_\-.]+", "", name.lower())
+    return re.sub(r"\d+", lambda m: str(int(m.group())), text)
+
+
 def match_cameras(
     cameras: list[Camera], sources: list[Source], mapping: dict[str, str] | None = None
-) -> list[tuple[Camera, Source]]:
-    """Pair calibration cameras with recordings: an explicit ``{camera: source}`` mapping, else equal names, else
-    natural order when the counts agree (Pose2Sim's rule). Cameras without a recording are left out."""
+) -> list[tuple[Camera, Source, str]]:
+    """Pair calibration cameras with recordings, and say how each pair was made: an explicit ``{camera: source}``
+    mapping; else equal names, then names equal but for case, separators and zero padding (:func:`name_key`, each
+    key unique on both sides); else natural order when the counts agree (Pose2Sim's rule). Cameras without a
+    recording are left out."""
     by_name = {s.name: s for s in sources}
     if mapping:
-        cams = {c.name: c for c in cameras}
-        unknown = [k for k in mapping if k not in cams] + [v for v in mapping.values() if v not in by_name]
-        if unknown:
-            raise CaptureError(
-                f"--camera-map names {unknown} that are not calibration cameras ({sorted(cams)}) or recordings "
-                f"({sorted(by_name)})"
-            )
-        return [(cams[k], by_name[v]) for k, v in mapping.items()]
-    named = [(c, by_name[c.name]) for c in cameras if c.name in by_name]
-    if len(named) >= 2:
-        return named
+        return _mapped(cameras, by_name, mapping)
+    pairs = [(c, by_name[c.name], "name") for c in cameras if c.name in by_name]
+    taken = {c.name for c, _, _ in pairs} | {s.name for _, s, _ in pairs}
+    keys = {}
+    for item in [*(c for c in cameras if c.name not in taken), *(s for s in sources if s.name not in taken)]:
+        keys.setdefault((isinstance(item, Source), name_key(item.name)), []).append(item)
+    for (is_source, key), items in keys.items():
+        partners = keys.get((True, key), [])
+        if not is_source and len(items) == 1 and len(partners) == 1:
+            pairs.append((items[0], partners[0], "name, up to case, separators and zero padding"))
+    if len(pairs) >= 2:
+        order = {c.name: i for i, c in enumerate(cameras)}
+        return sorted(pairs, key=lambda pair: order[pair[0].name])
     if len(cameras) == len(sources):
-        return list(zip(cameras, sources))
+        return [(c, s, "order (natural sort of both)") for c, s in zip(cameras, sources)]
     raise CaptureError(
         f"the calibration's cameras {[c.name for c in cameras]} match none of the recordings "
         f"{[s.name for s in sources]} by name, and their counts differ ({len(cameras)} vs {len(sources)}); "
         "give --camera-map CAM=RECORDING,..."
     )
+
+
+def _mapped(cameras: list[Camera], by_name: dict[str, Source], mapping: dict[str, str]):
+    """The pairs ``--camera-map`` gives; a name it does not know, or a recording behind two cameras, is refused."""
+    cams = {c.name: c for c in cameras}
+    unknown = [k for k in mapping if k not in cams] + [v for v in mapping.values() if v not in by_name]
+    if unknown:
+        raise CaptureError(
+            f"--camera-map names {unknown} that are not calibration cameras ({sorted(cams)}) or recordings "
+            f"({sorted(by_name)})"
+        )
+    twice = sorted({v for v in mapping.values() if list(mapping.values()).count(v) > 1})
+    if twice:
+        both = [k for k, v in mapping.items() if v == twice[0]]
+        raise CaptureError(f"--camera-map puts recording {twice[0]} behind several cameras ({', '.join(both)})")
+    return [(cams[k], by_name[v], "--camera-map") for k, v in mapping.items()]
 
 
 def read_frames(source: Source, wanted: range) -> Iterator[tuple[int, np.ndarray]]:
