@@ -237,6 +237,15 @@ def test_bad_recordings_are_one_line(recording, tmp_path, capsys):
     shutil.copytree(recording / "rec", rec)
     out = tmp_path / "out"
     flags = ["--out", out, "--keypoints", rec / "keypoints", "--masks", rec / "masks", "--quiet"]
+    assert "no such folder" in _error(capsys, [tmp_path / "missing", *flags])
+    shutil.copy(rec / "videos" / "Camera_B1.mp4", rec / "videos" / "Camera_B1.webm")
+    assert "camera 'Camera_B1' has several videos (Camera_B1.mp4, Camera_B1.webm)" in _error(capsys, [rec, *flags])
+    (rec / "videos" / "Camera_B1.webm").unlink()
+    mask = next((rec / "masks" / "Camera_B2").iterdir())
+    original = mask.read_bytes()
+    cv2.imwrite(str(mask), np.zeros((100, 80), np.uint8))
+    assert f"{mask}: mask is 80x100, camera 'Camera_B2' records 256x256" in _error(capsys, [rec, *flags])
+    mask.write_bytes(original)
     (rec / "calibration" / "rig.txt").write_text("hello")
     assert "unknown calibration format" in _error(
         capsys, [rec, *flags, "--calibration", rec / "calibration" / "rig.txt"]

@@ -142,6 +142,20 @@ def test_camera_path_round_trip_and_interpolation(tmp_path):
         file.write_text(json.dumps(bad))
         with pytest.raises(ValueError, match=message):
             read_camera_path(file)
+    mirror, lifted = a.cam_from_world.copy(), a.cam_from_world.copy()
+    mirror[:3, 0] *= -1  # still orthonormal, determinant -1
+    lifted[3] = [0, 0, 0.5, 1]
+    first = path.to_json()["keyframes"][0]
+    for keys, message in (
+        ([{**first, "cam_from_world": mirror.tolist()}], "mirrors the world"),
+        ([first, {**first, "cam_from_world": mirror.tolist()}], "keyframe 1: cam_from_world mirrors"),
+        ([{**first, "cam_from_world": lifted.tolist()}], "bottom row must be 0 0 0 1"),
+        ([{**first, "frame": True}], "frame an integer"),
+    ):
+        bad = {**path.to_json(), "keyframes": keys}
+        file.write_text(json.dumps(bad))
+        with pytest.raises(ValueError, match=message):
+            read_camera_path(file)
 
 
 def test_render_video_flies_a_camera_path(tiny_run, tmp_path):
@@ -310,6 +324,7 @@ def test_video_and_export_flags_of_the_new_outputs_are_checked(tiny_run, tmp_pat
     cases = [
         (render_video, ["--kind", "path"], "give --camera-path FILE"),
         (render_video, ["--camera-path", str(tmp_path / "missing.json")], "not readable JSON"),
+        (render_video, ["--camera-path", str(tmp_path / "a.json"), "--kind", "orbit"], "cannot be a --kind orbit"),
         (export_mesh, ["--rigged", "--fps", "0", "--out", str(tmp_path / "a.glb")], "--fps must be in (0, 1000]"),
         (export_mesh, ["--frame", "0", "--fps", "30", "--out", str(tmp_path / "a.ply")], "--fps and --motion-fps set"),
         (export_mesh, ["--out", str(tmp_path / "a.ply")], "one of --frame N or --motion FILE is required"),

@@ -36,7 +36,7 @@ def build_parser() -> argparse.ArgumentParser:
         formatter_class=HelpFormatter,
     )
     parser.add_argument("--run", type=Path, required=True, help="run folder written by narf-fit --out")
-    parser.add_argument("--kind", choices=VIDEO_KINDS, default="orbit", help="what to render")
+    parser.add_argument("--kind", choices=VIDEO_KINDS, default=None, help="what to render (default: orbit)")
     parser.add_argument(
         "--input",
         dest="inputs",
@@ -98,8 +98,12 @@ def main(argv: list[str] | None = None) -> int:
 
     args = build_parser().parse_args(argv)
     use_smpl_dir(args.smpl_dir)
+    if args.camera_path is not None and args.kind not in (None, "path"):
+        raise ValueError(f"--camera-path renders the path's cameras; it cannot be a --kind {args.kind} video too")
     if args.camera_path is not None:
         args.kind = "path"
+    elif args.kind is None:
+        args.kind = "orbit"
     elif args.kind == "path":
         raise ValueError("--kind path renders a camera path: give --camera-path FILE (saved by narf-view)")
     out = args.out or args.run / "videos" / f"{args.kind}.mp4"

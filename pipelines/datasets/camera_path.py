@@ -56,8 +56,9 @@ def _fail(path: Path, what: str) -> ValueError:
 
 
 def read_camera_path(path: Path) -> CameraPath:
-    """Read and check a camera path: sizes 16..8192, at least one keyframe, rigid finite extrinsics, field of view
-    in (1, 170) degrees, frames non-negative integers."""
+    """Read and check a camera path: sizes 16..8192, at least one keyframe, rigid finite extrinsics (a rotation of
+    determinant 1, bottom row 0 0 0 1), field of view in (1, 170) degrees, frames non-negative integers (not
+    booleans)."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -81,7 +82,11 @@ def read_camera_path(path: Path) -> CameraPath:
         rigid = matrix.shape == (4, 4) and np.isfinite(matrix).all()
         if not rigid or not np.allclose(matrix[:3, :3] @ matrix[:3, :3].T, np.eye(3), atol=1e-4):
             raise _fail(path, f"keyframe {k}: cam_from_world is not a finite rigid 4x4 transform")
-        if not 1 < fov < 170 or not isinstance(frame, int) or frame < 0:
+        if np.linalg.det(matrix[:3, :3]) < 0:
+            raise _fail(path, f"keyframe {k}: cam_from_world mirrors the world (its rotation's determinant is -1)")
+        if not np.array_equal(matrix[3], [0.0, 0.0, 0.0, 1.0]):
+            raise _fail(path, f"keyframe {k}: cam_from_world's bottom row must be 0 0 0 1, got {matrix[3].tolist()}")
+        if not 1 < fov < 170 or isinstance(frame, bool) or not isinstance(frame, int) or frame < 0:
             raise _fail(path, f"keyframe {k}: fov_y_degrees must be in (1, 170) and frame an integer >= 0")
         out.append(Keyframe(matrix, fov, frame))
     return CameraPath(size[0], size[1], out)

@@ -199,7 +199,7 @@ def observe(
             rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
             by_frame[index], mask = found(index, rgb, scale)
             if mask_files is not None:
-                mask = _given_mask(mask_files, index, camera)
+                mask = _given_mask(mask_files, index, camera, size)
             if mask is None:
                 mask = np.zeros(bgr.shape[:2], bool)
             cv2.imwrite(str(out / camera.name / f"{index:06d}.jpg"), bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
@@ -212,7 +212,9 @@ def observe(
     return Observations(cameras, frames, people, notes)
 
 
-def _given_mask(files: dict[int, Path], index: int, camera: Camera) -> np.ndarray:
+def _given_mask(files: dict[int, Path], index: int, camera: Camera, recorded: tuple[int, int]) -> np.ndarray:
+    """Frame ``index``'s mask from ``files``: the recording's size (``recorded``, width x height), resized with
+    its frames; another size is refused."""
     path = files.get(index)
     if path is None:
         raise CaptureError(f"no mask for frame {index} of camera '{camera.name}' (--masks lists {len(files)} files)")
@@ -220,5 +222,10 @@ def _given_mask(files: dict[int, Path], index: int, camera: Camera) -> np.ndarra
     if raw is None:
         raise CaptureError(f"{path}: unreadable mask image")
     if raw.shape != (camera.height, camera.width):
-        raw = cv2.resize(raw, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)
+        if raw.shape != (recorded[1], recorded[0]):
+            raise CaptureError(
+                f"{path}: mask is {raw.shape[1]}x{raw.shape[0]}, camera '{camera.name}' records "
+                f"{recorded[0]}x{recorded[1]}"
+            )
+        raw = cv2.resize(raw, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)  # as --resolution
     return raw > 0

@@ -94,8 +94,9 @@ def prepare_capture(request: PrepareRequest) -> dict:
 
     out = Path(request.out)
     _check_out(out, request.overwrite)
+    sources = find_sources(request.recording)  # a missing recording is named before its calibration is looked for
     calibration = request.calibration or find_calibration(Path(request.recording))
-    matched = match_cameras(read_rig(calibration), find_sources(request.recording), request.camera_map)
+    matched = match_cameras(read_rig(calibration), sources, request.camera_map)
     pairs = [(camera, source) for camera, source, _ in matched]
     names = [c.name for c, _ in pairs]
     if len(set(names)) != len(names) or any("/" in n or n.startswith(".") for n in names):

@@ -42,6 +42,11 @@ def find_sources(folder: Path) -> list[Source]:
             [p for p in place.iterdir() if p.is_file() and p.suffix.lower() in VIDEO_SUFFIXES] if place.is_dir() else []
         )
         if videos:
+            stems = [p.stem for p in videos]
+            twice = sorted({stem for stem in stems if stems.count(stem) > 1})
+            if twice:
+                names = sorted(p.name for p in videos if p.stem == twice[0])
+                raise CaptureError(f"{place}: camera '{twice[0]}' has several videos ({', '.join(names)}); keep one")
             return [Source(p.stem, p, True) for p in sorted(videos, key=lambda p: natural_key(p.name))]
         folders = [p for p in place.iterdir() if p.is_dir() and _images(p)] if place.is_dir() else []
         if folders:
