@@ -117,3 +117,22 @@ def test_unwritable_names_are_refused(tmp_path):
         with pytest.raises(ValueError, match="cannot be written"):
             write_easymocap_cameras(tmp_path, [Camera(bad, cam.K, cam.dist, cam.cam_from_world, 1, 1)])
     assert not (tmp_path / "intri.yml").exists()
+
+
+@pytest.mark.parametrize(
+    "intri, message",
+    [
+        # OpenCV 5 raises SystemError (not cv2.error) on this one
+        ('%YAML:1.0\n---\nnames: [ "a" \n  K_a: {{{ \n', "intri.yml: not an OpenCV YAML file"),
+        (
+            '%YAML:1.0\n---\nnames: [ "a" ]\nK_a: !!opencv-matrix\n  rows: 3\n  cols: 3\n  dt: d\n  data: [ 1, 2 ]\n',
+            "camera 'a' cannot be read from intri.yml / extri.yml",
+        ),
+    ],
+)
+def test_files_opencv_cannot_parse_are_one_line(tmp_path, intri, message):
+    (tmp_path / "intri.yml").write_text(intri)
+    (tmp_path / "extri.yml").write_text('%YAML:1.0\n---\nnames: [ "a" ]\n')
+    with pytest.raises(CaptureError, match=message) as caught:
+        read_easymocap_cameras(tmp_path)
+    assert "\n" not in str(caught.value)

@@ -18,6 +18,7 @@ from pipelines.cli.common import run_cli
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.keypoints import TARGET_JOINTS, read_openpose, to_targets, write_openpose
 from pipelines.datasets.rig_files import read_qualisys, read_rig, read_toml, write_qualisys
+from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.prepare.checks import project_distorted
 from pipelines.prepare.triangulate import project, triangulate, triangulate_robust
 from pipelines.synthetic.capture import SynthConfig, generate_capture
@@ -129,6 +130,10 @@ def test_toml_reader_by_hand(tmp_path):
     np.testing.assert_allclose(camera.cam_from_world[:3, :3], [[0, -1, 0], [1, 0, 0], [0, 0, 1]], atol=1e-15)
     np.testing.assert_allclose(camera.cam_from_world[:3, 3], [0.1, 0.2, 3.0])
     assert camera.name == "cam01" and (camera.width, camera.height) == (640, 480) and camera.dist[0] == -0.1
+    singular = (tmp_path / "calib.toml").read_text().replace("[ 500.0, 0.0, 320.0]", "[ 0.0, 0.0, 320.0]")
+    (tmp_path / "singular.toml").write_text(singular)
+    with pytest.raises(CaptureError, match="singular.toml: camera 'cam01' has no usable intrinsics"):
+        read_rig(tmp_path / "singular.toml")
 
 
 def test_triangulation_against_opencv():
@@ -344,6 +349,8 @@ def test_camera_names_match_up_to_case_separators_and_padding():
     # two recordings with one key are not guessed between: counts differ, so no order rule either
     with pytest.raises(CaptureError, match="give --camera-map"):
         match_cameras(cameras[:1], [Source(n, Path(n), True) for n in ("cam1", "cam_1")])
+    with pytest.raises(CaptureError, match="only camera 'cam_02' .* has a recording .cam2.mp4."):
+        match_cameras(cameras, [sources[1]])
     pairs = match_cameras(cameras[:2], [Source(n, Path(n), True) for n in ("a", "b")])
     assert [how for _, _, how in pairs] == ["order (natural sort of both)"] * 2
     with pytest.raises(CaptureError, match="recording cam2 behind several cameras .cam_01, cam_02."):

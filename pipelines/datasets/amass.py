@@ -65,6 +65,15 @@ def read_amass(path: str | Path) -> AmassMotion:
     """
     path = Path(path)
     try:
+        with open(path, "rb") as file:
+            magic = file.read(6)
+    except OSError as err:
+        raise CaptureError(f"{path}: not a readable AMASS .npz ({err})") from err
+    if not magic.startswith((b"PK\x03\x04", b"\x93NUMPY")):  # zip (npz) or npy; numpy would call anything else pickled
+        raise CaptureError(
+            f"{path}: not an .npz archive (an AMASS motion is a zip of arrays); it starts with {magic!r}"
+        )
+    try:
         data = np.load(path, allow_pickle=False)
     except (OSError, ValueError, zipfile.BadZipFile, EOFError) as err:
         raise CaptureError(f"{path}: not a readable AMASS .npz ({err})") from err

@@ -73,7 +73,7 @@ def write_easymocap_cameras(folder: Path, cameras: list[Camera]) -> None:
 def _open(path: Path) -> cv2.FileStorage:
     try:
         storage = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ) if path.is_file() else None
-    except cv2.error as err:
+    except (cv2.error, SystemError) as err:  # OpenCV 5 raises SystemError on some malformed files
         raise CaptureError(f"{path}: not an OpenCV YAML file ({str(err).strip().splitlines()[-1]})") from err
     if storage is None or not storage.isOpened():
         raise CaptureError(f"{path}: missing or not an OpenCV YAML file")
@@ -153,7 +153,13 @@ def read_easymocap_cameras(folder: Path, images: Path | None = None) -> list[Cam
     names = _names(intri, folder / "intri.yml")
     cameras, skipped = [], [n for n in names if n == "none"]
     for name in (n for n in names if n != "none"):
-        camera = _camera(name, intri, extri, folder)
+        try:
+            camera = _camera(name, intri, extri, folder)
+        except (cv2.error, SystemError) as err:
+            reason = str(err).strip().splitlines()[-1]
+            raise CaptureError(
+                f"{folder}: camera '{name}' cannot be read from intri.yml / extri.yml ({reason})"
+            ) from err
         if camera is None:
             skipped.append(name)
             continue

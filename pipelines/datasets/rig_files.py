@@ -188,10 +188,23 @@ def _check_names(path: Path, cameras: list[Camera]) -> None:
 
 
 def read_rig(path: str | Path) -> list[Camera]:
-    """Cameras of any calibration this tool reads, chosen by the path (module docstring)."""
+    """Cameras of any calibration this tool reads, chosen by the path (module docstring), each with a usable
+    pinhole: finite, positive focal lengths, last row of K 0 0 1."""
+    path = Path(path)
+    cameras = _read_any_rig(path)
+    for camera in cameras:
+        K = np.asarray(camera.K, dtype=np.float64)
+        if not (np.isfinite(K).all() and K[0, 0] > 0 and K[1, 1] > 0 and np.allclose(K[2], [0, 0, 1])):
+            raise CaptureError(
+                f"{path}: camera '{camera.name}' has no usable intrinsics (K = {K.round(3).tolist()}: the focal "
+                "lengths must be positive and the last row 0 0 1)"
+            )
+    return cameras
+
+
+def _read_any_rig(path: Path) -> list[Camera]:
     from pipelines.datasets.easymocap import read_easymocap_cameras
 
-    path = Path(path)
     if path.is_dir():
         if (path / "intri.yml").is_file() and (path / "extri.yml").is_file():
             return read_easymocap_cameras(path)

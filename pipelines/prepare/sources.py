@@ -92,6 +92,13 @@ def match_cameras(
         return sorted(pairs, key=lambda pair: order[pair[0].name])
     if len(cameras) == len(sources):
         return [(c, s, "order (natural sort of both)") for c, s in zip(cameras, sources)]
+    if len(pairs) == 1:
+        camera, source, _ = pairs[0]
+        raise CaptureError(
+            f"only camera '{camera.name}' of the calibration's {[c.name for c in cameras]} has a recording "
+            f"({source.path.name}) among {[s.name for s in sources]}; a capture needs two cameras, or give "
+            "--camera-map CAM=RECORDING,..."
+        )
     raise CaptureError(
         f"the calibration's cameras {[c.name for c in cameras]} match none of the recordings "
         f"{[s.name for s in sources]} by name, and their counts differ ({len(cameras)} vs {len(sources)}); "
