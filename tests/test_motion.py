@@ -139,6 +139,12 @@ def test_render_video_plays_every_motion_kind(tiny_run, data_root_64, tmp_path, 
         == 2
     )
     assert "--start 9" in capsys.readouterr().err
+    from pipelines.cli import export_mesh
+
+    mesh = ["--run", str(tiny_run), "--motion", str(tmp_path / "walk.npz"), "--out", str(tmp_path / "m.ply")]
+    assert run_cli("narf-export-mesh", export_mesh.main, [*mesh, "--frames", "100:200", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "--frames 100: " in err and "walk.npz has 6 frames (0..5)" in err and "--start" not in err
 
 
 def test_surreal_clip_as_motion(tmp_path):

@@ -111,7 +111,9 @@ def export_run_meshes(
         raise CaptureError(f"{run.capture.root}: frame {frame} out of range (0..{run.capture.n_frames - 1})")
     if motion is not None:
         start, stop = window or (0, None)
-        params, _ = motion_params(run, Path(motion), None, start, None if stop is None else stop - start)
+        params, _ = motion_params(
+            run, Path(motion), None, start, None if stop is None else stop - start, flag="--frames"
+        )
     level, record = resolve_level(run, level, device)
     if motion is None:
         mesh = extract_mesh(run.field, _capture_pose(run, frame, device), resolution, level, progress=progress)

@@ -85,7 +85,7 @@ def _bind_pose(run, frame: int | None, stage_from_world: np.ndarray, shapes: tor
 def _animation(run, motion: Path, window, fps, motion_fps, staged, stage_from_world) -> tuple[Animation, dict]:
     start, stop = window or (0, None)
     n_frames = None if stop is None else stop - start
-    params, report = motion_params(run, Path(motion), fps, start, n_frames, motion_fps, staged)
+    params, report = motion_params(run, Path(motion), fps, start, n_frames, motion_fps, staged, flag="--frames")
     stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
     with torch.no_grad():
         world_from_joint = run.body_model.pose_zju(*stack).world_from_joint.double().numpy()

@@ -91,15 +91,20 @@ def capture_stage(run: LoadedRun):
     return stage, train_pose, shapes
 
 
-def motion_params(run: LoadedRun, motion_path: Path, fps, start: int, n_frames, motion_fps=None, staged=None):
+def motion_params(
+    run: LoadedRun, motion_path: Path, fps, start: int, n_frames, motion_fps=None, staged=None, flag="--start"
+):
     """The subject's ZJU parameters performing a motion file at ``fps`` (None: the motion's own rate) from source
     frame ``start`` for at most ``n_frames`` (None: to the end), placed on the capture's stage, and a report of the
     frames whose parts leave the trained range (``docs/design.md`` *Driving the avatar*). ``staged``: what
-    :func:`capture_stage` returned, when the caller has it already."""
+    :func:`capture_stage` returned, when the caller has it already; ``flag``: the option that gave ``start``, named
+    when it lies outside the motion."""
     body = run.body_model
     stage, train_pose, shapes = staged or capture_stage(run)
     rest_pelvis = body.rest_joints(shapes[:1].to(body.dtype))[0, 0].double().numpy()
     source = load_motion(motion_path, rest_pelvis, motion_fps)
+    if not 0 <= start < source.n_frames:
+        raise ValueError(f"{flag} {start}: {motion_path} has {source.n_frames} frames (0..{source.n_frames - 1})")
     motion = resample(source, fps or source.fps, start, n_frames)
     params = place(motion, stage, body, shapes[0].double().numpy())
     stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
