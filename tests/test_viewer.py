@@ -328,6 +328,7 @@ def test_video_and_export_flags_of_the_new_outputs_are_checked(tiny_run, tmp_pat
         (export_mesh, ["--rigged", "--fps", "0", "--out", str(tmp_path / "a.glb")], "--fps must be in (0, 1000]"),
         (export_mesh, ["--frame", "0", "--fps", "30", "--out", str(tmp_path / "a.ply")], "--fps and --motion-fps set"),
         (export_mesh, ["--out", str(tmp_path / "a.ply")], "one of --frame N or --motion FILE is required"),
+        (export_mesh, ["--frame", "0", "--out", str(tmp_path)], "is a folder; --out names the mesh file"),
     ]
     for module, args, message in cases:
         name = "narf-render-video" if module is render_video else "narf-export-mesh"
@@ -339,4 +340,9 @@ def test_video_and_export_flags_of_the_new_outputs_are_checked(tiny_run, tmp_pat
     with pytest.raises(SystemExit) as stop:
         export_mesh.main(level)
     assert stop.value.code == 2 and "argument --level: expected a finite number > 0" in capsys.readouterr().err
+    # a range starting with a minus reaches --frames' own check, not argparse's "expected one argument"
+    frames = ["--run", str(tiny_run), "--motion", "m.npz", "--frames", "-5:3", "--out", str(tmp_path / "a.ply")]
+    with pytest.raises(SystemExit) as stop:
+        export_mesh.main(frames)
+    assert stop.value.code == 2 and "argument --frames: expected A:B with 0 <= A < B" in capsys.readouterr().err
     assert not any(tmp_path.iterdir())

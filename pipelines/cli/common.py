@@ -133,6 +133,21 @@ def flush_subnormals() -> bool:
     return torch.set_flush_denormal(True)
 
 
+def attach_dash_values(argv: list[str] | None, flags: tuple[str, ...]) -> list[str]:
+    """``argv`` (None: ``sys.argv[1:]``) with ``FLAG -5:3`` written ``FLAG=-5:3`` for each of ``flags``, so that a
+    range value starting with a minus reaches the flag's own check, not argparse's 'expected one argument'."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] in flags and i + 1 < len(argv) and argv[i + 1].startswith("-") and argv[i + 1][1:2].isdigit():
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(argv[i])
+        i += 1
+    return out
+
+
 def run_cli(prog: str, main: Callable[[list[str] | None], int | None], argv: list[str] | None = None) -> int:
     """Run ``main(argv)``; print ``prog: error: ...`` and return 2 on a known error, 130 on Ctrl-C. The allocator
     keeps freed memory for reuse (:func:`keep_freed_memory`) and subnormal floats are flushed in every CPU thread

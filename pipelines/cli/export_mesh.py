@@ -11,6 +11,7 @@ from pipelines.cli.common import (
     add_motion_fps,
     add_smpl_dir,
     at_least,
+    attach_dash_values,
     positive_number,
     run_cli,
     use_smpl_dir,
@@ -80,7 +81,7 @@ def main(argv: list[str] | None = None) -> int:
     add_smpl_dir(parser)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    args = parser.parse_args(argv)
+    args = parser.parse_args(attach_dash_values(argv, ("--frames",)))
     use_smpl_dir(args.smpl_dir)
     if args.fps is not None and not (args.fps > 0 and args.fps <= 1000):
         raise ValueError(f"--fps must be in (0, 1000], got {args.fps:g}")
@@ -90,6 +91,10 @@ def main(argv: list[str] | None = None) -> int:
         raise ValueError("one of --frame N or --motion FILE is required (or --rigged for the rest pose)")
     if args.frames is not None and args.motion is None:
         raise ValueError("--frames A:B picks frames of a --motion; use --frame N for a capture frame")
+    if Path(args.out).is_dir():  # checked before the work, not when the file is put in place
+        raise ValueError(
+            f"{args.out}: is a folder; --out names the mesh file to write (e.g. {Path(args.out) / 'body.ply'})"
+        )
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
     kind = kind_of_run(args.run)

@@ -7,7 +7,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
+from pipelines.cli.common import HelpFormatter, at_least, attach_dash_values, positive_number, run_cli
 
 
 def _frames(text: str) -> tuple[int, int | None]:
@@ -167,7 +167,7 @@ def main(argv: list[str] | None = None) -> int:
     from pipelines.prepare.body_fit import FitSettings
     from pipelines.prepare.run import PrepareRequest, prepare_capture
 
-    args = build_parser().parse_args(argv)
+    args = build_parser().parse_args(attach_dash_values(argv, ("--frames",)))
     if args.keypoint_layout is not None and args.keypoints is None:
         raise ValueError("--keypoint-layout describes --keypoints files; give --keypoints too")
     request = PrepareRequest(
