@@ -97,10 +97,15 @@ def calibrate_folder(folder: Path, corners: tuple[int, int], square: float, fix_
     }
 
 
-def calibrate_checkerboard_shots(root: Path, corners: tuple[int, int], square: float) -> dict[str, dict]:
-    """Every camera folder under ``root`` (the folders holding images), by camera name."""
+def shot_folders(root: Path) -> list[Path]:
+    """The camera folders under ``root`` (those holding images), in natural order."""
     folders = sorted((p for p in root.iterdir() if p.is_dir()), key=lambda p: natural_key(p.name))
     folders = [f for f in folders if any(p.suffix.lower() in IMAGE_SUFFIXES for p in f.iterdir())]
     if not folders:
         raise CalibrationError(f"{root}: no camera folders with checkerboard shots")
-    return {camera_name(f): calibrate_folder(f, corners, square) for f in folders}
+    return folders
+
+
+def calibrate_checkerboard_shots(root: Path, corners: tuple[int, int], square: float) -> dict[str, dict]:
+    """Every camera folder under ``root`` (:func:`shot_folders`), by camera name."""
+    return {camera_name(f): calibrate_folder(f, corners, square) for f in shot_folders(root)}

@@ -161,15 +161,24 @@ def _corners(text: str) -> tuple[int, int]:
 def checkerboard_intrinsics(args) -> int:
     """``--checkerboard``: per-camera intrinsics from checkerboard shots, written to intrinsics.json (and compared
     with ``--compare``)."""
-    from pipelines.calibration.checkerboard import calibrate_checkerboard_shots
+    from pipelines.calibration.checkerboard import calibrate_checkerboard_shots, camera_name, shot_folders
     from pipelines.datasets.rig_files import read_rig
     from pipelines.datasets.smpl_files import atomic_write_bytes
 
     square = args.square_length if args.square_length is not None else 0.06
     if not (square > 0 and square < 10):
         raise ValueError(f"--square-length {square}: expected a square side in metres, in (0, 10)")
+    out = args.out or args.capture
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"{out}: exists and is not a folder")
+    reference = {c.name: c for c in read_rig(args.compare)} if args.compare else {}  # read before the work
+    names = [camera_name(f) for f in shot_folders(args.capture)]
+    if reference and not set(names) & set(reference):
+        raise ValueError(
+            f"{args.compare}: none of its cameras {sorted(reference)} is one of the shots' cameras {names}; "
+            "nothing to compare"
+        )
     found = calibrate_checkerboard_shots(args.capture, args.checkerboard, square)
-    reference = {c.name: c for c in read_rig(args.compare)} if args.compare else {}
     report = {}
     for name, result in found.items():
         entry = {"K": result["K"].tolist(), "dist": result["dist"].tolist(), "size": list(result["size"])}
@@ -184,7 +193,6 @@ def checkerboard_intrinsics(args) -> int:
             line += f"; focal {focal:+.2f} % against {args.compare.name}"
         report[name] = entry
         print(line)
-    out = args.out or args.capture
     atomic_write_bytes(out / "intrinsics.json", json.dumps(report, indent=1).encode())
     print(f"narf-calibrate: wrote {out / 'intrinsics.json'}")
     return 0
@@ -243,10 +251,10 @@ def main(argv: list[str] | None = None) -> int:
         return checkerboard_intrinsics(args)
     spec = _board(args, args.capture / "calib")
     fixed = _fixed_groups(args.fix)
-    cameras, ims, report, figures = calibrate_capture(args.capture, spec, args.reference_shot, not args.quiet, fixed)
     out = args.out or args.capture / "calibration"
-    if out.exists() and not out.is_dir():
+    if out.exists() and not out.is_dir():  # checked before the calibration, not after
         raise FileExistsError(f"{out}: exists and is not a folder")
+    cameras, ims, report, figures = calibrate_capture(args.capture, spec, args.reference_shot, not args.quiet, fixed)
     write_outputs(out, cameras, ims, report, figures)
     worst = max(report["cameras"].items(), key=lambda kv: kv[1]["rms_px"])
     print(
