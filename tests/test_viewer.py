@@ -317,6 +317,35 @@ def test_ctrl_c_stops_the_server(tiny_run):
     assert "narf-view: interrupted" in err.text() and "Traceback" not in err.text()
 
 
+def test_a_busy_port_is_said_and_a_foreign_host_refused(tiny_run, capsys):
+    import socket
+    import subprocess
+    import sys
+
+    import spawn
+
+    from pipelines.cli import view
+    from pipelines.cli.common import run_cli
+
+    for host, message in (("no-such-host.invalid", "the name does not resolve"), ("192.0.2.1", "not an address")):
+        assert run_cli("narf-view", view.main, ["--run", str(tiny_run), "--host", host]) == 2  # at once, no server
+        assert message in capsys.readouterr().err
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        argv = [sys.executable, "-c", "from pipelines.cli.view import entrypoint; entrypoint()"]
+        argv += ["--run", str(tiny_run), "--port", str(port)]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        proc = spawn.popen(argv, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+        out, err = spawn.Reader(proc.stdout), spawn.Reader(proc.stderr)
+        browser.wait(lambda: "serving" in out.text() or proc.poll() is not None or None, 120, "the server to start")
+        proc.terminate()
+        spawn.finish(proc, 30, "narf-view")
+    err.thread.join(timeout=5)
+    assert f"port {port} is busy; serving on port" in err.text()
+
+
 def test_video_and_export_flags_of_the_new_outputs_are_checked(tiny_run, tmp_path, capsys):
     from pipelines.cli import export_mesh, render_video
     from pipelines.cli.common import run_cli

@@ -43,6 +43,7 @@ def main(argv: list[str] | None = None) -> int:
         raise ValueError("--motion-fps is the frame rate of a --motion FILE")
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
+    check_host(args.host)
     kind = kind_of_run(args.run)  # a missing or foreign checkpoint fails here, before any server starts
     if kind.name not in ("subject", "autoencoder"):
         raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-view shows subject and autoencoder runs")
@@ -58,12 +59,36 @@ def main(argv: list[str] | None = None) -> int:
     if data.config.model.name == "cnn":
         raise ValueError(f"{args.run}: the CNN baseline renders fixed-size images, not views: nothing to orbit")
     viewer = Viewer(data, args.host, args.port)
-    print(f"narf-view: serving {args.run} at http://{args.host}:{viewer.server.get_port()} (Ctrl-C stops it)")
+    port = viewer.server.get_port()
+    if port != args.port:
+        print(f"narf-view: port {args.port} is busy; serving on port {port} instead", file=sys.stderr)
+    print(f"narf-view: serving {args.run} at http://{args.host}:{port} (Ctrl-C stops it)")
     try:
         while True:
             time.sleep(3600)
     finally:
         viewer.stop()
+
+
+def check_host(host: str, timeout: float = 5.0) -> None:
+    """Refuse, within ``timeout`` seconds, a ``--host`` that does not resolve or is not an address of this machine
+    (the server would otherwise wait for it for ever)."""
+    import concurrent.futures
+    import socket
+
+    pool = concurrent.futures.ThreadPoolExecutor(1)
+    try:
+        infos = pool.submit(socket.getaddrinfo, host, None, type=socket.SOCK_STREAM).result(timeout=timeout)
+    except (OSError, concurrent.futures.TimeoutError) as err:
+        raise ValueError(f"--host {host}: the name does not resolve ({err or 'timed out'})") from None
+    finally:
+        pool.shutdown(wait=False)
+    family, _, _, _, address = infos[0]
+    with socket.socket(family, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind((address[0], 0))
+        except OSError as err:
+            raise ValueError(f"--host {host}: not an address of this machine ({err.strerror})") from None
 
 
 def entrypoint() -> None:
