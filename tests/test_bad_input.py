@@ -447,3 +447,18 @@ def test_damaged_checkpoint_contents_name_the_file(tiny_run, tmp_path, capsys, m
     save_checkpoint(run, {k: v for k, v in state.items() if k != "format"})
     line = expect_error(capsys, "narf-eval", ["--run", run, "--limit", "1"], message)
     assert str(run) in line and "weights_only" not in line
+
+
+@pytest.mark.parametrize("command", ["prepare_capture", "eval", "render_video", "export_mesh", "view", "fit"])
+def test_help_answers_without_importing_torch(command):
+    """``--help`` reads no model code: torch (2-3 s to import on 2 cores) stays unloaded."""
+    import subprocess
+    import sys
+
+    code = (
+        f"import sys; from pipelines.cli.{command} import entrypoint\n"
+        "try:\n    entrypoint()\nexcept SystemExit:\n    pass\n"
+        "assert 'torch' not in sys.modules, 'torch imported'\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code, "--help"], capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0 and "usage:" in done.stdout, done.stderr

@@ -151,9 +151,11 @@ def attach_dash_values(argv: list[str] | None, flags: tuple[str, ...]) -> list[s
 def run_cli(prog: str, main: Callable[[list[str] | None], int | None], argv: list[str] | None = None) -> int:
     """Run ``main(argv)``; print ``prog: error: ...`` and return 2 on a known error, 130 on Ctrl-C. The allocator
     keeps freed memory for reuse (:func:`keep_freed_memory`) and subnormal floats are flushed in every CPU thread
-    (:func:`flush_subnormals`), both set before ``main`` does any work."""
+    (:func:`flush_subnormals`), both set before ``main`` does any work; ``--help`` does none, and answers without
+    importing torch."""
     keep_freed_memory()
-    flush_subnormals()
+    if not {"-h", "--help"} & set(sys.argv[1:] if argv is None else argv):
+        flush_subnormals()
     try:
         return int(main(argv) or 0)
     except KeyboardInterrupt:

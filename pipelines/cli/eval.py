@@ -93,11 +93,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     from fitting.trainer import auto_device
     from pipelines.runs.kinds import kind_of_run
     from pipelines.runs.requests import EvalRequest
 
-    args = build_parser().parse_args(argv)
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
     if args.capture is not None and args.split:

@@ -33,10 +33,6 @@ def _print_level(record: dict) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fitting.trainer import auto_device
-    from pipelines.runs.kinds import kind_of_run
-    from pipelines.runs.requests import a_run
-
     parser = argparse.ArgumentParser(
         prog="narf-export-mesh",
         description="Extract the surface of a fitted avatar's density field (scikit-image marching cubes over the "
@@ -82,6 +78,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(attach_dash_values(argv, ("--frames",)))
+    from fitting.trainer import auto_device
+    from pipelines.runs.kinds import kind_of_run
+    from pipelines.runs.requests import a_run
+
     use_smpl_dir(args.smpl_dir)
     if args.fps is not None and not (args.fps > 0 and args.fps <= 1000):
         raise ValueError(f"--fps must be in (0, 1000], got {args.fps:g}")

@@ -164,10 +164,10 @@ def _choices(parser: argparse.ArgumentParser) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(attach_dash_values(argv, ("--frames",)))
     from pipelines.prepare.body_fit import FitSettings
     from pipelines.prepare.run import PrepareRequest, prepare_capture
 
-    args = build_parser().parse_args(attach_dash_values(argv, ("--frames",)))
     if args.keypoint_layout is not None and args.keypoints is None:
         raise ValueError("--keypoint-layout describes --keypoints files; give --keypoints too")
     request = PrepareRequest(

@@ -92,11 +92,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     from fitting.trainer import auto_device
     from pipelines.runs.kinds import kind_of_run
     from pipelines.runs.requests import VideoRequest, a_run
 
-    args = build_parser().parse_args(argv)
     use_smpl_dir(args.smpl_dir)
     if args.camera_path is not None and args.kind not in (None, "path"):
         raise ValueError(f"--camera-path renders the path's cameras; it cannot be a --kind {args.kind} video too")

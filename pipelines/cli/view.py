@@ -11,10 +11,6 @@ from pipelines.cli.common import HelpFormatter, add_motion_fps, add_smpl_dir, at
 
 
 def main(argv: list[str] | None = None) -> int:
-    from fitting.trainer import auto_device
-    from pipelines.runs.kinds import kind_of_run
-    from pipelines.runs.requests import a_run
-
     parser = argparse.ArgumentParser(
         prog="narf-view",
         description="Serve a fitted avatar to the browser (viser): the field is rendered for each tab's camera and "
@@ -38,6 +34,10 @@ def main(argv: list[str] | None = None) -> int:
     add_smpl_dir(parser)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     args = parser.parse_args(argv)
+    from fitting.trainer import auto_device
+    from pipelines.runs.kinds import kind_of_run
+    from pipelines.runs.requests import a_run
+
     use_smpl_dir(args.smpl_dir)
     if args.motion_fps is not None and args.motion is None:
         raise ValueError("--motion-fps is the frame rate of a --motion FILE")
