@@ -462,3 +462,18 @@ def test_help_answers_without_importing_torch(command):
     )
     done = subprocess.run([sys.executable, "-c", code, "--help"], capture_output=True, text=True, timeout=120)
     assert done.returncode == 0 and "usage:" in done.stdout, done.stderr
+
+
+def test_native_notices_are_kept_off_the_console():
+    """After ``silence_native_stderr`` (what the BlazePose detector calls), what native code writes to fd 2 is gone
+    and Python's own stderr still reaches the console."""
+    import subprocess
+    import sys
+
+    code = (
+        "import os, sys\nfrom pipelines.prepare.detect import silence_native_stderr\n"
+        "silence_native_stderr(); silence_native_stderr()\n"
+        "os.write(2, b'TensorFlow Lite notice\\n'); print('narf-prepare-capture: error: ours', file=sys.stderr)\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0 and done.stderr == "narf-prepare-capture: error: ours\n", done.stderr

@@ -355,3 +355,37 @@ def test_camera_names_match_up_to_case_separators_and_padding():
     assert [how for _, _, how in pairs] == ["order (natural sort of both)"] * 2
     with pytest.raises(CaptureError, match="recording cam2 behind several cameras .cam_01, cam_02."):
         match_cameras(cameras, sources, {"cam_01": "cam2", "cam_02": "cam2"})
+
+
+def test_what_the_capture_leaves_out_is_said(recording, tmp_path, capsys):
+    """A recording without a calibrated camera, a camera with fewer frames and a 1-frame capture are each said in the
+    printed summary and in report.json (``notices``)."""
+    from fitting.video import write_mp4
+    from pipelines.prepare.sources import read_frames
+
+    rec = tmp_path / "rec"
+    shutil.copytree(recording / "rec", rec)
+    shutil.copy(rec / "videos" / "Camera_B1.mp4", rec / "videos" / "Extra.mp4")
+    short = [frame[..., ::-1] for _, frame in read_frames(_source(rec / "videos" / "Camera_B4.mp4"), range(8))]
+    write_mp4(rec / "videos" / "Camera_B4.mp4", short, fps=30)
+    flags = ["--keypoints", rec / "keypoints", "--masks", rec / "masks", "--silhouette-iterations", "0"]
+    capsys.readouterr()
+    argv = [str(a) for a in [rec, "--out", tmp_path / "out", *flags, "--quiet"]]
+    assert run_cli("narf-prepare-capture", prepare_capture.main, argv) == 0
+    printed = capsys.readouterr().out
+    notices = json.loads((tmp_path / "out" / "report.json").read_text())["notices"]
+    assert notices[:2] == [
+        "recordings without a calibrated camera, left out: Extra",
+        "cameras with fewer frames (Camera_B4 8 of 10): the capture keeps the 8 all share",
+    ]
+    assert all(f"note: {n}" in printed for n in notices)
+    argv = [str(a) for a in [rec, "--out", tmp_path / "one", *flags, "--frames", "0:1", "--quiet"]]
+    assert run_cli("narf-prepare-capture", prepare_capture.main, argv) == 0
+    notices = json.loads((tmp_path / "one" / "report.json").read_text())["notices"]
+    assert "1 frame(s) kept: no novel-pose frames (splits.json novel_frames is empty)" in notices
+
+
+def _source(path):
+    from pipelines.prepare.sources import Source
+
+    return Source(path.stem, path, True)

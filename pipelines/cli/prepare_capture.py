@@ -208,6 +208,8 @@ def main(argv: list[str] | None = None) -> int:
         f"  floor ({floor['source']}): height {floor['height']:.3f} m along up {[round(v, 3) for v in floor['up']]}; "
         f"the body's lowest point {floor['lowest_point_cm_median']:.1f} cm above it (median frame)"
     )
+    for notice in report["notices"]:
+        print(f"  note: {notice}")
     for name, camera in report["cameras"].items():
         error, share = camera["body_reprojection_px"], camera["body_reprojection_pct_height"]
         flag = f"  FLAGGED: {camera['flag']}" if "flag" in camera else ""

@@ -7,7 +7,9 @@ triangulation (``pipelines.prepare.triangulate.consensus``).
 
 from __future__ import annotations
 
+import io
 import os
+import sys
 
 import numpy as np
 
@@ -15,6 +17,29 @@ from pipelines.datasets.zju_mocap import CaptureError
 
 #: mask threshold on the segmenter's person probability
 MASK_THRESHOLD = 0.5
+
+
+def silence_native_stderr() -> None:
+    """From now on in this process, what native code writes to file descriptor 2 goes to the null device, while
+    Python's ``sys.stderr`` (progress bars, warnings, our error line) keeps writing where fd 2 pointed. mediapipe's
+    TensorFlow Lite and absl print their notices there from the graph's own threads, at times no ``with`` block
+    around a call can catch, and past every environment switch. Done once; the swap is for the process's life."""
+    global _SILENCED
+    if _SILENCED:
+        return
+    sys.stderr.flush()
+    keep = os.dup(2)
+    null = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(null, 2)
+    os.close(null)
+    encoding = getattr(sys.stderr, "encoding", None) or "utf-8"
+    sys.stderr = io.TextIOWrapper(
+        io.FileIO(keep, "w"), encoding=encoding, errors="backslashreplace", write_through=True
+    )
+    _SILENCED = True
+
+
+_SILENCED = False
 
 
 class BlazePose:
@@ -27,6 +52,7 @@ class BlazePose:
     def __init__(self, model_complexity: int = 1):
         os.environ.setdefault("GLOG_minloglevel", "2")
         os.environ.setdefault("TF_CPP_MIN_LOG_LEVEL", "3")
+        silence_native_stderr()
         try:
             from mediapipe.python.solutions import pose as mp_pose
         except ImportError as err:

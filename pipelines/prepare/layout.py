@@ -176,9 +176,30 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
         },
         "splits": {k: v for k, v in split.items() if k != "excluded"} | {"excluded_views": len(excluded)},
         "floor": floor.to_json() | feet_against_floor(vertices, floor),
+        "notices": _notices(seen, split),
     }
     (root / "report.json").write_text(json.dumps(_json_ready(report), indent=1, allow_nan=False))
     return report
+
+
+def _notices(seen, split: dict) -> list[str]:
+    """What the capture left out that a user would not see otherwise: recordings without a calibrated camera,
+    frames only some cameras have, and a capture too short for novel-pose frames."""
+    notes = []
+    if seen.unused_recordings:
+        notes.append(f"recordings without a calibrated camera, left out: {', '.join(seen.unused_recordings)}")
+    counts = {c.name: len(f) for c, f in zip(seen.cameras, seen.frames)}
+    if len(set(counts.values())) > 1:
+        shared = len(set.intersection(*map(set, seen.frames)))
+        fewer = ", ".join(f"{n} {k}" for n, k in counts.items() if k < max(counts.values()))
+        notes.append(
+            f"cameras with fewer frames ({fewer} of {max(counts.values())}): the capture keeps the {shared} all share"
+        )
+    if not split["novel_frames"]:
+        notes.append(
+            f"{len(split['train_frames'])} frame(s) kept: no novel-pose frames (splits.json novel_frames is empty)"
+        )
+    return notes
 
 
 def _json_ready(value):

@@ -43,6 +43,7 @@ class Observations:
         notes: per camera, lines for the report (size mismatches, resizing).
         corrections: per camera, how far the body fit moved it: (turn in degrees, centre shift in cm).
         recordings: per camera, its recording's file or folder name and how the two were matched.
+        unused_recordings: recordings that no calibrated camera took (left out of the capture).
     """
 
     cameras: list[Camera]
@@ -51,6 +52,7 @@ class Observations:
     notes: dict[str, list[str]] = field(default_factory=dict)
     corrections: dict[str, tuple[float, float]] = field(default_factory=dict)
     recordings: dict[str, dict] = field(default_factory=dict)
+    unused_recordings: list[str] = field(default_factory=list)
 
 
 def fit_camera_to_recording(camera: Camera, size: tuple[int, int], source: Source) -> tuple[Camera, str | None]:

@@ -111,7 +111,8 @@ def prepare_capture(request: PrepareRequest) -> dict:
     staging = out.parent / f".{out.name}.partial"
     shutil.rmtree(staging, ignore_errors=True)
     try:
-        report = _build(staging, matched, detector, body, holdout, calibration, request)
+        unused = [s.name for s in sources if s.name not in {source.name for _, source, _ in matched}]
+        report = _build(staging, (matched, unused), detector, body, holdout, calibration, request)
         _refuse_all_flagged(report, request)
         (staging / BODY_MODEL_RECORD).write_text(json.dumps(body_model_record(body.path), indent=1))
         (staging / MARKER).write_text(
@@ -126,9 +127,12 @@ def prepare_capture(request: PrepareRequest) -> dict:
     return report
 
 
-def _build(staging: Path, matched, detector, body, holdout, calibration, request: PrepareRequest) -> dict:
+def _build(staging: Path, sources, detector, body, holdout, calibration, request: PrepareRequest) -> dict:
+    """Everything between the matched recordings (``sources``: the (camera, source, how) pairs and the names of the
+    recordings no camera took) and the finished capture in ``staging``; returns the report."""
     from tqdm import tqdm
 
+    matched, unused = sources
     pairs = [(camera, source) for camera, source, _ in matched]
     wanted = range(request.start, request.stop if request.stop is not None else 10**9, request.stride)
     total = len(pairs) * len(wanted) if request.stop is not None else None
@@ -145,6 +149,7 @@ def _build(staging: Path, matched, detector, body, holdout, calibration, request
             request.keypoint_layout,
         )
     seen.recordings = {c.name: {"recording": s.path.name, "matched_by": how} for c, s, how in matched}
+    seen.unused_recordings = unused
     common = sorted(set.intersection(*(set(f) for f in seen.frames)))
     if not common:
         raise CaptureError(f"{request.recording}: the cameras share no frame in {wanted.start}:{request.stop or ''}")
