@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from pipelines.body.model import BodyModel
 from pipelines.body.motion import stage_of
@@ -389,3 +390,63 @@ def _source(path):
     from pipelines.prepare.sources import Source
 
     return Source(path.stem, path, True)
+
+
+def test_bodies_users_bring_are_taken_as_given(recording, tmp_path, capsys):
+    """ZJU params/ and EasyMocap's per-frame JSON (a list, or {"annots": [...]}, several people) replace the body fit:
+    with the silhouette stage off, the capture's bodies are the given ones; bad folders are one line each."""
+    truth = ZjuCapture(recording / "truth")
+    rec = recording / "rec"
+    flags = ["--keypoints", rec / "keypoints", "--masks", rec / "masks", "--silhouette-iterations", "0", "--quiet"]
+
+    def prepare(out, *extra):
+        return run_cli(
+            "narf-prepare-capture", prepare_capture.main, [str(a) for a in [rec, "--out", out, *flags, *extra]]
+        )
+
+    easymocap = tmp_path / "smpl"
+    easymocap.mkdir()
+    for f in range(truth.n_frames):
+        p = truth.params(f)
+        ours = {
+            "id": 3,
+            "Rh": [p.rh.tolist()],
+            "Th": [p.th.tolist()],
+            "poses": [p.poses.tolist()],
+            "shapes": [p.shapes.tolist()],
+        }
+        other = {**ours, "id": 7, "Th": [[9.0, 9.0, 9.0]]}
+        people = [other, ours] if f % 2 else {"annots": [ours, other]}
+        (easymocap / f"{f:06d}.json").write_text(json.dumps(people))
+    for folder, extra in ((recording / "truth" / "params", []), (easymocap, ["--person", "3"])):
+        out = tmp_path / f"out_{folder.name}"
+        assert prepare(out, "--smpl-params", folder, *extra) == 0
+        capture = ZjuCapture(out)
+        for f in range(truth.n_frames):
+            a, b = truth.params(f), capture.params(f)
+            # float32 files both ways; Rh goes through one rotation-vector composition
+            np.testing.assert_allclose(b.poses[3:], a.poses[3:], atol=1e-6)
+            np.testing.assert_allclose(
+                Rotation.from_rotvec(b.rh).as_matrix(), Rotation.from_rotvec(a.rh).as_matrix(), atol=1e-5
+            )
+            np.testing.assert_allclose(b.th, a.th, atol=1e-6)
+    assert "several people" not in capsys.readouterr().err
+
+    def refused(extra, message):
+        assert message in _error(capsys, [rec, "--out", tmp_path / "x", *flags, *extra])
+
+    refused(["--smpl-params", easymocap], "000000.json: 2 people (ids [3, 7]); choose one with --person ID")
+    refused(["--smpl-params", easymocap, "--person", "5"], "no person with id 5")
+    refused(["--person", "3"], "give --smpl-params too")
+    broken = tmp_path / "broken"
+    shutil.copytree(easymocap, broken)
+    (broken / "000004.json").unlink()
+    refused(["--smpl-params", broken, "--person", "3"], "no body for 1 of the 10 frames kept (first: frame 4)")
+    shutil.copy(easymocap / "000004.json", broken)
+    shape16 = json.loads((easymocap / "000000.json").read_text())
+    shape16["annots"][0]["shapes"] = [[0.0] * 16]
+    (broken / "000000.json").write_text(json.dumps(shape16))
+    refused(["--smpl-params", broken, "--person", "3"], "16 shape values; SMPL's are 10")
+    text = [{"id": 3, "Rh": "up", "Th": [0, 0, 0], "poses": [0] * 72, "shapes": [0] * 10}]
+    (broken / "000000.json").write_text(json.dumps(text))
+    refused(["--smpl-params", broken, "--person", "3"], "'Rh' holds something other than numbers")

@@ -98,6 +98,17 @@ def build_parser() -> argparse.ArgumentParser:
         "positions, and refused when they cannot be)",
     )
     parser.add_argument(
+        "--smpl-params",
+        type=Path,
+        default=None,
+        help="bodies you already have, instead of fitting them to the keypoints: EasyMocap's per-frame SMPL JSON "
+        "(output/smpl/000000.json ...) or a ZJU-MoCap params/ folder; the silhouette stage may still polish them "
+        "(--silhouette-iterations 0 keeps them as given)",
+    )
+    parser.add_argument(
+        "--person", type=int, default=None, help="--smpl-params: the person's id (default: the only person)"
+    )
+    parser.add_argument(
         "--masks", type=Path, default=None, help="person mask images, one sub-folder per camera (default: mediapipe)"
     )
     _choices(parser)
@@ -168,6 +179,8 @@ def main(argv: list[str] | None = None) -> int:
     from pipelines.prepare.body_fit import FitSettings
     from pipelines.prepare.run import PrepareRequest, prepare_capture
 
+    if args.person is not None and args.smpl_params is None:
+        raise ValueError("--person picks a person of --smpl-params; give --smpl-params too")
     if args.keypoint_layout is not None and args.keypoints is None:
         raise ValueError("--keypoint-layout describes --keypoints files; give --keypoints too")
     request = PrepareRequest(
@@ -181,6 +194,8 @@ def main(argv: list[str] | None = None) -> int:
         keypoints=args.keypoints,
         keypoint_layout=args.keypoint_layout,
         keep_flagged=args.keep_flagged,
+        smpl_params=args.smpl_params,
+        person=args.person,
         masks=args.masks,
         camera_map=args.camera_map,
         holdout_camera=args.holdout_camera,

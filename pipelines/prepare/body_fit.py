@@ -241,6 +241,7 @@ def fit_body(
     progress=None,
     silhouettes=None,
     cameras: tuple[np.ndarray, np.ndarray] | None = None,
+    start: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> BodyFit:
     """Fit the body model to a sequence (module docstring).
 
@@ -253,16 +254,20 @@ def fit_body(
             ``weight * term(vertices, P)`` (``pipelines.prepare.silhouettes``) to the energy.
         cameras: (K (V, 3, 3), cam_from_world (V, 3 or 4, 4)) of the undistorted cameras: with ``silhouettes`` and
             ``settings.refine_cameras``, the last stage also corrects the cameras' poses (:class:`CameraCorrection`).
+        start: bodies the user brought (poses (F, 72) with poses[:3] zero, rh (F, 3), th (F, 3), shapes (10,)) to start
+            from instead of the keypoints' global alignment (``narf-prepare-capture --smpl-params``).
     """
     problem = _Problem(body, P, heights, keypoints, points, settings)
     n_frames = points.shape[0]
     with torch.no_grad():
         rest = body.rest_joints(torch.zeros(1, 10))[0, list(TARGET_JOINTS)].numpy()
-    rh0, th0 = initial_global(rest, points)
-    poses = torch.zeros(n_frames, N_JOINTS * 3, requires_grad=True)
-    rh = torch.as_tensor(rh0, dtype=torch.float32).requires_grad_()
-    th = torch.as_tensor(th0, dtype=torch.float32).requires_grad_()
-    shapes = torch.zeros(1, 10, requires_grad=True)
+    poses0, rh0, th0, shapes0 = start if start is not None else (None, *initial_global(rest, points), None)
+    poses = torch.zeros(n_frames, N_JOINTS * 3) if poses0 is None else torch.as_tensor(poses0, dtype=torch.float32)
+    poses = poses.clone().requires_grad_()
+    rh = torch.as_tensor(rh0, dtype=torch.float32).clone().requires_grad_()
+    th = torch.as_tensor(th0, dtype=torch.float32).clone().requires_grad_()
+    shapes = torch.zeros(1, 10) if shapes0 is None else torch.as_tensor(shapes0, dtype=torch.float32).reshape(1, 10)
+    shapes = shapes.clone().requires_grad_()
     offsets = torch.zeros(len(TARGETS), 3, requires_grad=True)
     mask = torch.ones(N_JOINTS * 3)
     mask[:3] = 0  # poses[:3] stays 0: the global rotation is Rh

@@ -53,6 +53,8 @@ class PrepareRequest:
     floor: Floor | None = None  # None: found from the fitted feet
     overwrite: bool = False
     keep_flagged: bool = False  # write the capture even when every camera is flagged (for inspection)
+    smpl_params: Path | None = None  # bodies the user brings (EasyMocap smpl/*.json or ZJU params/), not fitted
+    person: int | None = None  # the person's id in smpl_params (None: the only one)
     progress: bool = True
 
 
@@ -158,14 +160,18 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
         raise CaptureError(
             f"{request.recording}: no person is seen by two agreeing views in any of the {len(common)} frames read"
         )
-    steps = request.fit.global_iterations + request.fit.iterations + request.fit.silhouette_iterations
+    settings, start = request.fit, None
+    if request.smpl_params is not None:  # the user's bodies, polished by the silhouette stage only
+        start = brought_bodies(request.smpl_params, found.frames, request.person)
+        settings = replace(settings, global_iterations=0, iterations=0)
+    steps = settings.global_iterations + settings.iterations + settings.silhouette_iterations
     inputs = _fit_inputs(seen.cameras, found)
     masks = None
     if request.fit.silhouette_iterations:
         masks = silhouette_stage(staging, seen.cameras, found, body.faces, inputs[0])
     rig = (np.stack([c.K for c in seen.cameras]), np.stack([c.cam_from_world for c in seen.cameras]))
     with tqdm(total=steps, desc="fitting the body", disable=not request.progress) as bar:
-        fitted = fit_body(body, *inputs, request.fit, lambda done, total: bar.update(1), masks, rig)
+        fitted = fit_body(body, *inputs, settings, lambda done, total: bar.update(1), masks, rig, start)
     if fitted.cam_from_world is not None:  # the capture's cameras are the corrected ones (docs/guides/real-captures.md)
         seen = corrected_cameras(seen, fitted.cam_from_world)
     shapes = np.repeat(fitted.shapes[None], len(fitted.poses), 0)
@@ -175,6 +181,22 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
     floor = request.floor or floor_from_feet(vertices, camera_up(seen.cameras))
     write_floor(staging, floor)
     return finish_capture(staging, seen, found, fitted, vertices, body.faces, holdout, request, calibration, floor)
+
+
+def brought_bodies(folder: Path, frames: list[int], person: int | None):
+    """``fit_body``'s ``start`` from the bodies of ``folder`` (``pipelines.datasets.smpl_params``) for source
+    ``frames``: poses with their first three values folded into Rh (R(Rh) R(poses[:3]) is the body's turn), Th, and
+    the frames' median shape (the capture keeps one shape)."""
+    from scipy.spatial.transform import Rotation
+
+    from pipelines.datasets.smpl_params import bodies_for_frames
+
+    bodies = bodies_for_frames(folder, frames, person)
+    poses = np.stack([b.poses for b in bodies]).astype(np.float64)
+    turn = Rotation.from_rotvec(np.stack([b.rh for b in bodies])) * Rotation.from_rotvec(poses[:, :3])
+    poses[:, :3] = 0
+    shapes = np.median(np.stack([b.shapes for b in bodies]), axis=0)
+    return poses, turn.as_rotvec(), np.stack([b.th for b in bodies]).astype(np.float64), shapes
 
 
 def corrected_cameras(seen, cam_from_world: np.ndarray):
