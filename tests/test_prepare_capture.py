@@ -238,37 +238,38 @@ def _error(capsys, argv) -> str:
     return err[0]
 
 
-def test_bad_recordings_are_one_line(recording, tmp_path, capsys):
+def test_bad_recordings_are_one_line(recording, tmp_path, capfd):
+    """One line each, at the file descriptor too (ffmpeg's own complaints about a broken video are kept out)."""
     rec = tmp_path / "rec"
     shutil.copytree(recording / "rec", rec)
     out = tmp_path / "out"
     flags = ["--out", out, "--keypoints", rec / "keypoints", "--masks", rec / "masks", "--quiet"]
-    assert "no such folder" in _error(capsys, [tmp_path / "missing", *flags])
+    assert "no such folder" in _error(capfd, [tmp_path / "missing", *flags])
     shutil.copy(rec / "videos" / "Camera_B1.mp4", rec / "videos" / "Camera_B1.webm")
-    assert "camera 'Camera_B1' has several videos (Camera_B1.mp4, Camera_B1.webm)" in _error(capsys, [rec, *flags])
+    assert "camera 'Camera_B1' has several videos (Camera_B1.mp4, Camera_B1.webm)" in _error(capfd, [rec, *flags])
     (rec / "videos" / "Camera_B1.webm").unlink()
     mask = next((rec / "masks" / "Camera_B2").iterdir())
     original = mask.read_bytes()
     cv2.imwrite(str(mask), np.zeros((100, 80), np.uint8))
-    assert f"{mask}: mask is 80x100, camera 'Camera_B2' records 256x256" in _error(capsys, [rec, *flags])
+    assert f"{mask}: mask is 80x100, camera 'Camera_B2' records 256x256" in _error(capfd, [rec, *flags])
     mask.write_bytes(original)
     (rec / "calibration" / "rig.txt").write_text("hello")
     assert "unknown calibration format" in _error(
-        capsys, [rec, *flags, "--calibration", rec / "calibration" / "rig.txt"]
+        capfd, [rec, *flags, "--calibration", rec / "calibration" / "rig.txt"]
     )
     other = [c for c in read_qualisys(rec / "calibration" / "Calib.qca.txt")[:3]]
     write_qualisys(
         tmp_path / "three.qca.txt", [type(c)(**{**c.__dict__, "name": f"x{i}"}) for i, c in enumerate(other)]
     )
-    assert "match none of the recordings" in _error(capsys, [rec, *flags, "--calibration", tmp_path / "three.qca.txt"])
+    assert "match none of the recordings" in _error(capfd, [rec, *flags, "--calibration", tmp_path / "three.qca.txt"])
     bad_json = rec / "keypoints" / "Camera_B1_json" / "Camera_B1_000000000003_keypoints.json"
     write_openpose(bad_json, [np.zeros((20, 3))])
-    assert "Camera_B1_000000000003_keypoints.json" in _error(capsys, [rec, *flags])
+    assert "Camera_B1_000000000003_keypoints.json" in _error(capfd, [rec, *flags])
     for path in (rec / "keypoints").rglob("*.json"):
         write_openpose(path, [])
-    assert "no person is seen" in _error(capsys, [rec, *flags])
+    assert "no person is seen" in _error(capfd, [rec, *flags])
     (rec / "videos" / "Camera_B2.mp4").write_bytes(b"\x00" * 4096)
-    assert "Camera_B2.mp4: cannot be decoded" in _error(capsys, [rec, *flags])
+    assert "Camera_B2.mp4: cannot be decoded" in _error(capfd, [rec, *flags])
     assert not out.exists() and not list(tmp_path.glob(".out*")), "nothing half-written"
 
 
@@ -368,16 +369,18 @@ def test_what_the_capture_leaves_out_is_said(recording, tmp_path, capsys):
     shutil.copytree(recording / "rec", rec)
     shutil.copy(rec / "videos" / "Camera_B1.mp4", rec / "videos" / "Extra.mp4")
     short = [frame[..., ::-1] for _, frame in read_frames(_source(rec / "videos" / "Camera_B4.mp4"), range(8))]
-    write_mp4(rec / "videos" / "Camera_B4.mp4", short, fps=30)
+    write_mp4(rec / "videos" / "Camera_B4.mp4", short, fps=25)
     flags = ["--keypoints", rec / "keypoints", "--masks", rec / "masks", "--silhouette-iterations", "0"]
     capsys.readouterr()
     argv = [str(a) for a in [rec, "--out", tmp_path / "out", *flags, "--quiet"]]
     assert run_cli("narf-prepare-capture", prepare_capture.main, argv) == 0
     printed = capsys.readouterr().out
     notices = json.loads((tmp_path / "out" / "report.json").read_text())["notices"]
-    assert notices[:2] == [
+    assert notices[:3] == [
         "recordings without a calibrated camera, left out: Extra",
         "cameras with fewer frames (Camera_B4 8 of 10): the capture keeps the 8 all share",
+        "the videos' frame rates differ (Camera_B1 30, Camera_B2 30, Camera_B3 30, Camera_B4 25 fps): frames are "
+        "paired by index, so check the sync",
     ]
     assert all(f"note: {n}" in printed for n in notices)
     argv = [str(a) for a in [rec, "--out", tmp_path / "one", *flags, "--frames", "0:1", "--quiet"]]

@@ -174,8 +174,8 @@ def read_easymocap_cameras(folder: Path, images: Path | None = None) -> list[Cam
         cameras.append(camera)
     if skipped:
         print(
-            f"narf: {folder}: skipped {len(skipped)} of {len(names)} camera names ('none' or without K/R/T), as "
-            "EasyMocap does",
+            f"{Path(sys.argv[0]).name}: note: {folder}: skipped {len(skipped)} of {len(names)} camera names ('none' "
+            "or without K/R/T), as EasyMocap does",
             file=sys.stderr,
         )
     if not cameras:

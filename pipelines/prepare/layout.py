@@ -183,8 +183,9 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
 
 
 def _notices(seen, split: dict) -> list[str]:
-    """What the capture left out that a user would not see otherwise: recordings without a calibrated camera,
-    frames only some cameras have, and a capture too short for novel-pose frames."""
+    """What the capture left out or assumed that a user would not see otherwise: recordings without a calibrated
+    camera, frames only some cameras have, videos of different frame rates, a capture too short for novel-pose
+    frames."""
     notes = []
     if seen.unused_recordings:
         notes.append(f"recordings without a calibrated camera, left out: {', '.join(seen.unused_recordings)}")
@@ -195,6 +196,10 @@ def _notices(seen, split: dict) -> list[str]:
         notes.append(
             f"cameras with fewer frames ({fewer} of {max(counts.values())}): the capture keeps the {shared} all share"
         )
+    rates = {n: round(r, 2) for n, r in seen.frame_rates.items() if r}
+    if len(set(rates.values())) > 1:
+        listed = ", ".join(f"{n} {r:g}" for n, r in rates.items())
+        notes.append(f"the videos' frame rates differ ({listed} fps): frames are paired by index, so check the sync")
     if not split["novel_frames"]:
         notes.append(
             f"{len(split['train_frames'])} frame(s) kept: no novel-pose frames (splits.json novel_frames is empty)"

@@ -44,6 +44,7 @@ class Observations:
         corrections: per camera, how far the body fit moved it: (turn in degrees, centre shift in cm).
         recordings: per camera, its recording's file or folder name and how the two were matched.
         unused_recordings: recordings that no calibrated camera took (left out of the capture).
+        frame_rates: per camera, its video's frame rate as the container states it (None: images, or not stated).
     """
 
     cameras: list[Camera]
@@ -53,6 +54,7 @@ class Observations:
     corrections: dict[str, tuple[float, float]] = field(default_factory=dict)
     recordings: dict[str, dict] = field(default_factory=dict)
     unused_recordings: list[str] = field(default_factory=list)
+    frame_rates: dict[str, float | None] = field(default_factory=dict)
 
 
 def fit_camera_to_recording(camera: Camera, size: tuple[int, int], source: Source) -> tuple[Camera, str | None]:

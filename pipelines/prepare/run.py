@@ -23,7 +23,7 @@ from pipelines.prepare.body_fit import FitSettings, fit_body
 from pipelines.prepare.layout import finish_capture, write_sequence
 from pipelines.prepare.observe import observe
 from pipelines.prepare.silhouettes import silhouette_stage
-from pipelines.prepare.sources import find_sources, match_cameras
+from pipelines.prepare.sources import find_sources, frame_rate, match_cameras
 from pipelines.prepare.triangulation import triangulate_people
 
 CALIBRATION_PATTERNS = ("*.qca.txt", "*.toml", "intri.yml", "annots.npy")
@@ -152,6 +152,7 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
         )
     seen.recordings = {c.name: {"recording": s.path.name, "matched_by": how} for c, s, how in matched}
     seen.unused_recordings = unused
+    seen.frame_rates = {c.name: frame_rate(s) for c, s, _ in matched}
     common = sorted(set.intersection(*(set(f) for f in seen.frames)))
     if not common:
         raise CaptureError(f"{request.recording}: the cameras share no frame in {wanted.start}:{request.stop or ''}")

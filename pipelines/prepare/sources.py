@@ -7,7 +7,11 @@ its 100 frames), image folders are read in natural order of their file names.
 
 from __future__ import annotations
 
+import contextlib
+import ctypes
+import os
 import re
+import sys
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -135,7 +139,8 @@ def read_frames(source: Source, wanted: range) -> Iterator[tuple[int, np.ndarray
             image = read_image(files[index])
             yield index, image
         return
-    video = cv2.VideoCapture(str(source.path))
+    with native_stderr_to_null():  # ffmpeg's own complaint ("moov atom not found"): our line names the file
+        video = cv2.VideoCapture(str(source.path))
     try:
         if not video.isOpened():
             raise CaptureError(f"{source.path}: cannot be decoded as a video")
@@ -151,6 +156,42 @@ def read_frames(source: Source, wanted: range) -> Iterator[tuple[int, np.ndarray
                 yield index, image
     finally:
         video.release()
+
+
+def frame_rate(source: Source) -> float | None:
+    """A video's frame rate as its container states it (None for image folders or when it states none)."""
+    if not source.is_video:
+        return None
+    with native_stderr_to_null():
+        video = cv2.VideoCapture(str(source.path))
+    try:
+        rate = video.get(cv2.CAP_PROP_FPS) if video.isOpened() else 0.0
+    finally:
+        video.release()
+    return float(rate) if rate and np.isfinite(rate) else None
+
+
+@contextlib.contextmanager
+def native_stderr_to_null():
+    """What native code (ffmpeg through OpenCV) writes to file descriptor 2 during the block goes to the null
+    device; Python's own stderr is flushed first."""
+    sys.stderr.flush()
+    saved, null = os.dup(2), os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(null, 2)
+        yield
+    finally:
+        _flush_c_streams()  # what C's stdio still buffers goes to the null device too
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(null)
+
+
+def _flush_c_streams() -> None:
+    try:
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):  # no C library to ask: nothing buffered there either
+        pass
 
 
 def recording_size(source: Source) -> tuple[int, int]:
