@@ -4,6 +4,7 @@ stand-in in the cache (``$NARF_CACHE`` or ``~/.cache/narf-avatar``), generated o
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import sys
@@ -57,7 +58,14 @@ BODY_MODEL_RECORD = "body_model.json"
 
 
 def file_sha256(path: Path) -> str:
-    """The SHA-256 of a file's bytes, in hex."""
+    """The SHA-256 of a file's bytes, in hex; read once per file version (path, size, modification time), since a
+    fit or a command checks the same body model several times."""
+    stat = Path(path).stat()
+    return _sha256(str(Path(path).resolve()), stat.st_size, stat.st_mtime_ns)
+
+
+@functools.lru_cache(maxsize=16)
+def _sha256(path: str, size: int, mtime_ns: int) -> str:
     digest = hashlib.sha256()
     with open(path, "rb") as handle:
         for block in iter(lambda: handle.read(1 << 20), b""):
@@ -85,6 +93,13 @@ def check_record(record, source: str) -> dict:
     if not ok:
         raise SmplFileError(f"{source}: not a body-model record (expected file, a 64-digit sha256 and standin)")
     return record
+
+
+def recorded_body_file(state: dict, source: str, owner: str) -> Path | None:
+    """The body model file a checkpoint ``state`` (read from ``source``) records (:func:`find_recorded`), or None for a
+    checkpoint written before runs recorded one."""
+    record = (state.get("provenance") or {}).get("body_model")
+    return None if record is None else find_recorded(check_record(record, source), owner)
 
 
 def find_recorded(record: dict, owner: str) -> Path:

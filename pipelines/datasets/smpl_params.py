@@ -12,11 +12,11 @@ Both use ``X_world = R(Rh) X + Th``. A file's frame is the last digit group of i
 from __future__ import annotations
 
 import json
-import re
 from pathlib import Path
 
 import numpy as np
 
+from pipelines.datasets.keypoints import frame_number
 from pipelines.datasets.zju_mocap import CaptureError, SmplParams, read_params
 
 SIZES = {"poses": 72, "Rh": 3, "Th": 3, "shapes": 10}
@@ -35,12 +35,10 @@ def body_files(folder: Path) -> dict[int, Path]:
         raise CaptureError(f"{folder}: no EasyMocap *.json or ZJU-MoCap *.npy SMPL parameter files")
     out = {}
     for path in files:
-        digits = re.findall(r"\d+", path.stem)
-        if not digits:
-            raise CaptureError(f"{path}: no frame number in the file name")
-        if int(digits[-1]) in out:
-            raise CaptureError(f"{path}: frame {int(digits[-1])} also in {out[int(digits[-1])].name}")
-        out[int(digits[-1])] = path
+        frame = frame_number(path)
+        if frame in out:
+            raise CaptureError(f"{path}: frame {frame} also in {out[frame].name}")
+        out[frame] = path
     return out
 
 

@@ -134,14 +134,18 @@ def file_layout(folder: Path, cameras: list[str], given: str | None, sample: int
     (``--keypoint-layout``) when their size agrees, else the only layout of their size; 25 points are checked
     (``layout_of_25``) over every camera together, and refused when the check cannot tell, or when it contradicts
     ``given``. Reads up to ``sample`` files per camera, spread over the recording."""
-    people, size_of = [], {}
+    people, first = [], None
     for camera in cameras:
         files = list(keypoint_files(folder, camera).values())
         for path in files[:: max(1, len(files) // sample)]:
             found = read_openpose(path)
-            if found and size_of.setdefault(len(found[0]), path) and len(size_of) > 1:
-                sizes = " and ".join(f"{k} ({p})" for k, p in size_of.items())
-                raise CaptureError(f"{folder}: files of different layouts: {sizes} points per person")
+            if found and not people:
+                first = path
+            if found and people and len(found[0]) != len(people[0]):
+                raise CaptureError(
+                    f"{folder}: files of different layouts: {len(people[0])} points per person in {first}, "
+                    f"{len(found[0])} in {path}"
+                )
             people += found
     if not people:
         return given or "body25"

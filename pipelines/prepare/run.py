@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from scipy.spatial.transform import Rotation
 
 from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.datasets.floor import Floor, camera_up, floor_from_feet, write_floor
@@ -188,8 +189,6 @@ def brought_bodies(folder: Path, frames: list[int], person: int | None):
     """``fit_body``'s ``start`` from the bodies of ``folder`` (``pipelines.datasets.smpl_params``) for source
     ``frames``: poses with their first three values folded into Rh (R(Rh) R(poses[:3]) is the body's turn), Th, and
     the frames' median shape (the capture keeps one shape)."""
-    from scipy.spatial.transform import Rotation
-
     from pipelines.datasets.smpl_params import bodies_for_frames
 
     bodies = bodies_for_frames(folder, frames, person)
@@ -207,10 +206,10 @@ def corrected_cameras(seen, cam_from_world: np.ndarray):
     for camera, corrected in zip(seen.cameras, cam_from_world):
         pose = np.eye(4)
         pose[:3] = corrected
-        cosine = (np.trace(corrected[:3, :3].T @ camera.cam_from_world[:3, :3]) - 1) / 2
-        moved = np.linalg.norm(-corrected[:3, :3].T @ corrected[:3, 3] - camera.centre)
-        corrections[camera.name] = (float(np.degrees(np.arccos(np.clip(cosine, -1, 1)))), float(100 * moved))
-        cameras.append(replace(camera, cam_from_world=pose))
+        moved = replace(camera, cam_from_world=pose)
+        turn = Rotation.from_matrix(pose[:3, :3] @ camera.cam_from_world[:3, :3].T).magnitude()
+        corrections[camera.name] = (float(np.degrees(turn)), float(100 * np.linalg.norm(moved.centre - camera.centre)))
+        cameras.append(moved)
     return replace(seen, cameras=cameras, corrections=corrections)
 
 

@@ -24,7 +24,14 @@ from fitting.distributed import SINGLE
 from fitting.fitted import load_fitted, run_config
 from fitting.trainer import Trainer
 from narf.fields.common import PoseBatch
-from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record, check_record, file_sha256, find_recorded
+from pipelines.body.locate import (
+    BODY_MODEL_RECORD,
+    body_model_record,
+    check_record,
+    file_sha256,
+    find_recorded,
+    recorded_body_file,
+)
 from pipelines.body.model import BodyModel, capture_poses, pose_batch
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.smpl_files import cache_dir
@@ -139,9 +146,9 @@ def capture_body_record(capture: ZjuCapture) -> dict | None:
 def fit_body_model(capture: ZjuCapture, state: dict | None) -> BodyModel:
     """The body model of a fit: a resumed run's recorded one; else the one ``--smpl-dir`` / ``$NARF_SMPL_DIR`` names,
     which must be the capture's when the capture records one; else the capture's recorded one, or the stand-in."""
-    recorded = ((state or {}).get("provenance") or {}).get("body_model")
+    recorded = recorded_body_file(state or {}, "the checkpoint", "the run being resumed")
     if recorded is not None:
-        return BodyModel(find_recorded(check_record(recorded, "the checkpoint"), "the run being resumed"))
+        return BodyModel(recorded)
     record = capture_body_record(capture)
     if record is None:
         return BodyModel()
@@ -244,9 +251,8 @@ def load_run(run_dir: Path, device="cpu") -> LoadedRun:
     """Load a run folder written by ``narf-fit --out`` (checkpoint, config, the capture it was fitted on, its body
     model and its corrected poses)."""
     fitted = load_fitted(run_dir, device, kind="subject")  # the kind is checked before a capture is read or generated
-    record = (fitted.state.get("provenance") or {}).get("body_model")
     source = f"{Path(run_dir) / 'checkpoint.pt'}"
-    body = BodyModel(find_recorded(check_record(record, source), str(run_dir))) if record else BodyModel()
+    body = BodyModel(recorded_body_file(fitted.state, source, str(run_dir)))  # None: the stand-in
     capture = open_capture(fitted.config, quiet=True)
     protocol = capture.protocol(fitted.config.data.protocol)
     refined = refined_params(fitted.state, capture, Path(source))
