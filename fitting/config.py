@@ -51,7 +51,7 @@ class DataConfig:
 
 @dataclass
 class ModelConfig:
-    name: ModelName = "narf_d"  #: the model; narf.fields.MODEL_OPTIONS says which options below it takes
+    name: ModelName = "narf_d"  #: the model; its spec (narf.fields.MODEL_SPECS) says which options below it takes
     width: int = 64  #: hidden width H (paper: 256)
     density_act: Literal["leaky_backward", "softplus"] = "leaky_backward"  #: upstream's, or softplus
     temperature: float = 10.0  #: narf_p only: selector softmax temperature tau
@@ -304,10 +304,10 @@ def get_value(config: FitConfig, key: str):
 
 def validate_config(config: FitConfig) -> None:
     """Value checks with messages naming the key: ranges, the model's kind, settings of another kind or model."""
-    from narf.fields import ARTICULATED, IMAGE_MODELS, MODEL_OPTIONS, RIGID
+    from narf.fields import MODEL_SPECS, model_names
 
     rigid = config.kind == "rigid"
-    allowed = RIGID if rigid else (*ARTICULATED, *IMAGE_MODELS)
+    allowed = model_names("rigid") if rigid else model_names("field", "image")
     if config.model.name not in allowed:
         kind = "a rigid-object model" if rigid else "a body model"
         raise ConfigError(f"model.name: '{config.model.name}' is not {kind} ({', '.join(allowed)})")
@@ -324,10 +324,10 @@ def validate_config(config: FitConfig) -> None:
     for key, kind in KIND_ONLY.items():
         if config.kind != kind and get_value(config, key) != get_value(defaults, key):
             raise ConfigError(f"{key}: only {kind} runs use it (this is a {config.kind} run); leave it at its default")
-    taken = MODEL_OPTIONS[config.model.name]
+    spec = MODEL_SPECS[config.model.name]
     for option in ("temperature", "pose_in_color", "image_size"):
-        if option not in taken and getattr(config.model, option) != getattr(defaults.model, option):
-            users = ", ".join(name for name, options in MODEL_OPTIONS.items() if option in options)
+        if option not in spec.options and getattr(config.model, option) != getattr(defaults.model, option):
+            users = ", ".join(name for name, other in MODEL_SPECS.items() if option in other.options)
             raise ConfigError(f"model.{option}: {config.model.name} does not take it (only {users})")
     autoencoder = config.kind == "autoencoder"
     if autoencoder and config.model.latent_dim == 0:
@@ -336,8 +336,8 @@ def validate_config(config: FitConfig) -> None:
         raise ConfigError("render.grid_proposal: the proposal is the occupancy grid's density; set render.occupancy")
     if config.render.occupancy and autoencoder:  # (image-space models have no rays: the switch does not apply)
         raise ConfigError("render.occupancy: the occupancy grid is for per-subject fits (densities differ per person)")
-    if config.train.colour_jitter and config.model.name == "cnn":
+    if config.train.colour_jitter and not spec.rays:
         raise ConfigError("train.colour_jitter: only the NeRF-type autoencoders use it")
     for key in ("pose_correction", "camera_colour", "random_background"):
-        if getattr(config.train, key) and config.model.name in IMAGE_MODELS:
+        if getattr(config.train, key) and not spec.rays:
             raise ConfigError(f"train.{key}: the CNN baseline renders no rays; set it false (--set train.{key}=false)")

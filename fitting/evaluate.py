@@ -15,7 +15,7 @@ from skimage.metrics import structural_similarity
 
 from fitting.config import FitConfig
 from narf.cnn_render import render_cnn_image
-from narf.fields import CnnBaseline
+from narf.fields import CnnBaseline, model_spec
 from narf.metrics import mask_l2, psnr, psnr_of
 from narf.rays import image_pixels, ray_box_intersect, rays_from_pixels
 from narf.renderer import render_image
@@ -209,7 +209,7 @@ def spread(items: list, limit: int | None) -> list:
 def markdown_table(report: dict) -> str:
     """Supplement layout: one row per protocol, cells Mask L2 (x10^4) / PSNR / SSIM per split."""
     splits = [s for s in (*EVAL_SPLITS, "novel_pose", "novel_view", "capture") if s in report["splits"]]
-    size = f"{report['image_size']}^2 bone maps" if report["model"] == "cnn" else f"width {report['width']}"
+    size = f"width {report['width']}" if model_spec(report["model"]).rays else f"{report['image_size']}^2 bone maps"
     lines = [
         f"# {report['model']} ({size}), step {report['step']}: {report['subject']}",
         "",

@@ -20,7 +20,7 @@ from fitting.corrections import CameraColour, PoseCorrection, corrected_colour_e
 from fitting.data import FitData
 from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
 from fitting.plots import write_curve, write_validation
-from narf.fields import IMAGE_MODELS, MODEL_OPTIONS, build_model
+from narf.fields import model_spec
 from narf.fields.common import PoseBatch
 from narf.metrics import psnr
 from narf.occupancy import OccupancyGrid, field_ray_bounds, refresh_cells
@@ -36,10 +36,11 @@ def auto_device(name: str = "auto") -> torch.device:
 
 
 def make_field(config: FitConfig):
-    """The model of a config, given the options its constructor takes (``narf.fields.MODEL_OPTIONS``)."""
+    """The model of a config, given the options its constructor takes (its spec in ``narf.fields.MODEL_SPECS``)."""
     m = config.model
-    field = build_model(m.name, **{option: getattr(m, option) for option in MODEL_OPTIONS[m.name]})
-    if m.name in IMAGE_MODELS:
+    spec = model_spec(m.name)
+    field = spec.build(**{option: getattr(m, option) for option in spec.options})
+    if not spec.rays:
         return field
     r = config.render
     if r.occupancy:

@@ -125,7 +125,7 @@ def test_cnn_autoencoder_fits_resumes_and_evaluates(sets, tmp_path, monkeypatch)
     assert isinstance(resumed, CnnAutoencoderTrainer) and resumed.step == 2
     splits = ["same_pose_same_view", "cross_dataset"]
     report = evaluate_autoencoder_run(tmp_path / "run", splits, limit=1, progress=False, grids=1)
-    assert report["splits"]["same_pose_same_view"]["n_views"] == 1 and report["model"] == "cnn"
+    assert report["splits"]["same_pose_same_view"]["n_views"] == 1 and report["model"] == config.model.name
     assert "32^2 bone maps" in (tmp_path / "run" / "eval" / "metrics.md").read_text()
     with pytest.raises(ValueError, match="the CNN baseline renders no rays"):
         evaluate_autoencoder_run(tmp_path / "run", ["cross_dataset"], limit=1, progress=False, refine_steps=1)

@@ -9,7 +9,7 @@ from fitting.checkpoint import load_checkpoint
 from fitting.config import load_config
 from fitting.trainer import prepare_run_dir
 from narf.cnn_render import cnn_inputs, render_cnn_image, scaled_intrinsics
-from narf.fields import CnnBaseline
+from narf.fields import CnnBaseline, model_spec
 from pipelines.runs.fit import start_run
 from pipelines.runs.subject.evaluation import evaluate_run
 
@@ -82,7 +82,7 @@ def test_cnn_fit_loss_falls_resumes_and_evaluates(data_root_64, tmp_path):
     assert (tmp_path / "run" / "val" / "step_0000040.png").is_file()
     report = evaluate_run(tmp_path / "run", ["novel_pose_novel_view"], limit=2, progress=False)
     split = report["splits"]["novel_pose_novel_view"]
-    assert report["model"] == "cnn" and split["n_views"] == 2 and 5 < split["full"]["psnr"] < 60
+    assert model_spec(report["model"]).family == "image" and split["n_views"] == 2 and 5 < split["full"]["psnr"] < 60
     assert len(list((tmp_path / "run" / "eval" / "grids").rglob("*.png"))) == 2
 
 

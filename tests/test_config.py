@@ -10,15 +10,15 @@ from fitting.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from fitting.config import CONFIG_DIR, ConfigError, FitConfig, ModelName, RunKindName, load_config
 from fitting.fitted import load_fitted
 from fitting.trainer import make_field
-from narf.fields import IMAGE_MODELS, MODEL_OPTIONS, MODELS
+from narf.fields import MODEL_SPECS
 from pipelines.runs.kinds import KINDS
 
 
 def test_names_agree_across_the_tables():
-    assert set(typing.get_args(ModelName)) == set(MODELS) | set(IMAGE_MODELS) == set(MODEL_OPTIONS)
+    assert set(typing.get_args(ModelName)) == set(MODEL_SPECS)
     assert set(typing.get_args(RunKindName)) == set(KINDS)
     for kind in KINDS.values():  # every default preset exists and is of its kind
-        for preset in (*kind.presets, *(kind.cnn_presets or ())):
+        for preset in (*kind.presets, *(kind.image_presets or ())):
             assert load_config(preset).kind == kind.name
 
 

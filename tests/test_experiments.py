@@ -41,7 +41,7 @@ def test_resume_gets_the_rest_of_the_budget(tmp_path):
 def test_cnn_rows_take_the_cnn_presets(tmp_path):
     presets = {}
     for table, preset in ((TABLE_A, "cpu"), (TABLE_A, "paper"), (TABLE_C, "cpu")):
-        row = next(r for r in table.rows if r.name == "cnn")
+        row = {r.name: r for r in table.rows}["cnn"]
         presets[table.name, preset] = fit_request(table, row, Settings(preset=preset), tmp_path / "run").preset
     assert presets == {("table-a", "cpu"): "ae_cnn", ("table-a", "paper"): "ae_cnn_paper", ("table-c", "cpu"): "cnn"}
 

@@ -5,7 +5,7 @@ import torch
 from kornia.geometry.linalg import inverse_transformation as invert_rigid
 from kornia.geometry.linalg import transform_points
 
-from narf.fields import ARTICULATED, MODELS, PAPER_COSTS, PoseBatch, build_field, paper_presets
+from narf.fields import PoseBatch, build_field, model_names, paper_presets, paper_rows
 from narf.fields.base import masked_softmax, rescale_selection
 from narf.fields.common import part_box_coordinates, part_directions, part_local
 from narf.geometry import se3_exp
@@ -31,7 +31,7 @@ def _random_pose(n_frames=1, n_parts=19, seed=0, dtype=torch.float32):
 
 def _field(name, width=16, n_parts=19, dtype=torch.float32, **kwargs):
     torch.manual_seed(0)
-    field = build_field(name, width=width, **kwargs) if name in ARTICULATED else build_field(name, width=width)
+    field = build_field(name, width=width, **kwargs) if name in model_names("field") else build_field(name, width=width)
     field.set_boxes(torch.zeros(field.n_parts, 3), torch.full((field.n_parts, 3), 0.6))
     return field.to(dtype)
 
@@ -43,7 +43,7 @@ def _points(n_rays=4, n_samples=6, seed=1, dtype=torch.float32):
     return points, dirs / dirs.norm(dim=1, keepdim=True)
 
 
-@pytest.mark.parametrize("name", list(MODELS))
+@pytest.mark.parametrize("name", model_names("field", "rigid"))
 def test_every_model_runs_and_masks_outside_boxes(name):
     field = _field(name)
     points, dirs = _points()
@@ -64,7 +64,7 @@ def test_every_model_runs_and_masks_outside_boxes(name):
     assert not torch.allclose(latent_field(points, dirs, pose, z).rgb, latent_field(points, dirs, pose, -z).rgb)
 
 
-@pytest.mark.parametrize("name, reference", sorted(PAPER_COSTS.items()))
+@pytest.mark.parametrize("name, reference", sorted((row.key, row.cost) for _, row in paper_rows() if row.cost))
 def test_paper_costs_within_five_percent(name, reference):
     cost = paper_presets()[name].cost()
     # the tables print three significant digits and upstream counts a few small terms differently (docs/model.md §8)
@@ -328,7 +328,7 @@ def test_sparse_fast_path_matches_dense_reference(name, monkeypatch):
             assert torch.allclose(ga, gb, atol=1e-8)
 
 
-@pytest.mark.parametrize("name", [*MODELS, "narf_d_dense"])
+@pytest.mark.parametrize("name", [*model_names("field", "rigid"), "narf_d_dense"])
 def test_density_alone_equals_the_forward_sigma(name):
     """Field.density (the occupancy refresh's query; NARF_D / NARF_H skip the colour branch) against the full
     forward's sigma: the same kernels on the same inputs, so equal to the bit; with an autoencoder latent, whose

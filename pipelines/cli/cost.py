@@ -5,29 +5,9 @@ from __future__ import annotations
 import argparse
 import sys
 
-from narf.fields import PAPER_COSTS, build_model, paper_presets
+from narf.fields import build_model, model_spec, paper_presets, paper_rows
 from narf.fields.base import SAMPLES_FOR_COST
 from pipelines.cli.common import run_cli
-
-_LABELS = {
-    "p_nerf": "P-NeRF (pose in colour, eq. D)",
-    "p_nerf_table": "P-NeRF (pose_in_color=false, as tables)",
-    "narf_p": "NARF_P (256)",
-    "narf_p_32": "NARF_P (32)",
-    "narf_p_64": "NARF_P (64)",
-    "narf_p_128": "NARF_P (128)",
-    "narf_d": "NARF_D",
-    "narf_d_sigmoid": "NARF_D sigmoid",
-    "narf_h": "NARF_H",
-    "d_narf": "D-NARF",
-    "rt_nerf": "RT-NeRF",
-    "rt_nerf_no_pose": "RT-NeRF w/o xi",
-    "rp_nerf": "RP-NeRF",
-}
-
-
-def _fmt(value: float, unit: str) -> str:
-    return f"{value / 1e6:.2f}M" if unit == "M" else f"{value / 1e3:.0f}K"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -43,18 +23,20 @@ def main(argv: list[str] | None = None) -> int:
     names = [args.model] if args.model else list(presets)
     print("| model | #params | FLOPs/ray | memory/ray | paper #params / FLOPs / memory | complete FLOPs/ray |")
     print("|---|---|---|---|---|---|")
+    rows = {row.key: row for _, row in paper_rows()}
     for name in names:
         cost = presets[name].cost()
-        ref = PAPER_COSTS.get(name)
+        ref = rows[name].cost
         paper = "-" if ref is None else f"{ref[0] / 1e6:.2f}M / {ref[1] / 1e6:.0f}M / {ref[2] / 1e3:.0f}K"
         print(
-            f"| {_LABELS[name]} | {cost.params / 1e6:.2f}M | "
+            f"| {rows[name].label} | {cost.params / 1e6:.2f}M | "
             f"{cost.flops_per_ray / 1e6:.0f}M | {cost.memory_per_ray / 1e3:.0f}K | {paper} | "
             f"{cost.flops_per_ray_complete / 1e6:.0f}M |"
         )
     if not args.model:
-        cnn = sum(p.numel() for p in build_model("cnn").parameters()) / 1e6
-        print(f"| CNN baseline | {cnn:.2f}M | - | - | 15.6M / - / - | - |")
+        cnn = model_spec("cnn").paper[0]
+        params = sum(p.numel() for p in build_model("cnn").parameters()) / 1e6
+        print(f"| {cnn.label} | {params:.2f}M | - | - | {cnn.cost[0] / 1e6:.1f}M / - / - | - |")
     return 0
 
 

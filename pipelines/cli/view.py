@@ -49,6 +49,7 @@ def main(argv: list[str] | None = None) -> int:
         raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-view shows subject and autoencoder runs")
     if kind.name == "autoencoder" and args.motion is not None:
         raise ValueError(f"{args.run}: {a_run(kind.name)} plays its people's poses; --motion is for subject runs")
+    from narf.fields import model_spec
     from pipelines.viewer.app import Viewer, autoencoder_viewer_data, viewer_data
 
     device = str(auto_device(args.device))
@@ -56,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
         data = autoencoder_viewer_data(args.run, device, args.preview, args.full)
     else:
         data = viewer_data(args.run, args.motion, device, args.preview, args.full, args.motion_fps)
-    if data.config.model.name == "cnn":
+    if not model_spec(data.config.model.name).rays:
         raise ValueError(f"{args.run}: the CNN baseline renders fixed-size images, not views: nothing to orbit")
     viewer = Viewer(data, args.host, args.port)
     port = viewer.server.get_port()

@@ -13,6 +13,7 @@ from fitting.config import FitConfig, load_config
 from fitting.distributed import SINGLE, Processes, barrier, from_environment, shutdown
 from fitting.fitted import run_config
 from fitting.trainer import auto_device, prepare_run_dir
+from narf.fields import model_spec
 from pipelines.runs.kinds import KINDS
 from pipelines.runs.requests import FitInterrupted, FitOutcome, FitRequest
 
@@ -110,7 +111,7 @@ def fit(request: FitRequest, announce: Callable[[str], None] | None = None) -> F
         raise
     if announce is not None and processes.is_main:
         c = trainer.config
-        size = f"{c.model.image_size}^2" if c.model.name == "cnn" else f"width {c.model.width}"
+        size = f"width {c.model.width}" if model_spec(c.model.name).rays else f"{c.model.image_size}^2"
         scale = f", {processes.world_size} processes" if processes.distributed else ""
         description = trainer.fit_data.description
         announce(f"{c.model.name} ({size}) on {description}, device {device}{scale}, torch {torch.__version__}")

@@ -12,6 +12,7 @@ from fitting.checkpoint import load_checkpoint
 from fitting.config import FitConfig
 from fitting.evaluate import ALL_SPLITS, EVAL_SPLITS
 from fitting.fitted import run_config
+from narf.fields import MODEL_SPECS
 from pipelines.runs.autoencoder import evaluation as autoencoder_evaluation
 from pipelines.runs.autoencoder import session as autoencoder_session
 from pipelines.runs.autoencoder import video as autoencoder_video
@@ -30,7 +31,7 @@ class RunKind:
 
     Attributes:
         name: the kind's one name (``config.kind``, ``narf-fit --kind``).
-        presets: default preset (CPU, CUDA); ``cnn_presets`` the same for ``--model cnn``.
+        presets: default preset (CPU, CUDA); ``image_presets`` the same for an image model (``--model cnn``).
         data: finds (or generates) the data of a config; returns its folder.
         start: ``(config, run_dir, device, state, progress, processes) -> trainer`` (``state``: a checkpoint to resume).
         data_parallel: whether torchrun may split its fit over processes.
@@ -45,7 +46,7 @@ class RunKind:
 
     name: str
     presets: tuple[str, str]
-    cnn_presets: tuple[str, str] | None
+    image_presets: tuple[str, str] | None
     data: Callable[[FitConfig], Path]
     start: Callable
     data_parallel: bool
@@ -62,7 +63,8 @@ class RunKind:
 
     def preset(self, model: str | None, gpu: bool) -> str:
         """The default preset for ``model`` on this device."""
-        presets = self.cnn_presets if model == "cnn" and self.cnn_presets else self.presets
+        image = model in MODEL_SPECS and MODEL_SPECS[model].family == "image"
+        presets = self.image_presets if image and self.image_presets else self.presets
         return presets[gpu]
 
     def expand(self, run_dir: Path, requested: list[str] | None) -> tuple[str, ...]:
@@ -84,7 +86,7 @@ KINDS: dict[str, RunKind] = {
     "subject": RunKind(
         name="subject",
         presets=("cpu", "paper"),
-        cnn_presets=("cnn", "cnn"),
+        image_presets=("cnn", "cnn"),
         data=_subject_data,
         start=subject_session.start,
         data_parallel=True,
@@ -102,7 +104,7 @@ KINDS: dict[str, RunKind] = {
     "autoencoder": RunKind(
         name="autoencoder",
         presets=("ae_cpu", "ae_paper"),
-        cnn_presets=("ae_cnn", "ae_cnn_paper"),
+        image_presets=("ae_cnn", "ae_cnn_paper"),
         data=autoencoder_session.resolve_thuman,
         start=autoencoder_session.start,
         data_parallel=False,
@@ -117,7 +119,7 @@ KINDS: dict[str, RunKind] = {
     "rigid": RunKind(
         name="rigid",
         presets=("rigid_cpu", "rigid_paper"),
-        cnn_presets=None,
+        image_presets=None,
         data=rigid_session.resolve_rigid,
         start=rigid_session.start,
         data_parallel=False,

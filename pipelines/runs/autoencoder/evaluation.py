@@ -30,6 +30,7 @@ from fitting.config import FitConfig
 from fitting.evaluate import average_metrics, library_versions, render_view, spread, ssim, write_report
 from fitting.fitted import load_fitted, load_weights
 from fitting.plots import grid, save_png, to_numpy
+from narf.fields import model_spec
 from narf.metrics import mask_l2, psnr_of
 from pipelines.body.model import BodyModel, pose_batch_from_joints
 from pipelines.body.surreal import pose_surreal
@@ -174,7 +175,7 @@ def check_refinable(run: AutoencoderRun, run_dir: Path, refine_steps: int) -> No
     """Refuse ``refine_steps`` (--refine-steps) where it cannot run: a negative count, the CNN baseline."""
     if refine_steps < 0:
         raise ValueError(f"--refine-steps must be >= 0, got {refine_steps}")
-    if refine_steps and run.config.model.name == "cnn":
+    if refine_steps and not model_spec(run.config.model.name).rays:
         raise ValueError(
             f"{run_dir}: the CNN baseline renders no rays, so its codes cannot be refined (--refine-steps)"
         )
@@ -250,7 +251,7 @@ def markdown_autoencoder(report: dict) -> str:
         cross = report["splits"]["cross_dataset"]
         columns += [("SURREAL recon.", cross["reconstruction"]), ("SURREAL novel pose", cross["novel_pose"])]
     cell = lambda m: f"{m['mask_l2']:.1f}/{m['psnr']:.2f}/{m['ssim']:.4f}" if m else "-"  # noqa: E731
-    size = f"{report['image_size']}^2 bone maps" if report["model"] == "cnn" else f"width {report['width']}"
+    size = f"width {report['width']}" if model_spec(report["model"]).rays else f"{report['image_size']}^2 bone maps"
     steps = {part.get("refine_steps") for _, part in columns} - {None}
     refined_row = [
         f"| encoder + {n} refinement steps on the input | "

@@ -14,10 +14,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from fitting.autoencoder import AutoencoderData, AutoencoderTrainer
-from fitting.cnn_trainer import CnnAutoencoderTrainer
+from fitting.autoencoder import AutoencoderData
 from fitting.config import FitConfig
 from fitting.data import TrainingSet
+from fitting.trainers import trainer_class
 from pipelines.body.model import BodyModel, pose_batch_from_joints
 from pipelines.datasets.smpl_files import cache_dir
 from pipelines.datasets.subjects import data_root
@@ -137,5 +137,4 @@ def start(config: FitConfig, run_dir: Path, device, state: dict | None = None, p
     """An AutoencoderTrainer (the CNN baseline: a CnnAutoencoderTrainer) on the config's THUman set; ``state``: the
     checkpoint it resumes. One process (``processes`` is accepted for the kind table's one signature)."""
     data = build_autoencoder_data(config, device, progress)
-    trainer = CnnAutoencoderTrainer if config.model.name == "cnn" else AutoencoderTrainer
-    return trainer(config, run_dir, device, data, state=state, progress=progress)
+    return trainer_class(config)(config, run_dir, device, data, state=state, progress=progress)

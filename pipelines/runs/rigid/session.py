@@ -17,6 +17,7 @@ from fitting.evaluate import average_metrics, frame_metrics, library_versions, r
 from fitting.fitted import load_fitted
 from fitting.plots import grid, save_png, to_numpy
 from fitting.trainer import Trainer
+from fitting.trainers import trainer_class
 from pipelines.datasets.rigid import RigidSet, load_rigid_views, open_rigid
 from pipelines.datasets.smpl_files import cache_dir
 from pipelines.datasets.subjects import data_root
@@ -63,7 +64,8 @@ def start(
     config: FitConfig, run_dir: Path, device, state: dict | None = None, progress: bool = True, processes=None
 ) -> Trainer:
     """A Trainer of a rigid model; ``state``: the checkpoint it resumes. One process."""
-    return Trainer(config, run_dir, device, build_rigid_data(config, device, progress), state=state, progress=progress)
+    data = build_rigid_data(config, device, progress)
+    return trainer_class(config)(config, run_dir, device, data, state=state, progress=progress)
 
 
 def evaluate_rigid_run(run_dir: Path, limit: int | None, device, progress: bool = True, grids: int = 4) -> dict:

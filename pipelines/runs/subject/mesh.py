@@ -15,6 +15,7 @@ import trimesh
 
 from fitting.mesh import ExtractedMesh, extract_mesh, surface_metrics
 from fitting.mesh_level import LevelChoice, LevelView, choose_level
+from narf.fields import model_spec
 from pipelines.body.model import pose_batch
 from pipelines.datasets.smpl_files import atomic_write_bytes
 from pipelines.datasets.zju_mocap import CaptureError
@@ -105,7 +106,7 @@ def export_run_meshes(
     if out.suffix.lower() not in MESH_SUFFIXES:
         raise ValueError(f"{out}: unknown mesh format '{out.suffix}'; use {', '.join(MESH_SUFFIXES)}")
     run = load_run(Path(run_dir), device)
-    if run.config.model.name == "cnn":
+    if not model_spec(run.config.model.name).meshes:
         raise ValueError(f"{run_dir}: the CNN baseline renders images, not a density field: no mesh to export")
     if motion is None and (frame is None or not 0 <= frame < run.capture.n_frames):
         raise CaptureError(f"{run.capture.root}: frame {frame} out of range (0..{run.capture.n_frames - 1})")

@@ -26,6 +26,7 @@ from scipy.spatial.transform import Rotation
 
 from fitting.mesh import extract_mesh, vertex_normals
 from narf.extraction import nearest_part, query_points
+from narf.fields import model_spec
 from narf.kinematics import JOINT_NAMES, PART_JOINTS, SMPL_PARENTS
 from pipelines.body.model import pose_batch
 from pipelines.datasets.gltf import Animation, Skeleton, SkinnedMesh, skinned_glb
@@ -114,7 +115,7 @@ def export_rigged(
     if skin not in SKINS:
         raise ValueError(f"--skin must be one of {', '.join(SKINS)}, got '{skin}'")
     run = load_run(Path(run_dir), device)
-    if run.config.model.name == "cnn":
+    if not model_spec(run.config.model.name).meshes:
         raise ValueError(f"{run_dir}: the CNN baseline renders images, not a density field: no mesh to export")
     staged = capture_stage(run)
     stage, _, shapes = staged

@@ -23,6 +23,7 @@ from fitting.data import FitData, TrainingSet
 from fitting.distributed import SINGLE
 from fitting.fitted import load_fitted, run_config
 from fitting.trainer import Trainer
+from fitting.trainers import trainer_class
 from narf.fields.common import PoseBatch
 from pipelines.body.locate import (
     BODY_MODEL_RECORD,
@@ -203,13 +204,12 @@ def start(
     """A Trainer (the CNN baseline: a CnnTrainer) on the config's capture; ``state``: the checkpoint it resumes.
     ``processes``: this process's place in a data-parallel fit (``fitting.distributed``)."""
     data = build_fit_data(config, device, progress and processes.is_main, state)
-    if config.model.name == "cnn":
-        from fitting.cnn_trainer import CnnTrainer
-
+    trainer = trainer_class(config)
+    if trainer is not Trainer:  # the CNN baseline
         if processes.distributed:
             raise ValueError("data-parallel fitting (torchrun) covers the NeRF-type models; fit the CNN as one process")
-        return CnnTrainer(config, run_dir, device, data, state=state, progress=progress)
-    return Trainer(config, run_dir, device, data, state=state, progress=progress, processes=processes)
+        return trainer(config, run_dir, device, data, state=state, progress=progress)
+    return trainer(config, run_dir, device, data, state=state, progress=progress, processes=processes)
 
 
 @dataclass
