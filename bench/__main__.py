@@ -16,7 +16,7 @@ import os
 import sys
 from pathlib import Path
 
-from fitting.evaluate import write_text_atomic
+from fitting.files import atomic_write_text
 from pipelines.cli.common import flush_subnormals, keep_freed_memory
 
 BENCHMARKS = {
@@ -43,7 +43,7 @@ def _rows(name: str, saved: Path, reuse: bool, machine: str) -> list[dict]:
             return record["rows"]
     rows = importlib.import_module(BENCHMARKS[name]).run()
     record = {"machine": machine, "date": datetime.datetime.now().isoformat(timespec="minutes"), "rows": rows}
-    write_text_atomic(saved, json.dumps(record, indent=1))
+    atomic_write_text(saved, json.dumps(record, indent=1))
     return rows
 
 

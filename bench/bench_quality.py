@@ -19,7 +19,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from fitting.evaluate import write_text_atomic
+from fitting.files import atomic_write_text
 
 #: (row label, ``--set`` overrides of the CPU preset, frames of the capture: None = the default capture)
 SIXTEEN = ["render.train_coarse=16", "render.train_fine=16"]
@@ -161,5 +161,5 @@ def _row(label: str, overrides: list[str], root: Path, data_dir: Path) -> dict:
     row.update({f"render {size}^2 s (fitted)": f"{t:.2f}" for size, t in times.items()})
     curve = ", ".join(f"{r['minutes']}: {r['full']:.2f}/{r['crop']:.2f}" for r in records)
     row["NN PSNR full/crop by minute"] = curve
-    write_text_atomic(saved, json.dumps({"machine": machine(), "row": row}, indent=1))
+    atomic_write_text(saved, json.dumps({"machine": machine(), "row": row}, indent=1))
     return row

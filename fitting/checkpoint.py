@@ -3,11 +3,11 @@
 from __future__ import annotations
 
 import io
-import os
-import tempfile
 from pathlib import Path
 
 import torch
+
+from fitting.files import atomic_write_bytes, remove_stale
 
 CHECKPOINT_NAME = "checkpoint.pt"
 FORMAT_VERSION = 1
@@ -22,20 +22,10 @@ def save_checkpoint(run_dir: Path, state: dict) -> Path:
     previous checkpoint intact and a hidden temporary file, removed by the next save."""
     run_dir = Path(run_dir)
     path = run_dir / CHECKPOINT_NAME
-    for stale in run_dir.glob(".checkpoint.*.tmp"):  # left by a writer killed mid-write (one writer per run)
-        stale.unlink(missing_ok=True)
+    remove_stale(path)
     buffer = io.BytesIO()
     torch.save({"format": FORMAT_VERSION, **state}, buffer)
-    fd, tmp = tempfile.mkstemp(dir=run_dir, prefix=".checkpoint.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(buffer.getvalue())
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    atomic_write_bytes(path, buffer.getvalue(), sync=True)
     return path
 
 

@@ -14,6 +14,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 from fitting.config import FitConfig
+from fitting.files import atomic_write_text
 from narf.cnn_render import render_cnn_image
 from narf.fields import CnnBaseline, model_spec
 from narf.metrics import mask_l2, psnr, psnr_of
@@ -265,16 +266,7 @@ def _breakdown_line(split: str, breakdown: dict | None) -> str | None:
     )
 
 
-def write_text_atomic(path: Path, text: str) -> None:
-    """Write ``text`` to ``path`` through a hidden temporary file and a rename, so a reader never sees half of it."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    tmp.replace(path)
-
-
 def write_report(out_dir: Path, report: dict, markdown: str) -> None:
-    """``metrics.json`` and ``metrics.md`` into ``out_dir``, each atomically (``write_text_atomic``)."""
-    write_text_atomic(Path(out_dir) / "metrics.json", json.dumps(report, indent=1))
-    write_text_atomic(Path(out_dir) / "metrics.md", markdown)
+    """``metrics.json`` and ``metrics.md`` into ``out_dir``, each atomically."""
+    atomic_write_text(Path(out_dir) / "metrics.json", json.dumps(report, indent=1))
+    atomic_write_text(Path(out_dir) / "metrics.md", markdown)

@@ -9,6 +9,8 @@ import cv2
 import numpy as np
 import torch
 
+from fitting.files import atomic_output
+
 _PALETTE = np.array([[(i * 67) % 256, (i * 151 + 80) % 256, (i * 211 + 40) % 256] for i in range(32)]) / 255.0
 
 
@@ -34,9 +36,8 @@ def colour_segmentation(labels: np.ndarray) -> np.ndarray:
 def save_png(path: Path, image: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     bgr = cv2.cvtColor((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    cv2.imwrite(str(tmp), bgr)
-    tmp.replace(path)
+    with atomic_output(path) as tmp:
+        cv2.imwrite(str(tmp), bgr)
 
 
 def grid(gt: np.ndarray, render: dict, labels: bool = True) -> np.ndarray:
@@ -90,6 +91,5 @@ def write_curve(log_path: Path, out: Path, size: tuple[int, int] = (720, 360)) -
         cv2.putText(canvas, f"{value:.0f}", (5, int(y) + 5), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     for step, x in ((steps.min(), margin), (steps.max(), width - margin)):
         cv2.putText(canvas, f"{step:.0f}", (int(x) - 15, height - 25), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    tmp = out.with_name(f".{out.name}.tmp.png")
-    cv2.imwrite(str(tmp), canvas)
-    tmp.replace(out)
+    with atomic_output(out) as tmp:
+        cv2.imwrite(str(tmp), canvas)

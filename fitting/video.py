@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import imageio.v2 as imageio
 import numpy as np
 
+from fitting.files import atomic_output
 from fitting.plots import colour_depth, colour_segmentation
 
 
@@ -25,8 +25,7 @@ def write_mp4(out: Path, frames: list[np.ndarray], fps: int) -> Path:
     if out.exists() and out.is_dir():
         raise IsADirectoryError(f"{out}: is a folder; give a .mp4 file name")
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(f".{out.stem}.partial.mp4")
-    try:
+    with atomic_output(out) as tmp:
         with imageio.get_writer(
             tmp,
             fps=fps,
@@ -37,7 +36,4 @@ def write_mp4(out: Path, frames: list[np.ndarray], fps: int) -> Path:
         ) as w:
             for frame in frames:
                 w.append_data(frame)
-        os.replace(tmp, out)
-    finally:
-        tmp.unlink(missing_ok=True)
     return out

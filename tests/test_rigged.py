@@ -234,7 +234,7 @@ def test_blender_imports_the_rigged_export(rigged):
 def test_exported_files_get_the_usual_permissions(tmp_path):
     import os
 
-    from pipelines.datasets.smpl_files import atomic_write_bytes
+    from fitting.files import atomic_write_bytes
 
     mask = os.umask(0o022)
     os.umask(mask)

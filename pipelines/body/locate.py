@@ -7,11 +7,11 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
-import sys
 from pathlib import Path
 
 from pipelines.body.standin import build_standin_model
 from pipelines.datasets.smpl_files import SmplFileError, cache_dir, write_smpl_pickle
+from pipelines.datasets.subjects import stand_in_notice
 
 
 def standin_path() -> Path:
@@ -23,7 +23,7 @@ def ensure_standin(path: Path | None = None) -> Path:
     """Generate the stand-in body model once (atomically) and return its path."""
     path = Path(path) if path else standin_path()
     if not path.is_file():
-        print(f"narf: generating the stand-in SMPL body model at {path}", file=sys.stderr)
+        stand_in_notice(f"generating the stand-in SMPL body model at {path}")
         write_smpl_pickle(build_standin_model(), path)
     return path
 

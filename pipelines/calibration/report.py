@@ -9,15 +9,15 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from skimage.transform import SimilarityTransform
 
+from fitting.files import atomic_output
 from pipelines.datasets.zju_mocap import Camera
 
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 
 
 def _save(path: Path, canvas: np.ndarray) -> None:
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    cv2.imwrite(str(tmp), canvas)
-    tmp.replace(path)
+    with atomic_output(path) as tmp:
+        cv2.imwrite(str(tmp), canvas)
 
 
 def draw_rig(

@@ -10,6 +10,7 @@ from collections import Counter
 from dataclasses import asdict
 from pathlib import Path
 
+from fitting.files import merge_folder, partial_folder
 from pipelines.calibration.board import BoardSpec, read_board_json
 from pipelines.cli.common import HelpFormatter, at_least, positive_number, run_cli
 from pipelines.datasets.colmap import write_colmap_model
@@ -115,7 +116,7 @@ def calibrate_capture(
 
 def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None, report: dict, figures: dict) -> None:
     """Write into a hidden temporary folder, then move the files into ``out`` (nothing partial on failure)."""
-    staging = out.parent / f".{out.name}.partial"
+    staging = partial_folder(out)
     shutil.rmtree(staging, ignore_errors=True)
     staging.mkdir(parents=True)
     write_annots(staging / "annots.npy", cameras, ims or [])
@@ -128,12 +129,7 @@ def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None,
     draw_rig(staging / "rig.png", cameras, figures["world_from_board"], size)
     draw_residuals(staging / "residuals.png", figures["camera_rms"])
     (staging / "report.json").write_text(json.dumps(report, indent=1))
-    out.mkdir(parents=True, exist_ok=True)
-    for path in staging.iterdir():
-        if path.is_dir() and (out / path.name).is_dir():
-            shutil.rmtree(out / path.name)
-        path.replace(out / path.name)
-    staging.rmdir()
+    merge_folder(staging, out)
 
 
 def merge_into_capture(capture: Path, cameras: list[Camera]) -> Path:
@@ -161,9 +157,9 @@ def _corners(text: str) -> tuple[int, int]:
 def checkerboard_intrinsics(args) -> int:
     """``--checkerboard``: per-camera intrinsics from checkerboard shots, written to intrinsics.json (and compared
     with ``--compare``)."""
+    from fitting.files import atomic_write_bytes
     from pipelines.calibration.checkerboard import calibrate_checkerboard_shots, camera_name, shot_folders
     from pipelines.datasets.rig_files import read_rig
-    from pipelines.datasets.smpl_files import atomic_write_bytes
 
     square = args.square_length if args.square_length is not None else 0.06
     if not (square > 0 and square < 10):

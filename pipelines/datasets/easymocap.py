@@ -16,7 +16,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipelines.datasets.smpl_files import atomic_write_bytes
+from fitting.files import atomic_write_bytes
 from pipelines.datasets.zju_mocap import Camera, CaptureError
 
 #: Characters a camera name cannot hold: they would end the YAML key or the quoted ``names`` entry.

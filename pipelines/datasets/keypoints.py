@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.datasets.smpl_files import atomic_write_bytes
+from fitting.files import atomic_write_bytes
 from pipelines.datasets.zju_mocap import CaptureError
 
 LAYOUT_SIZES = {"body25": 25, "body25b": 25, "coco18": 18, "coco17": 17, "halpe26": 26, "blazepose": 33}

@@ -22,7 +22,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipelines.datasets.smpl_files import atomic_write_bytes
+from fitting.files import atomic_write_bytes
 from pipelines.datasets.zju_mocap import Camera, CaptureError, read_annots
 
 #: Qualisys stores intrinsics in sub-pixel units: 64 per pixel (as Pose2Sim reads them; binning 1).

@@ -9,12 +9,12 @@ from __future__ import annotations
 import io
 import os
 import pickle
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import scipy.sparse
 
+from fitting.files import atomic_write_bytes
 from pipelines.datasets.safe_pickle import ChumpyStub, RestrictedUnpickler
 
 REQUIRED_KEYS = ("v_template", "shapedirs", "posedirs", "J_regressor", "weights", "kintree_table", "f")
@@ -46,31 +46,6 @@ class _LegacyPickler(pickle._Pickler):  # the pure-Python pickler lets us rename
         super().save_global(obj, name)
 
     dispatch = dict(pickle._Pickler.dispatch)
-
-
-def _umask() -> int:
-    """The process's umask (read by setting it, so once, at import, before any thread writes)."""
-    mask = os.umask(0o022)
-    os.umask(mask)
-    return mask
-
-
-_UMASK = _umask()
-
-
-def atomic_write_bytes(path: Path, data: bytes) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder and a rename. The file gets the
-    permissions of any new file (0666 less the umask), not the 0600 of the temporary file."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        os.fchmod(fd, 0o666 & ~_UMASK)
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def write_smpl_pickle(model: dict, path: Path) -> None:

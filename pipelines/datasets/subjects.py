@@ -9,6 +9,7 @@ subject for fitting (``pipelines.runs.subject.session.resolve_subject``).
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 from pipelines.datasets.zju_mocap import CaptureError
@@ -25,6 +26,12 @@ ZJU_SUBJECTS = {
     "swing3": 393,
     "swing2": 394,
 }
+
+
+def stand_in_notice(text: str) -> None:
+    """Say on stderr, in one line, that a generated stand-in takes the place of real data (``text``: what and
+    where). Every stand-in (body model, captures, THUman, SURREAL, the rigid set) is announced through here."""
+    print(f"narf: {text}", file=sys.stderr)
 
 
 def data_root(explicit: str | Path | None = None) -> Path:

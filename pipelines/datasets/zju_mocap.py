@@ -17,8 +17,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fitting.files import atomic_write_bytes
 from pipelines.datasets.safe_pickle import load_npy_object
-from pipelines.datasets.smpl_files import atomic_write_bytes
 
 
 class CaptureError(ValueError):

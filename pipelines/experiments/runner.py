@@ -18,7 +18,7 @@ import numpy as np
 
 from fitting.checkpoint import load_checkpoint
 from fitting.config import load_config
-from fitting.evaluate import write_text_atomic
+from fitting.files import atomic_write_text
 from fitting.fitted import run_config
 from fitting.trainer import auto_device, make_field
 from pipelines.experiments.orderings import check_orderings
@@ -129,7 +129,7 @@ def run_row(table: Table, row: Row, out_dir: Path, settings: Settings, fitter=ru
         "cost": row_costs(run_dir),
         "wall_seconds": time.perf_counter() - start,
     }
-    write_text_atomic(result_path, json.dumps(result, indent=1))
+    atomic_write_text(result_path, json.dumps(result, indent=1))
     return result
 
 
@@ -155,7 +155,7 @@ def check_settings(out_dir: Path, settings: Settings) -> None:
                 "the same settings to resume it, or choose another --out"
             )
     else:
-        write_text_atomic(path, json.dumps(current, indent=1))
+        atomic_write_text(path, json.dumps(current, indent=1))
 
 
 def run_table(table: Table, out: Path, settings: Settings, rows: list[str] | None = None, progress=print, **kw) -> dict:
@@ -175,8 +175,8 @@ def run_table(table: Table, out: Path, settings: Settings, rows: list[str] | Non
         "rows": results,
         "orderings": check_orderings(table.name, {n: r["metrics"] for n, r in results.items()}),
     }
-    write_text_atomic(out_dir / "table.json", json.dumps(summary, indent=1))
-    write_text_atomic(out_dir / "table.md", markdown_table(table, summary))
+    atomic_write_text(out_dir / "table.json", json.dumps(summary, indent=1))
+    atomic_write_text(out_dir / "table.md", markdown_table(table, summary))
     return summary
 
 

@@ -16,6 +16,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from fitting.files import partial_folder, publish_folder
 from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.datasets.floor import Floor, camera_up, floor_from_feet, write_floor
 from pipelines.datasets.rig_files import read_rig
@@ -111,7 +112,7 @@ def prepare_capture(request: PrepareRequest) -> dict:
 
         detector = BlazePose()
     body = BodyModel(request.smpl_dir)  # a bad --smpl-dir fails before any frame is read
-    staging = out.parent / f".{out.name}.partial"
+    staging = partial_folder(out)
     shutil.rmtree(staging, ignore_errors=True)
     try:
         unused = [s.name for s in sources if s.name not in {source.name for _, source, _ in matched}]
@@ -124,9 +125,7 @@ def prepare_capture(request: PrepareRequest) -> dict:
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         raise
-    if out.exists():
-        shutil.rmtree(out)
-    staging.rename(out)
+    publish_folder(staging, out)
     return report
 
 

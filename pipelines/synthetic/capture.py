@@ -21,6 +21,7 @@ import torch
 import trimesh
 from tqdm import tqdm
 
+from fitting.files import partial_folder, publish_folder
 from fitting.mesh import vertex_normals
 from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.body.model import BodyModel
@@ -279,7 +280,7 @@ def generate_capture(
                 f"{out}: folder is not empty and holds no finished synthetic capture; choose another --out or remove it"
             )
         shutil.rmtree(out)  # a finished capture with other settings: regenerate
-    partial = out.parent / f".{out.name}.partial"
+    partial = partial_folder(out)
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
     body = BodyModel(smpl_path)
@@ -324,7 +325,4 @@ def generate_capture(
     (partial / MARKER).write_text(
         json.dumps({"version": GENERATOR_VERSION, "config": asdict(config), "smpl": str(body.path)}, indent=2)
     )
-    if out.exists():
-        out.rmdir()
-    partial.rename(out)
-    return out
+    return publish_folder(partial, out, replace=False)

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from fitting.files import partial_folder, publish_folder
 from pipelines.body.model import BodyModel
 from pipelines.datasets.thuman import RENDER_SIZE, THUMAN_K, item_gender, read_colored_obj, read_smpl_params_txt
 from pipelines.datasets.zju_mocap import CaptureError
@@ -149,7 +150,7 @@ def prepare_thuman(
         scan = read_colored_obj(Path(raw_dir) / item / "mesh.obj")
         item_gender(Path(raw_dir) / item)
         meshes.append((params, scan))
-    partial = Path(out).parent / f".{Path(out).name}.partial"
+    partial = partial_folder(out)
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
     prepare_folders(partial)
@@ -174,7 +175,4 @@ def prepare_thuman(
         "renders_per_mesh": per_mesh,
     }
     (partial / "thuman.json").write_text(json.dumps(marker, indent=1))
-    if Path(out).exists():
-        shutil.rmtree(out)
-    partial.rename(out)
-    return Path(out)
+    return publish_folder(partial, out)

@@ -6,11 +6,12 @@ from __future__ import annotations
 
 import json
 import shutil
-import sys
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
+from fitting.files import partial_folder, publish_folder
+from pipelines.datasets.subjects import stand_in_notice
 from pipelines.datasets.zju_mocap import CaptureError
 
 MARKER = "synthetic.json"
@@ -33,7 +34,7 @@ def start_staging(out: Path, dataset: str, description: str) -> Path:
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not is_finished(out, dataset):
         raise FileExistsError(f"{out}: exists and holds no finished {description}; choose another --out")
-    partial = out.parent / f".{out.name}.partial"
+    partial = partial_folder(out)
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
     return partial
@@ -42,10 +43,7 @@ def start_staging(out: Path, dataset: str, description: str) -> Path:
 def publish(partial: Path, out: Path, marker: dict) -> Path:
     """Write the marker last and move the staging folder into place (replacing an older finished set)."""
     (partial / MARKER).write_text(json.dumps(marker, indent=1))
-    if Path(out).exists():
-        shutil.rmtree(out)
-    partial.rename(out)
-    return Path(out)
+    return publish_folder(partial, out)
 
 
 def use_stand_in(out: Path, what: str, dataset: str, complete: Callable, make: Callable, quiet: bool, generate: bool):
@@ -53,7 +51,7 @@ def use_stand_in(out: Path, what: str, dataset: str, complete: Callable, make: C
     ``quiet``) and made by ``make()`` when ``complete(out)`` is False (``generate=False``: a CaptureError instead)."""
     if not quiet:
         state = "using" if complete(out) else "generating"
-        print(f"narf: no {what} given; {state} the synthetic stand-in at {out}", file=sys.stderr)
+        stand_in_notice(f"no {what} given; {state} the synthetic stand-in at {out}")
     if not complete(out):
         if not generate:
             raise CaptureError(f"{out}: synthetic {what} not generated yet (run narf-synth --dataset {dataset})")

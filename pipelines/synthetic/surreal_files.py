@@ -9,13 +9,13 @@ exists is complete.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import imageio.v2 as imageio
 import numpy as np
 import scipy.io
 
+from fitting.files import atomic_output
 from pipelines.datasets.surreal import HEIGHT, SURREAL_K, WIDTH, surreal_cam_from_world
 
 
@@ -28,9 +28,8 @@ def project_joints(joints3d: np.ndarray, cam_loc: np.ndarray) -> np.ndarray:
 
 
 def _savemat(path: Path, content: dict) -> None:
-    tmp = path.with_name(f".{path.stem}.tmp.mat")  # savemat appends .mat to other names
-    scipy.io.savemat(str(tmp), content, do_compression=True)
-    os.replace(tmp, path)
+    with atomic_output(path) as tmp:  # .<stem>.partial.mat: savemat appends .mat to other names
+        scipy.io.savemat(str(tmp), content, do_compression=True)
 
 
 def write_surreal_clip(
@@ -63,11 +62,12 @@ def write_surreal_clip(
     for kind, maps, dtype in (("segm", segm, np.uint8), ("depth", depth, np.float32)):
         _savemat(folder / f"{name}_{kind}.mat", {f"{kind}_{t + 1}": maps[t].astype(dtype) for t in range(n)})
     video = folder / f"{name}.mp4"
-    tmp_video = folder / f".{name}.tmp.mp4"
-    with imageio.get_writer(tmp_video, fps=fps, codec="libx264", quality=8, macro_block_size=1) as writer:
+    with (
+        atomic_output(video) as tmp_video,
+        imageio.get_writer(tmp_video, fps=fps, codec="libx264", quality=8, macro_block_size=1) as writer,
+    ):
         for frame in frames:
             writer.append_data(frame)
-    os.replace(tmp_video, video)
     cam_loc = np.asarray(cam_loc, dtype=np.float64).reshape(3, 1)
     info = {
         "pose": pose.T.astype(np.float32),

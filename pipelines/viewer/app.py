@@ -27,11 +27,11 @@ import viser
 from scipy.spatial.transform import Rotation
 
 from fitting.evaluate import render_view
+from fitting.files import atomic_write_bytes
 from fitting.plots import colour_depth, colour_segmentation, to_numpy
 from narf.kinematics import JOINT_NAMES
 from pipelines.datasets.camera_path import CameraPath, Keyframe
 from pipelines.datasets.floor import camera_up
-from pipelines.datasets.smpl_files import atomic_write_bytes
 from pipelines.viewer.avatar import AvatarPose, camera_from_viewer, viewer_from_camera, z_depth
 
 MODES = ("RGB", "depth", "parts")

@@ -34,7 +34,7 @@ from narf.fields import model_spec
 from narf.metrics import mask_l2, psnr_of
 from pipelines.body.model import BodyModel, pose_batch_from_joints
 from pipelines.body.surreal import pose_surreal
-from pipelines.datasets.subjects import data_root
+from pipelines.datasets.subjects import data_root, stand_in_notice
 from pipelines.datasets.surreal import check_clip, read_frame_maps, right_handed_view
 from pipelines.datasets.zju_mocap import Camera, CaptureError
 from pipelines.runs.autoencoder.session import ThumanSet, ThumanView, load_views, open_thuman, resolve_thuman
@@ -140,7 +140,7 @@ def resolve_surreal(root: str | Path | None, quiet: bool = False) -> list[Path]:
     out = data_root(root) / "synthetic" / "surreal"
     if not is_surreal_complete(out):
         if not quiet:
-            print(f"narf: no SURREAL folder given; generating the synthetic stand-in at {out}")
+            stand_in_notice(f"no SURREAL folder given; generating the synthetic stand-in at {out}")
         generate_surreal(out, SurrealSynthConfig(), progress=not quiet)
     return sorted(out.rglob("*_info.mat"))
 

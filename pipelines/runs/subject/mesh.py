@@ -13,11 +13,11 @@ import numpy as np
 import torch
 import trimesh
 
+from fitting.files import atomic_write_bytes
 from fitting.mesh import ExtractedMesh, extract_mesh, surface_metrics
 from fitting.mesh_level import LevelChoice, LevelView, choose_level
 from narf.fields import model_spec
 from pipelines.body.model import pose_batch
-from pipelines.datasets.smpl_files import atomic_write_bytes
 from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.runs.subject.session import LoadedRun, box_frames, load_run, poses_for_frames
 from pipelines.runs.subject.video import motion_params

@@ -24,13 +24,13 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
+from fitting.files import atomic_write_bytes
 from fitting.mesh import extract_mesh, vertex_normals
 from narf.extraction import nearest_part, query_points
 from narf.fields import model_spec
 from narf.kinematics import JOINT_NAMES, PART_JOINTS, SMPL_PARENTS
 from pipelines.body.model import pose_batch
 from pipelines.datasets.gltf import Animation, Skeleton, SkinnedMesh, skinned_glb
-from pipelines.datasets.smpl_files import atomic_write_bytes
 from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.runs.subject.mesh import resolve_level
 from pipelines.runs.subject.session import load_run

@@ -5,8 +5,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
-import sys
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -21,6 +19,7 @@ from fitting.config import FitConfig
 from fitting.corrections import pose_correction_from_state
 from fitting.data import FitData, TrainingSet
 from fitting.distributed import SINGLE
+from fitting.files import staged_folder
 from fitting.fitted import load_fitted, run_config
 from fitting.trainer import Trainer
 from fitting.trainers import trainer_class
@@ -36,7 +35,7 @@ from pipelines.body.locate import (
 from pipelines.body.model import BodyModel, capture_poses, pose_batch
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.smpl_files import cache_dir
-from pipelines.datasets.subjects import data_root, find_subject, real_candidates, synthetic_path
+from pipelines.datasets.subjects import data_root, find_subject, real_candidates, stand_in_notice, synthetic_path
 from pipelines.datasets.zju_mocap import CaptureError, SmplParams
 from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
 
@@ -68,7 +67,7 @@ def resolve_subject(name: str, root: str | Path | None = None, generate: bool = 
     out = synthetic_path(key, root)
     if not quiet:
         state = "using" if is_complete(out) else "generating"
-        print(f"narf: no real '{name}' capture under {root}; {state} the synthetic stand-in at {out}", file=sys.stderr)
+        stand_in_notice(f"no real '{name}' capture under {root}; {state} the synthetic stand-in at {out}")
     if not is_complete(out):
         if not generate:
             raise CaptureError(f"{out}: synthetic capture not generated yet (run narf-synth --subject {key})")
@@ -275,11 +274,7 @@ def write_refined_params(run_dir: Path) -> Path | None:
     config = run_config(state, run_dir)
     capture = open_capture(config, quiet=True)
     refined = refined_params(state, capture, run_dir / "checkpoint.pt")
-    out, partial = run_dir / REFINED, run_dir / f".{REFINED}.partial"
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir()
-    for frame, params in refined.items():
-        write_params(partial / f"{param_index_from_image(capture.ims[frame][0])[1]}.npy", params)
-    shutil.rmtree(out, ignore_errors=True)
-    partial.rename(out)
-    return out
+    with staged_folder(run_dir / REFINED) as partial:
+        for frame, params in refined.items():
+            write_params(partial / f"{param_index_from_image(capture.ims[frame][0])[1]}.npy", params)
+    return run_dir / REFINED

@@ -13,6 +13,7 @@ from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
 from fitting.evaluate import render_view
+from fitting.files import atomic_write_bytes
 from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
 from narf.kinematics import JOINT_NAMES, PART_JOINTS, SMPL_PARENTS, rigid_from_rotvec_translation
@@ -20,7 +21,6 @@ from pipelines.body.model import BodyModel, pose_batch, posed_from_rest_joints
 from pipelines.body.motion import load_motion, place, resample, stage_of
 from pipelines.datasets.camera_path import interpolate, intrinsics, read_camera_path
 from pipelines.datasets.floor import camera_up
-from pipelines.datasets.smpl_files import atomic_write_bytes
 from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.runs.requests import VideoRequest, refuse_options
 from pipelines.runs.subject.session import LoadedRun, box_frames, load_run, poses_for_frames
