@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import platform
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -264,6 +265,21 @@ def _breakdown_line(split: str, breakdown: dict | None) -> str | None:
         f"disagreement {share('silhouette')} ({pixels('silhouette')} of the crop); the mask's boundary band "
         f"{share('band')} ({pixels('band')}); background {share('background')}"
     )
+
+
+def evaluate_splits(
+    out_dir: Path, splits, score: Callable[[str], dict], header: Callable[[], dict], markdown: Callable[[dict], str]
+) -> dict:
+    """The evaluation skeleton every run kind shares: ``out_dir/metrics.json`` is read (the results of splits not
+    evaluated now are kept), ``score(split)`` fills each split, ``header()`` adds what the run is (then the library
+    versions), and ``metrics.json`` and ``metrics.md`` (``markdown(report)``) are written atomically."""
+    metrics_path = Path(out_dir) / "metrics.json"
+    report = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {"splits": {}}
+    for split in splits:
+        report["splits"][split] = score(split)
+    report.update({**header(), "versions": library_versions()})
+    write_report(out_dir, report, markdown(report))
+    return report
 
 
 def write_report(out_dir: Path, report: dict, markdown: str) -> None:

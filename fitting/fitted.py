@@ -22,6 +22,29 @@ def run_config(state: dict, path: Path, overrides: list[str] | None = None) -> F
         raise CheckpointError(f"{path}: {err}") from err
 
 
+@dataclass(frozen=True)
+class SavedRun:
+    """A run folder with its checkpoint read once (on the CPU): the ``state`` and the ``config`` it was fitted with.
+    Commands read it once and hand it on; every loader below also takes the folder itself."""
+
+    run_dir: Path
+    state: dict
+    config: FitConfig
+
+
+def run_folder(run: Path | SavedRun) -> Path:
+    """The folder of ``run`` (a folder, or its checkpoint already read)."""
+    return run.run_dir if isinstance(run, SavedRun) else Path(run)
+
+
+def read_run(run: Path | SavedRun) -> SavedRun:
+    """``run`` as a :class:`SavedRun`: its checkpoint read and its config checked, unless it is one already."""
+    if isinstance(run, SavedRun):
+        return run
+    state = load_checkpoint(Path(run))
+    return SavedRun(Path(run), state, run_config(state, Path(run)))
+
+
 @dataclass
 class Fitted:
     """A fitted run: its checkpoint ``state``, ``config`` and the ``field`` (eval mode) on the device."""
@@ -45,11 +68,11 @@ def load_weights(module: torch.nn.Module, weights: dict, path: Path, what: str) 
         raise CheckpointError(f"{path}: its weights do not fit {what} ({detail})") from err
 
 
-def load_fitted(run_dir: Path, device="cpu", kind: str | None = None) -> Fitted:
-    """Load ``run_dir/checkpoint.pt`` and build its model; ``kind`` refuses a run of another kind first."""
-    run_dir = Path(run_dir)
-    state = load_checkpoint(run_dir, map_location=device)
-    config = run_config(state, run_dir)
+def load_fitted(run: Path | SavedRun, device="cpu", kind: str | None = None) -> Fitted:
+    """Build the model of a run folder's checkpoint on ``device`` (``run``: the folder, or its checkpoint already
+    read); ``kind`` refuses a run of another kind first."""
+    saved = read_run(run)
+    run_dir, state, config = saved.run_dir, saved.state, saved.config
     if kind is not None and config.kind != kind:
         raise CheckpointError(f"{run_dir}: holds a {config.kind} run; this needs a {kind} run")
     field = make_field(config).to(device)

@@ -21,7 +21,8 @@ from pipelines.cli import fit as cli_fit
 from pipelines.cli.common import run_cli
 from pipelines.datasets.surreal import check_clip
 from pipelines.runs.autoencoder.evaluation import evaluate_autoencoder_run, surreal_view
-from pipelines.runs.fit import start_run
+from pipelines.runs.fit import resume_run, start_run
+from pipelines.runs.requests import EvalRequest
 from pipelines.synthetic.surreal import SurrealSynthConfig, generate_surreal
 from pipelines.synthetic.thuman import ThumanSynthConfig, generate_thuman
 
@@ -75,7 +76,7 @@ def test_fit_learns_and_resumes_exactly(sets, tmp_path):
     for _ in range(6):
         first.train_step()
     first.checkpoint()
-    resumed = start_run(tmp_path / "b", "cpu", resume=True, progress=False)
+    resumed = resume_run(tmp_path / "b", "cpu", progress=False)
     assert resumed.step == 6
     resumed.fit()
     a, b = load_checkpoint(tmp_path / "a"), load_checkpoint(tmp_path / "b")
@@ -99,7 +100,9 @@ def test_evaluation_splits_and_grids(sets, tmp_path, monkeypatch):
     config = _config(sets, "train.steps=4")
     start_run(prepare_run_dir(tmp_path / "run", config, False), "cpu", config, progress=False).fit()
     splits = ["same_pose_same_view", "novel_pose_novel_view", "cross_dataset"]
-    report = evaluate_autoencoder_run(tmp_path / "run", splits, limit=1, progress=False, grids=1, refine_steps=2)
+    report = evaluate_autoencoder_run(
+        tmp_path / "run", EvalRequest(tuple(splits), 1, progress=False, grids=1, refine_steps=2)
+    )
     assert report["splits"]["same_pose_same_view"]["n_views"] == 1
     assert set(report["splits"]["novel_pose_novel_view"]["mean_code"]) == {"mask_l2", "psnr", "ssim"}
     cross = report["splits"]["cross_dataset"]
@@ -121,14 +124,14 @@ def test_cnn_autoencoder_fits_resumes_and_evaluates(sets, tmp_path, monkeypatch)
     trainer = start_run(prepare_run_dir(tmp_path / "run", config, False), "cpu", config, progress=False)
     assert isinstance(trainer, CnnAutoencoderTrainer)
     trainer.fit()
-    resumed = start_run(tmp_path / "run", "cpu", resume=True, progress=False, overrides=[])
+    resumed = resume_run(tmp_path / "run", "cpu", progress=False)
     assert isinstance(resumed, CnnAutoencoderTrainer) and resumed.step == 2
     splits = ["same_pose_same_view", "cross_dataset"]
-    report = evaluate_autoencoder_run(tmp_path / "run", splits, limit=1, progress=False, grids=1)
+    report = evaluate_autoencoder_run(tmp_path / "run", EvalRequest(tuple(splits), 1, progress=False, grids=1))
     assert report["splits"]["same_pose_same_view"]["n_views"] == 1 and report["model"] == config.model.name
     assert "32^2 bone maps" in (tmp_path / "run" / "eval" / "metrics.md").read_text()
     with pytest.raises(ValueError, match="the CNN baseline renders no rays"):
-        evaluate_autoencoder_run(tmp_path / "run", ["cross_dataset"], limit=1, progress=False, refine_steps=1)
+        evaluate_autoencoder_run(tmp_path / "run", EvalRequest(("cross_dataset",), 1, progress=False, refine_steps=1))
     # the code reaches every conditional norm and is trained: its weights start at zero and each Adam step moves a
     # weight with a non-zero gradient by ~lr = 1e-3, so after 2 steps they sit far above 0
     model = load_checkpoint(tmp_path / "run")["model"]

@@ -10,7 +10,8 @@ from fitting.config import load_config
 from fitting.trainer import prepare_run_dir
 from narf.cnn_render import cnn_inputs, render_cnn_image, scaled_intrinsics
 from narf.fields import CnnBaseline, model_spec
-from pipelines.runs.fit import start_run
+from pipelines.runs.fit import resume_run, start_run
+from pipelines.runs.requests import EvalRequest, VideoRequest
 from pipelines.runs.subject.evaluation import evaluate_run
 
 CNN = ["model.name=cnn", "model.image_size=32", "train.images_per_step=4", "train.lr=0.001", "train.log_every=1"]
@@ -19,7 +20,9 @@ CNN = ["model.name=cnn", "model.image_size=32", "train.images_per_step=4", "trai
 def _fit(root, out, *extra, resume=False):
     config = load_config("tiny", [f"data.data_root={root}", "data.ratio=1.0", *CNN, *extra])
     run = prepare_run_dir(out, config, resume)
-    return start_run(run, torch.device("cpu"), config, resume=resume, progress=False)
+    if resume:
+        return resume_run(run, torch.device("cpu"), progress=False)
+    return start_run(run, torch.device("cpu"), config, progress=False)
 
 
 def test_scaled_intrinsics_keep_pixel_centres():
@@ -80,7 +83,7 @@ def test_cnn_fit_loss_falls_resumes_and_evaluates(data_root_64, tmp_path):
     # against the loss of the first step of a fresh model (same seed)
     assert np.mean([r["loss"] for r in log[-3:]]) < 0.5 * _initial_loss(data_root_64, tmp_path / "fresh")
     assert (tmp_path / "run" / "val" / "step_0000040.png").is_file()
-    report = evaluate_run(tmp_path / "run", ["novel_pose_novel_view"], limit=2, progress=False)
+    report = evaluate_run(tmp_path / "run", EvalRequest(("novel_pose_novel_view",), 2, progress=False))
     split = report["splits"]["novel_pose_novel_view"]
     assert model_spec(report["model"]).family == "image" and split["n_views"] == 2 and 5 < split["full"]["psnr"] < 60
     assert len(list((tmp_path / "run" / "eval" / "grids").rglob("*.png"))) == 2
@@ -97,7 +100,7 @@ def test_cnn_video(data_root_64, tmp_path):
     from pipelines.runs.subject.video import render_video
 
     _fit(data_root_64, tmp_path / "run", "train.steps=2").fit()
-    out = render_video(tmp_path / "run", "bones", tmp_path / "bones.mp4", n_frames=4, fps=4, progress=False)
+    out = render_video(tmp_path / "run", VideoRequest("bones", tmp_path / "bones.mp4", frames=4, fps=4, progress=False))
     frames = imageio.mimread(out)
     assert len(frames) == 4 and frames[0].shape[1] == 2 * frames[0].shape[0]  # RGB | depth, no segmentation
 

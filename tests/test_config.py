@@ -11,13 +11,13 @@ from fitting.config import CONFIG_DIR, ConfigError, FitConfig, ModelName, RunKin
 from fitting.fitted import load_fitted
 from fitting.trainer import make_field
 from narf.fields import MODEL_SPECS
-from pipelines.runs.kinds import KINDS
+from pipelines.runs.kinds import RUN_KINDS
 
 
 def test_names_agree_across_the_tables():
     assert set(typing.get_args(ModelName)) == set(MODEL_SPECS)
-    assert set(typing.get_args(RunKindName)) == set(KINDS)
-    for kind in KINDS.values():  # every default preset exists and is of its kind
+    assert set(typing.get_args(RunKindName)) == set(RUN_KINDS)
+    for kind in RUN_KINDS.values():  # every default preset exists and is of its kind
         for preset in (*kind.presets, *(kind.image_presets or ())):
             assert load_config(preset).kind == kind.name
 
@@ -28,9 +28,9 @@ def test_the_commands_offer_every_kind_split_and_video():
     from pipelines.cli import fit as cli_fit
     from pipelines.cli import render_video
 
-    assert set(cli_fit.KIND_NAMES) == set(KINDS)
-    assert set(cli_eval.SPLITS) == {s for k in KINDS.values() for s in k.splits} | {"all"}
-    assert set(render_video.VIDEO_KINDS) == {v for k in KINDS.values() for v in k.videos}
+    assert set(cli_fit.KIND_NAMES) == set(RUN_KINDS)
+    assert set(cli_eval.SPLITS) == {s for k in RUN_KINDS.values() for s in k.splits} | {"all"}
+    assert set(render_video.VIDEO_KINDS) == {v for k in RUN_KINDS.values() for v in k.videos}
 
 
 def test_every_preset_loads_and_builds_its_model():

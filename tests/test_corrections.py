@@ -14,6 +14,7 @@ from fitting.data import RayBatch
 from narf.renderer import RenderOutput
 from pipelines.body.model import capture_poses, pose_batch
 from pipelines.datasets.capture import ZjuCapture
+from pipelines.runs.requests import EvalRequest
 from pipelines.synthetic.degrade import Degradation, camera_colours, degrade_capture, joint_errors
 
 FIELDS = ("poses", "rh", "th", "shapes")
@@ -283,7 +284,7 @@ def test_corrected_poses_travel_with_the_run(data_root_64, tmp_path, body_model)
     np.testing.assert_array_equal(written.poses, run.params(train[1]).poses)
     assert not np.array_equal(written.th, run.capture.params(train[1]).th)
     np.testing.assert_array_equal(run.params(novel[0]).th, run.capture.params(novel[0]).th)
-    report = evaluate_run(tmp_path / "run", ["same_pose_same_view"], limit=1, progress=False)
+    report = evaluate_run(tmp_path / "run", EvalRequest(("same_pose_same_view",), 1, progress=False))
     assert report["poses"] == "corrected"
     assert "correcting them would need their images" in (tmp_path / "run" / "eval" / "metrics.md").read_text()
 

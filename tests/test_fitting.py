@@ -19,7 +19,8 @@ from fitting.trainer import prepare_run_dir
 from pipelines.cli import eval as cli_eval
 from pipelines.cli import fit as cli_fit
 from pipelines.cli.common import run_cli
-from pipelines.runs.fit import start_run
+from pipelines.runs.fit import resume_run, start_run
+from pipelines.runs.requests import EvalRequest, VideoRequest
 from pipelines.runs.subject.evaluation import evaluate_run
 
 
@@ -30,7 +31,9 @@ def _config(root, *extra):
 def _fit(root, out, *extra, resume=False):
     config = _config(root, *extra)
     run = prepare_run_dir(out, config, resume)
-    return start_run(run, torch.device("cpu"), config, resume=resume, progress=False)
+    if resume:
+        return resume_run(run, torch.device("cpu"), progress=False)
+    return start_run(run, torch.device("cpu"), config, progress=False)
 
 
 def test_tiny_fit_loss_falls_and_eval_writes_every_artefact(data_root_64, tmp_path):
@@ -41,7 +44,9 @@ def test_tiny_fit_loss_falls_and_eval_writes_every_artefact(data_root_64, tmp_pa
     assert np.mean([r["loss"] for r in log[-3:]]) < 0.7 * np.mean([r["loss"] for r in log[:2]])
     for name in ("config.yaml", "checkpoint.pt", "curve.png", "val/step_0000060.png"):
         assert (tmp_path / "run" / name).is_file(), name
-    report = evaluate_run(tmp_path / "run", ["same_pose_novel_view", "novel_pose_novel_view"], limit=2, progress=False)
+    report = evaluate_run(
+        tmp_path / "run", EvalRequest(("same_pose_novel_view", "novel_pose_novel_view"), 2, progress=False)
+    )
     split = report["splits"]["novel_pose_novel_view"]
     assert split["n_views"] == 2 and set(split["full"]) == {"mask_l2", "psnr", "ssim"} and split["nb_crop"]
     assert report["versions"]["scikit-image"]
@@ -187,7 +192,9 @@ def test_video_decodes_to_expected_frames(data_root_64, tmp_path):
 
     _fit(data_root_64, tmp_path / "run", "train.steps=2").fit()
     for kind in ("orbit", "poses", "bones"):
-        path = render_video(tmp_path / "run", kind, tmp_path / f"{kind}.mp4", n_frames=5, fps=10, progress=False)
+        path = render_video(
+            tmp_path / "run", VideoRequest(kind, tmp_path / f"{kind}.mp4", frames=5, fps=10, progress=False)
+        )
         reader = imageio.get_reader(path)
         frames = [f for f in reader]
         expected = 1 if kind == "poses" else 5  # 10 frames: one held-out pose
@@ -260,7 +267,7 @@ class TestBadInput:
         )
         _fit(root, tmp_path / "run", "train.steps=1").fit()
         with pytest.raises(ValueError, match="split 'novel_pose' is empty"):
-            evaluate_run(tmp_path / "run", ["novel_pose"], progress=False)
+            evaluate_run(tmp_path / "run", EvalRequest(("novel_pose",), progress=False))
 
 
 def test_learning_rate_decays_to_its_floor(data_root_64, tmp_path):

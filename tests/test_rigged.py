@@ -159,6 +159,7 @@ def test_rigged_export_of_a_fitted_run(rigged, tiny_run, tmp_path, capsys):
     from pipelines.cli import export_mesh as cli_export
     from pipelines.cli.common import run_cli
     from pipelines.datasets.floor import camera_up
+    from pipelines.runs.requests import MotionClip
     from pipelines.runs.subject.session import load_run
     from pipelines.runs.subject.video import motion_params
 
@@ -172,7 +173,7 @@ def test_rigged_export_of_a_fitted_run(rigged, tiny_run, tmp_path, capsys):
     # the animated joints are the body model's joints of the motion as placed on the capture's stage (as for
     # videos), up to one rigid map (the export frame) that takes the capture's up to glTF's +y
     run = load_run(tiny_run)
-    params, _ = motion_params(run, motion, 10.0, 2, 3)
+    params, _ = motion_params(run, MotionClip(motion, start=2, frames=3, fps=10.0))
     stack = [torch.as_tensor(np.stack([getattr(p, key) for p in params])) for key in ("poses", "rh", "th", "shapes")]
     with torch.no_grad():
         expected = run.body_model.pose_zju(*stack).world_from_joint[..., :3, 3].double().numpy()

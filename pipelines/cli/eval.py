@@ -95,7 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from fitting.trainer import auto_device
-    from pipelines.runs.kinds import kind_of_run
+    from pipelines.runs.kinds import open_run
     from pipelines.runs.requests import EvalRequest
 
     if not args.run.is_dir():
@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.capture is not None and not args.capture.is_dir():
         raise FileNotFoundError(f"{args.capture}: no such capture folder")
     use_smpl_dir(args.smpl_dir)
-    kind = kind_of_run(args.run)
+    kind, run = open_run(args.run)
     request = EvalRequest(
         splits=("capture",) if args.capture is not None else kind.expand(args.run, args.split),
         limit=args.limit,
@@ -119,7 +119,7 @@ def main(argv: list[str] | None = None) -> int:
         refine_steps=args.refine_steps,
         capture=args.capture,
     )
-    print(kind.markdown(kind.evaluate(args.run, request)))
+    print(kind.markdown(kind.evaluate(run, request)))
     print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
     return 0
 

@@ -79,8 +79,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(attach_dash_values(argv, ("--frames",)))
     from fitting.trainer import auto_device
-    from pipelines.runs.kinds import kind_of_run
-    from pipelines.runs.requests import a_run
+    from pipelines.runs.kinds import open_run
+    from pipelines.runs.requests import ExportRequest, a_run
 
     use_smpl_dir(args.smpl_dir)
     if args.fps is not None and not (args.fps > 0 and args.fps <= 1000):
@@ -97,42 +97,32 @@ def main(argv: list[str] | None = None) -> int:
         )
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
-    kind = kind_of_run(args.run)
+    kind, run = open_run(args.run)
     if kind.export is None:
         raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-export-mesh exports subject runs")
+    request = ExportRequest(
+        out=Path(args.out),
+        frame=args.frame,
+        motion=args.motion,
+        window=args.frames,
+        resolution=args.resolution,
+        level=args.level,
+        rigged=args.rigged,
+        skin=args.skin,
+        fps=args.fps,
+        motion_fps=args.motion_fps,
+        device=str(auto_device(args.device)),
+        progress=not args.quiet,
+    )
     if args.rigged:
         if kind.rigged is None:
             raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-export-mesh --rigged exports subject runs")
-        device = str(auto_device(args.device))
-        path, record = kind.rigged(
-            args.run,
-            args.out,
-            args.frame,
-            args.motion,
-            args.frames,
-            args.fps,
-            args.resolution,
-            args.level,
-            args.skin,
-            args.motion_fps,
-            device,
-            not args.quiet,
-        )
+        path, record = kind.rigged(run, request)
         _print_level(record)
         frames = f", {record['frames']} animation frames" if record["frames"] else ""
         print(f"narf-export-mesh: wrote {path} (24 joints, {record['vertices']} vertices{frames})")
         return 0
-    written, level = kind.export(
-        args.run,
-        args.out,
-        args.frame,
-        args.motion,
-        args.frames,
-        args.resolution,
-        args.level,
-        str(auto_device(args.device)),
-        not args.quiet,
-    )
+    written, level = kind.export(run, request)
     _print_level(level)
     print(f"narf-export-mesh: wrote {written[0]}" + (f" ... ({len(written)} files)" if len(written) > 1 else ""))
     return 0

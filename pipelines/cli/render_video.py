@@ -94,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from fitting.trainer import auto_device
-    from pipelines.runs.kinds import kind_of_run
+    from pipelines.runs.kinds import open_run
     from pipelines.runs.requests import VideoRequest, a_run
 
     use_smpl_dir(args.smpl_dir)
@@ -113,7 +113,7 @@ def main(argv: list[str] | None = None) -> int:
         raise IsADirectoryError(f"{out}: is a folder; give a .mp4 file name")
     if out.suffix.lower() != ".mp4":  # the writer makes H.264 in an MP4 container, whatever the name says
         raise ValueError(f"{out}: the video is an H.264 MP4; give a .mp4 file name")
-    kind = kind_of_run(args.run)
+    kind, run = open_run(args.run)
     if kind.render is None or args.kind not in kind.videos:
         offered = f"--kind {', '.join(kind.videos)}" if kind.videos else "no videos"
         raise ValueError(f"{args.run}: {a_run(kind.name)}; it renders {offered}, not '{args.kind}'")
@@ -133,7 +133,7 @@ def main(argv: list[str] | None = None) -> int:
         motion_fps=args.motion_fps,
         camera_path=args.camera_path,
     )
-    print(f"narf-render-video: wrote {kind.render(args.run, request)}")
+    print(f"narf-render-video: wrote {kind.render(run, request)}")
     return 0
 
 

@@ -35,7 +35,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     args = parser.parse_args(argv)
     from fitting.trainer import auto_device
-    from pipelines.runs.kinds import kind_of_run
+    from pipelines.runs.kinds import open_run
     from pipelines.runs.requests import a_run
 
     use_smpl_dir(args.smpl_dir)
@@ -44,7 +44,7 @@ def main(argv: list[str] | None = None) -> int:
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
     check_host(args.host)
-    kind = kind_of_run(args.run)  # a missing or foreign checkpoint fails here, before any server starts
+    kind, run = open_run(args.run)  # a missing or foreign checkpoint fails here, before any server starts
     if kind.name not in ("subject", "autoencoder"):
         raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-view shows subject and autoencoder runs")
     if kind.name == "autoencoder" and args.motion is not None:
@@ -54,9 +54,9 @@ def main(argv: list[str] | None = None) -> int:
 
     device = str(auto_device(args.device))
     if kind.name == "autoencoder":
-        data = autoencoder_viewer_data(args.run, device, args.preview, args.full)
+        data = autoencoder_viewer_data(run, device, args.preview, args.full)
     else:
-        data = viewer_data(args.run, args.motion, device, args.preview, args.full, args.motion_fps)
+        data = viewer_data(run, args.motion, device, args.preview, args.full, args.motion_fps)
     if not model_spec(data.config.model.name).rays:
         raise ValueError(f"{args.run}: the CNN baseline renders fixed-size images, not views: nothing to orbit")
     viewer = Viewer(data, args.host, args.port)

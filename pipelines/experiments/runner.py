@@ -24,7 +24,7 @@ from fitting.trainer import auto_device, make_field
 from pipelines.experiments.orderings import check_orderings
 from pipelines.experiments.tables import SHORT, Row, Table
 from pipelines.runs.fit import fit
-from pipelines.runs.kinds import KINDS
+from pipelines.runs.kinds import RUN_KINDS
 from pipelines.runs.requests import EvalRequest, FitRequest
 
 #: CPU budget per row in minutes, and views per split evaluated, per table: the budgets of the committed results
@@ -54,7 +54,7 @@ def fit_request(table: Table, row: Row, settings: Settings, run_dir: Path) -> Fi
         if budget is not None:
             budget = max(budget - load_checkpoint(run_dir).get("elapsed", 0.0) / 60, 0.0)
         return FitRequest(resume=True, max_minutes=budget, **common)
-    preset = KINDS[table.kind].preset(row.fit.model, settings.preset == "paper")
+    preset = RUN_KINDS[table.kind].preset(row.fit.model, settings.preset == "paper")
     return FitRequest(
         preset=preset,
         kind=table.kind,
@@ -86,7 +86,7 @@ def run_fit(table: Table, row: Row, settings: Settings, run_dir: Path) -> None:
 def evaluate(table: Table, run_dir: Path, settings: Settings) -> dict:
     """The table's protocol on a fitted row: split -> {mask_l2, psnr, ssim} (full image)."""
     request = EvalRequest(tuple(table.splits), settings.limit, str(auto_device(settings.device)), progress=False)
-    report = KINDS[table.kind].evaluate(run_dir, request)
+    report = RUN_KINDS[table.kind].evaluate(run_dir, request)
     return {split: report["splits"][split]["full"] for split in table.splits}
 
 
@@ -136,7 +136,7 @@ def run_row(table: Table, row: Row, out_dir: Path, settings: Settings, fitter=ru
 def prepare_data(table: Table, settings: Settings) -> None:
     """Find the table's data before the first row (generating the synthetic stand-in, with its progress bar, when
     it is missing), so that the rows' quiet fits do not wait on it silently."""
-    kind = KINDS[table.kind]
+    kind = RUN_KINDS[table.kind]
     overrides = [] if settings.data_root is None else [f"data.data_root={settings.data_root}"]
     kind.data(load_config(kind.presets[0], overrides))
 
@@ -196,7 +196,7 @@ def _si(value: float | None) -> str:
 
 def _preset_names(table: Table, preset: str) -> str:
     """The presets a table's rows ran with (``preset`` cpu or paper): the kind's, and the CNN's where it has a row."""
-    kind, gpu = KINDS[table.kind], preset == "paper"
+    kind, gpu = RUN_KINDS[table.kind], preset == "paper"
     names = dict.fromkeys(kind.preset(row.fit.model, gpu) for row in table.rows)
     return " / ".join(names) + f" ({preset})"
 

@@ -14,37 +14,36 @@ from fitting.distributed import SINGLE, Processes, barrier, from_environment, sh
 from fitting.fitted import run_config
 from fitting.trainer import auto_device, prepare_run_dir
 from narf.fields import model_spec
-from pipelines.runs.kinds import KINDS
+from pipelines.runs.kinds import RUN_KINDS
 from pipelines.runs.requests import FitInterrupted, FitOutcome, FitRequest
 
 #: Settings that ``--resume`` may change (``--set``): how long to go on and how often to write.
 RESUMABLE = ("train.checkpoint_minutes", "train.log_every", "train.steps", "train.validate_every")
 
 
-def start_run(
-    run_dir: Path,
-    device,
-    config: FitConfig | None = None,
-    resume: bool = False,
-    overrides: list[str] | tuple[str, ...] = (),
-    progress: bool = True,
-    processes: Processes = SINGLE,
+def start_run(run_dir: Path, device, config: FitConfig, progress: bool = True, processes: Processes = SINGLE):
+    """A new trainer of ``config`` in ``run_dir`` (its kind's ``start``)."""
+    return _launch(config, run_dir, device, None, progress, processes)
+
+
+def resume_run(
+    run_dir: Path, device, overrides: list[str] | tuple[str, ...] = (), progress: bool = True, processes=SINGLE
 ):
-    """The trainer of ``run_dir``: new from ``config``, or with ``resume`` the checkpoint's config (with
-    ``overrides``, e.g. a longer ``train.steps``), weights and random state, so that it ends where an uninterrupted
-    fit would."""
-    state = None
-    if resume:
-        state = load_checkpoint(run_dir, map_location=device)
-        config = run_config(state, Path(run_dir), list(overrides))
-        if config.train.steps < state["step"]:
-            raise ValueError(
-                f"{run_dir}: the run is at step {state['step']}; --set train.steps={config.train.steps} would end it "
-                "before where it stands (give more steps, or leave train.steps as it is)"
-            )
-    if config is None:
-        raise ValueError("start_run needs a config unless it resumes a checkpoint")
-    kind = KINDS[config.kind]
+    """The trainer of the checkpoint in ``run_dir``: its config (with ``overrides``, e.g. a longer ``train.steps``),
+    weights and random state, so that it ends where an uninterrupted fit would."""
+    state = load_checkpoint(run_dir, map_location=device)
+    config = run_config(state, Path(run_dir), list(overrides))
+    if config.train.steps < state["step"]:
+        raise ValueError(
+            f"{run_dir}: the run is at step {state['step']}; --set train.steps={config.train.steps} would end it "
+            "before where it stands (give more steps, or leave train.steps as it is)"
+        )
+    return _launch(config, run_dir, device, state, progress, processes)
+
+
+def _launch(config: FitConfig, run_dir: Path, device, state: dict | None, progress: bool, processes: Processes):
+    """The one place a trainer is started or resumed: the kind's ``start``, data-parallel only where it may be."""
+    kind = RUN_KINDS[config.kind]
     if processes.distributed and not kind.data_parallel:
         raise ValueError(f"data-parallel fitting (torchrun) covers subject runs; fit a {kind.name} run as one process")
     return kind.start(config, run_dir, device, state, progress, processes)
@@ -74,7 +73,7 @@ def request_config(request: FitRequest, gpu: bool) -> FitConfig | None:
         overrides.insert(0, f"kind={request.kind}")
     if request.kind == "autoencoder" and request.model in ("p_nerf", "narf_h"):
         overrides.insert(0, "train.lr=0.001")  # the supplement's exception for these two autoencoders (§F)
-    kind = KINDS[request.kind or "subject"]
+    kind = RUN_KINDS[request.kind or "subject"]
     return load_config(request.preset or kind.preset(request.model, gpu), overrides)
 
 
@@ -104,7 +103,10 @@ def fit(request: FitRequest, announce: Callable[[str], None] | None = None) -> F
     run_dir = prepare_run_dir(out, config, request.resume, write=processes.is_main)
     barrier(processes)
     try:
-        trainer = start_run(run_dir, device, config, request.resume, request.overrides, request.progress, processes)
+        if request.resume:
+            trainer = resume_run(run_dir, device, request.overrides, request.progress, processes)
+        else:
+            trainer = start_run(run_dir, device, config, request.progress, processes)
     except BaseException:  # bad data, Ctrl-C while loading: a fit that never started leaves no folder behind
         if fresh and processes.is_main:
             shutil.rmtree(run_dir, ignore_errors=True)
@@ -115,7 +117,7 @@ def fit(request: FitRequest, announce: Callable[[str], None] | None = None) -> F
         scale = f", {processes.world_size} processes" if processes.distributed else ""
         description = trainer.fit_data.description
         announce(f"{c.model.name} ({size}) on {description}, device {device}{scale}, torch {torch.__version__}")
-    publish = KINDS[trainer.config.kind].publish if processes.is_main else None
+    publish = RUN_KINDS[trainer.config.kind].publish if processes.is_main else None
     try:
         result = trainer.fit(request.max_minutes)
     except KeyboardInterrupt as interrupt:  # the trainer has saved a checkpoint on its way out

@@ -7,22 +7,36 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
-from fitting.checkpoint import load_checkpoint
 from fitting.config import FitConfig
+from fitting.distributed import Processes
 from fitting.evaluate import ALL_SPLITS, EVAL_SPLITS
-from fitting.fitted import run_config
+from fitting.fitted import SavedRun, read_run
+from fitting.trainer import Trainer
 from narf.fields import MODEL_SPECS
 from pipelines.runs.autoencoder import evaluation as autoencoder_evaluation
 from pipelines.runs.autoencoder import session as autoencoder_session
 from pipelines.runs.autoencoder import video as autoencoder_video
-from pipelines.runs.requests import a_run
+from pipelines.runs.requests import EvalRequest, ExportRequest, VideoRequest, a_run
 from pipelines.runs.rigid import session as rigid_session
 from pipelines.runs.subject import evaluation as subject_evaluation
 from pipelines.runs.subject import mesh as subject_mesh
 from pipelines.runs.subject import rigged as subject_rigged
 from pipelines.runs.subject import session as subject_session
 from pipelines.runs.subject import video as subject_video
+
+#: A run as the entries take it: its folder, or its checkpoint already read (``fitting.fitted.read_run``).
+Run = Path | SavedRun
+
+
+class Start(Protocol):
+    """Starts a fit of the kind, or resumes one (``state``: the checkpoint it resumes; ``processes``: this process's
+    place in a data-parallel fit)."""
+
+    def __call__(
+        self, config: FitConfig, run_dir: Path, device, state: dict | None, progress: bool, processes: Processes
+    ) -> Trainer: ...
 
 
 @dataclass(frozen=True)
@@ -33,13 +47,14 @@ class RunKind:
         name: the kind's one name (``config.kind``, ``narf-fit --kind``).
         presets: default preset (CPU, CUDA); ``image_presets`` the same for an image model (``--model cnn``).
         data: finds (or generates) the data of a config; returns its folder.
-        start: ``(config, run_dir, device, state, progress, processes) -> trainer`` (``state``: a checkpoint to resume).
+        start: starts or resumes a fit (:class:`Start`).
         data_parallel: whether torchrun may split its fit over processes.
         splits: the splits ``narf-eval`` accepts; ``default_split`` the one without ``--split``; ``every``: what
             ``all`` stands for.
-        evaluate: ``(run_dir, EvalRequest) -> report``; ``markdown``: ``report -> table``.
-        videos: the ``narf-render-video --kind`` values; ``render``: ``(run_dir, VideoRequest) -> mp4 path``.
-        export: ``narf-export-mesh``'s work, or None where the kind has no mesh export; ``rigged``: its ``--rigged``.
+        evaluate: ``(run, EvalRequest) -> report``; ``markdown``: ``report -> table``.
+        videos: the ``narf-render-video --kind`` values; ``render``: ``(run, VideoRequest) -> mp4 path``.
+        export: ``narf-export-mesh``'s work, ``(run, ExportRequest) -> (files, level record)``, or None where the kind
+            has no mesh export; ``rigged``: its ``--rigged``, ``(run, ExportRequest) -> (glb, record)``.
         publish: ``run_dir -> ...``, run after every fit (finished or stopped): writes what the checkpoint holds for
             other tools (a subject run's corrected poses), or None.
     """
@@ -48,17 +63,17 @@ class RunKind:
     presets: tuple[str, str]
     image_presets: tuple[str, str] | None
     data: Callable[[FitConfig], Path]
-    start: Callable
+    start: Start
     data_parallel: bool
     splits: tuple[str, ...]
     default_split: str
     every: tuple[str, ...]
-    evaluate: Callable
+    evaluate: Callable[[Run, EvalRequest], dict]
     markdown: Callable[[dict], str]
     videos: tuple[str, ...] = ()
-    render: Callable | None = None
-    export: Callable | None = None
-    rigged: Callable | None = None
+    render: Callable[[Run, VideoRequest], Path] | None = None
+    export: Callable[[Run, ExportRequest], tuple[list[Path], dict]] | None = None
+    rigged: Callable[[Run, ExportRequest], tuple[Path, dict]] | None = None
     publish: Callable[[Path], object] | None = None
 
     def preset(self, model: str | None, gpu: bool) -> str:
@@ -82,7 +97,7 @@ def _subject_data(config: FitConfig) -> Path:
     return subject_session.resolve_subject(config.data.subject, config.data.data_root)
 
 
-KINDS: dict[str, RunKind] = {
+RUN_KINDS: dict[str, RunKind] = {
     "subject": RunKind(
         name="subject",
         presets=("cpu", "paper"),
@@ -93,10 +108,10 @@ KINDS: dict[str, RunKind] = {
         splits=tuple(s for s in ALL_SPLITS if s != "all"),
         default_split="novel_pose",
         every=EVAL_SPLITS,
-        evaluate=subject_evaluation.evaluate,
+        evaluate=subject_evaluation.evaluate_run,
         markdown=subject_evaluation.markdown_table,
-        videos=subject_video.KINDS,
-        render=subject_video.render,
+        videos=subject_video.VIDEO_KINDS,
+        render=subject_video.render_video,
         export=subject_mesh.export_run_meshes,
         rigged=subject_rigged.export_rigged,
         publish=subject_session.write_refined_params,
@@ -111,10 +126,10 @@ KINDS: dict[str, RunKind] = {
         splits=autoencoder_evaluation.AUTOENCODER_SPLITS,
         default_split="novel_pose_novel_view",
         every=autoencoder_evaluation.AUTOENCODER_SPLITS,
-        evaluate=autoencoder_evaluation.evaluate,
+        evaluate=autoencoder_evaluation.evaluate_autoencoder_run,
         markdown=autoencoder_evaluation.markdown_autoencoder,
-        videos=autoencoder_video.AUTOENCODER_KINDS,
-        render=autoencoder_video.render,
+        videos=autoencoder_video.AUTOENCODER_VIDEO_KINDS,
+        render=autoencoder_video.render_autoencoder_video,
     ),
     "rigid": RunKind(
         name="rigid",
@@ -126,12 +141,14 @@ KINDS: dict[str, RunKind] = {
         splits=("test",),
         default_split="test",
         every=("test",),
-        evaluate=rigid_session.evaluate,
+        evaluate=rigid_session.evaluate_rigid_run,
         markdown=rigid_session.markdown_rigid,
     ),
 }
 
 
-def kind_of_run(run_dir: Path) -> RunKind:
-    """The kind of the run in ``run_dir``, from its checkpoint's config (older runs' keys migrated)."""
-    return KINDS[run_config(load_checkpoint(run_dir), Path(run_dir)).kind]
+def open_run(run_dir: Path) -> tuple[RunKind, SavedRun]:
+    """The run in ``run_dir``, its checkpoint read once (:func:`fitting.fitted.read_run`; older runs' keys migrated),
+    and its kind. The commands hand the :class:`SavedRun` on to the kind's entries."""
+    saved = read_run(Path(run_dir))
+    return RUN_KINDS[saved.config.kind], saved

@@ -94,6 +94,42 @@ class VideoRequest:
     camera_path: Path | None = None
 
 
+@dataclass(frozen=True)
+class MotionClip:
+    """Part of a motion file to play: ``path`` (an AMASS .npz, a ZJU-MoCap params folder or a SURREAL _info.mat)
+    from source frame ``start`` for at most ``frames`` (None: to the end), resampled to ``fps`` (None: the motion's
+    own rate); ``source_fps``: the file's rate when it records none; ``flag``: the option that gave ``start``, named
+    when it lies outside the motion."""
+
+    path: Path
+    start: int = 0
+    frames: int | None = None
+    fps: float | None = None
+    source_fps: float | None = None
+    flag: str = "--start"
+
+
+@dataclass(frozen=True)
+class ExportRequest:
+    """A mesh export into ``out``: the body at capture ``frame``, or at frames ``window = (A, B)`` (B excluded) of a
+    ``motion`` file, extracted at ``resolution`` and density ``level`` (None: chosen from the fit). The rigged export
+    (``rigged``): ``frame`` None is the rest pose, a ``motion`` becomes its animation at ``fps`` (``motion_fps``: the
+    file's rate when it records none), ``skin`` the skinning rule."""
+
+    out: Path
+    frame: int | None = None
+    motion: Path | None = None
+    window: tuple[int, int] | None = None
+    resolution: int = 256
+    level: float | None = None
+    rigged: bool = False
+    skin: str = "selector"
+    fps: float | None = None
+    motion_fps: float | None = None
+    device: str = "cpu"
+    progress: bool = True
+
+
 def a_run(kind: str) -> str:
     """'a subject run', 'an autoencoder run', 'a rigid run': the kind in a message."""
     return f"{'an' if kind[0] in 'aeiou' else 'a'} {kind} run"

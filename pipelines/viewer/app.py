@@ -28,6 +28,7 @@ from scipy.spatial.transform import Rotation
 
 from fitting.evaluate import render_view
 from fitting.files import atomic_write_bytes
+from fitting.fitted import SavedRun, run_folder
 from fitting.plots import colour_depth, colour_segmentation, to_numpy
 from narf.kinematics import JOINT_NAMES
 from pipelines.datasets.camera_path import CameraPath, Keyframe
@@ -397,14 +398,15 @@ class Viewer:
 
 
 def viewer_data(
-    run_dir: Path, motion: Path | None, device: str, preview: int, full: int, motion_fps: float | None = None
+    run_dir: Path | SavedRun, motion: Path | None, device: str, preview: int, full: int, motion_fps: float | None = None
 ) -> ViewerData:
     """A subject run: its capture's frames (and ``motion``, placed on its stage) on the subject's skeleton, the
     training cameras then the held-out ones as presets, the floor's (or the cameras') up axis."""
+    from pipelines.runs.requests import MotionClip
     from pipelines.runs.subject.session import load_run
     from pipelines.runs.subject.video import motion_params
 
-    run = load_run(Path(run_dir), device)
+    run = load_run(run_dir, device)  # a folder, or its checkpoint already read
     capture, body_model = run.capture, run.body_model
 
     @lru_cache(maxsize=8)
@@ -417,7 +419,7 @@ def viewer_data(
 
     sources = [PoseSource("capture frames", capture.n_frames, 30.0, lambda k: on_skeleton(run.params(k)))]
     if motion is not None:
-        params, report = motion_params(run, Path(motion), None, 0, None, motion_fps)
+        params, report = motion_params(run, MotionClip(Path(motion), source_fps=motion_fps))
         sources.append(
             PoseSource(
                 f"motion: {Path(motion).name}", len(params), float(report["fps"]), lambda k: on_skeleton(params[k])
@@ -426,13 +428,15 @@ def viewer_data(
     views = list(run.protocol.train_views) + [v for v in run.protocol.test_views if v not in run.protocol.train_views]
     cameras = [capture.cameras[v].undistorted().scaled(capture.ratio) for v in views]
     up = capture.floor.up if capture.floor is not None else camera_up(capture.cameras)
-    out = Path(run_dir) / "viewer"
+    out = run_folder(run_dir) / "viewer"
     return ViewerData(
         run.field, run.config, sources, cameras, np.asarray(up, np.float64), device, out, [], preview, full
     )
 
 
-def autoencoder_viewer_data(run_dir: Path, device: str, preview: int, full: int, n_people: int = 16) -> ViewerData:
+def autoencoder_viewer_data(
+    run_dir: Path | SavedRun, device: str, preview: int, full: int, n_people: int = 16
+) -> ViewerData:
     """An autoencoder run: up to ``n_people`` people of its set (evenly spread over the meshes, held-out ones
     included), each encoded from its second-view render; the poses are theirs, put on the chosen person's skeleton;
     the presets are their render cameras; up is the first person's pelvis-to-neck direction."""
@@ -441,7 +445,7 @@ def autoencoder_viewer_data(run_dir: Path, device: str, preview: int, full: int,
     from pipelines.runs.autoencoder.evaluation import load_autoencoder_run
     from pipelines.runs.autoencoder.session import load_views
 
-    run = load_autoencoder_run(Path(run_dir), device)
+    run = load_autoencoder_run(run_dir, device)  # a folder, or its checkpoint already read
     meshes = spread(list(range(run.dataset.n_meshes)), n_people)
     views, inputs, poses = load_views(run.dataset, "same_view", meshes, progress=False)
     with torch.no_grad():
@@ -454,7 +458,7 @@ def autoencoder_viewer_data(run_dir: Path, device: str, preview: int, full: int,
         people.append(Person(f"person {mesh}{held}", codes[k : k + 1], rest, views[k].camera))
     source = PoseSource("the people's poses", len(meshes), 2.0, lambda k: AvatarPose.from_joints(joints[k]))
     up = joints[0, 12, :3, 3] - joints[0, 0, :3, 3]
-    out = Path(run_dir) / "viewer"
+    out = run_folder(run_dir) / "viewer"
     cameras = [replace(p.camera, name=p.name) for p in people]
     return ViewerData(
         run.field, run.config, [source], cameras, up / np.linalg.norm(up), device, out, people, preview, full

@@ -15,7 +15,6 @@ row fits the scored image itself; its novel-pose row is the fair measure of what
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -27,8 +26,8 @@ from tqdm import tqdm
 
 from fitting.autoencoder import build_encoder, encode, refine_code
 from fitting.config import FitConfig
-from fitting.evaluate import average_metrics, library_versions, render_view, spread, ssim, write_report
-from fitting.fitted import load_fitted, load_weights
+from fitting.evaluate import average_metrics, evaluate_splits, render_view, spread, ssim
+from fitting.fitted import SavedRun, load_fitted, load_weights, read_run, run_folder
 from fitting.plots import grid, save_png, to_numpy
 from narf.fields import model_spec
 from narf.metrics import mask_l2, psnr_of
@@ -67,12 +66,13 @@ class AutoencoderRun:
     step: int
 
 
-def load_autoencoder_run(run_dir: Path, device="cpu") -> AutoencoderRun:
-    """Load an autoencoder run (refusing a per-subject fit with a clear error)."""
-    fitted = load_fitted(run_dir, device, kind="autoencoder")
+def load_autoencoder_run(run: Path | SavedRun, device="cpu") -> AutoencoderRun:
+    """Load an autoencoder run (refusing a per-subject fit with a clear error); ``run``: the folder, or its
+    checkpoint already read."""
+    fitted = load_fitted(run, device, kind="autoencoder")
     config = fitted.config
     encoder = build_encoder(config).to(device)
-    load_weights(encoder, fitted.state.get("encoder", {}), Path(run_dir), "the image encoder of its config")
+    load_weights(encoder, fitted.state.get("encoder", {}), run_folder(run), "the image encoder of its config")
     dataset = open_thuman(resolve_thuman(config, quiet=True, generate=False), config)
     return AutoencoderRun(config, fitted.field, encoder.eval(), dataset, fitted.step)
 
@@ -103,7 +103,10 @@ def _score(run, view, pose, code, baseline, device) -> tuple[dict, dict, dict]:
     return _metrics(out["encoded"], view.image, view.mask), _metrics(out["mean_code"], view.image, view.mask), out
 
 
-def evaluate_thuman_split(run: AutoencoderRun, split: str, baseline, limit, device, out_dir, progress, grids) -> dict:
+def evaluate_thuman_split(run: AutoencoderRun, split: str, baseline, out_dir: Path, request: EvalRequest) -> dict:
+    """One THUman split: each view encoded from its _view2 input and rendered with that code and with the mean
+    code (``baseline``); the first ``request.grids`` views also as grids."""
+    limit, device, progress, grids = request.limit, request.device, request.progress, request.grids
     folder, novel_pose = THUMAN_SPLITS[split]
     meshes = list(
         range(run.dataset.n_train_meshes, run.dataset.n_meshes) if novel_pose else range(run.dataset.n_train_meshes)
@@ -198,11 +201,12 @@ def refined_code(run: AutoencoderRun, code, view: ThumanView, pose, steps: int, 
     )
 
 
-def evaluate_cross_dataset(
-    run, baseline, limit, device, out_dir, progress, grids, surreal_root=None, refine_steps: int = 0
-) -> dict:
-    """Encode frame 0 of each clip; score it and two later frames with the code, the mean code and, when
-    ``refine_steps`` > 0, the code refined on frame 0 (``refine_code``)."""
+def evaluate_cross_dataset(run, baseline, out_dir: Path, request: EvalRequest) -> dict:
+    """Encode frame 0 of each SURREAL clip (``request.surreal``, default the stand-in); score it and two later frames
+    with the code, the mean code and, when ``request.refine_steps`` > 0, the code refined on frame 0
+    (``refine_code``)."""
+    limit, device, progress, grids = request.limit, request.device, request.progress, request.grids
+    surreal_root, refine_steps = request.surreal, request.refine_steps
     body_model = BodyModel()
     infos = spread(resolve_surreal(surreal_root, quiet=not progress), limit)
     records = {"reconstruction": [], "novel_pose": []}
@@ -277,61 +281,39 @@ def markdown_autoencoder(report: dict) -> str:
     return "\n".join(lines)
 
 
-def evaluate_autoencoder_run(
-    run_dir: Path,
-    splits: list[str],
-    limit: int | None = None,
-    device: str = "cpu",
-    progress: bool = True,
-    grids: int = 4,
-    surreal_root: str | None = None,
-    refine_steps: int = 0,
-) -> dict:
-    """Evaluate ``splits`` (THUman's four and/or ``cross_dataset``); update ``run_dir/eval/metrics.{json,md}``.
-    ``refine_steps`` > 0 adds cross_dataset's refined-code row (``refine_code`` on the encoded frame)."""
-    run_dir = Path(run_dir)
-    run = load_autoencoder_run(run_dir, device)
-    check_refinable(run, run_dir, refine_steps)
-    out_dir = run_dir / "eval"
-    metrics_path = out_dir / "metrics.json"
-    report = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {"splits": {}}
-    baseline = mean_code(run, device)
-    for split in splits:
-        if split == "cross_dataset":
-            report["splits"][split] = evaluate_cross_dataset(
-                run, baseline, limit, device, out_dir, progress, grids, surreal_root, refine_steps
-            )
-        else:
-            report["splits"][split] = evaluate_thuman_split(
-                run, split, baseline, limit, device, out_dir, progress, grids
-            )
-    c = run.config
-    report.update(
-        {
-            "run": str(run_dir),
-            "kind": "autoencoder",
-            "step": run.step,
-            "model": c.model.name,
-            "width": c.model.width,
-            "image_size": c.model.image_size,
-            "latent_dim": c.model.latent_dim,
-            "dataset": str(run.dataset.root),
-            "versions": library_versions(),
-        }
-    )
-    write_report(out_dir, report, markdown_autoencoder(report))
-    return report
-
-
-def evaluate(run_dir: Path, request: EvalRequest) -> dict:
-    """``evaluate_autoencoder_run`` for a request (the kind table's entry point)."""
-    r = request
+def evaluate_autoencoder_run(run: Path | SavedRun, request: EvalRequest) -> dict:
+    """Evaluate ``request.splits`` (THUman's four and/or ``cross_dataset``); update ``RUN/eval/metrics.{json,md}``
+    (the kind table's entry point; options of subject runs are refused). ``request.refine_steps`` > 0 adds
+    cross_dataset's refined-code row (``refine_code`` on the encoded frame)."""
+    saved = read_run(run)
+    run_dir, r = saved.run_dir, request
     options = {"--mesh": r.mesh, "--capture": r.capture}
     refuse_options(
         run_dir, "autoencoder", options, "subject runs (an autoencoder run has no true surfaces or captures)"
     )
     if r.refine_steps and "cross_dataset" not in r.splits:
         raise ValueError(f"{run_dir}: --refine-steps refines SURREAL codes; it needs --split cross_dataset or all")
-    return evaluate_autoencoder_run(
-        run_dir, list(r.splits), r.limit, r.device, r.progress, r.grids, r.surreal, r.refine_steps
-    )
+    loaded = load_autoencoder_run(saved, r.device)
+    check_refinable(loaded, run_dir, r.refine_steps)
+    out_dir = run_dir / "eval"
+    baseline = mean_code(loaded, r.device)
+
+    def score(split: str) -> dict:
+        if split == "cross_dataset":
+            return evaluate_cross_dataset(loaded, baseline, out_dir, r)
+        return evaluate_thuman_split(loaded, split, baseline, out_dir, r)
+
+    def header() -> dict:
+        c = loaded.config
+        return {
+            "run": str(run_dir),
+            "kind": "autoencoder",
+            "step": loaded.step,
+            "model": c.model.name,
+            "width": c.model.width,
+            "image_size": c.model.image_size,
+            "latent_dim": c.model.latent_dim,
+            "dataset": str(loaded.dataset.root),
+        }
+
+    return evaluate_splits(out_dir, r.splits, score, header, markdown_autoencoder)

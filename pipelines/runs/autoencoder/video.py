@@ -19,6 +19,7 @@ from tqdm import tqdm
 
 from fitting.autoencoder import encode
 from fitting.evaluate import render_view
+from fitting.fitted import SavedRun, run_folder
 from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
 from narf.kinematics import rest_offsets_from_world, retarget
@@ -37,7 +38,7 @@ from pipelines.runs.autoencoder.session import ThumanView, load_views, view_of_r
 from pipelines.runs.requests import VideoRequest, refuse_options
 from pipelines.synthetic.scene import look_at
 
-AUTOENCODER_KINDS = ("orbit", "poses", "interpolate")
+AUTOENCODER_VIDEO_KINDS = ("orbit", "poses", "interpolate")
 _RENDER_NAME = re.compile(r"^color_(\d{8})\.png$")
 
 
@@ -108,25 +109,21 @@ def _motion(run: AutoencoderRun, n_frames: int) -> torch.Tensor:
     return poses.world_from_joint
 
 
-def render_autoencoder_video(
-    run_dir: Path,
-    kind: str,
-    inputs: list[str],
-    out: Path,
-    n_frames: int = 60,
-    fps: int = 24,
-    device: str = "cpu",
-    progress: bool = True,
-    refine_steps: int = 0,
-) -> Path:
-    """Render ``kind`` for the encoded ``inputs`` to an mp4 of input | RGB | depth | segmentation; ``refine_steps``
-    > 0 refines each code on its input first (``fitting.autoencoder.refine_code``)."""
-    if kind not in AUTOENCODER_KINDS:
-        raise ValueError(f"an autoencoder run renders --kind {', '.join(AUTOENCODER_KINDS)}, not '{kind}'")
+def render_autoencoder_video(run: Path | SavedRun, request: VideoRequest) -> Path:
+    """Render ``request.kind`` for the encoded ``request.inputs`` to an mp4 of input | RGB | depth | segmentation;
+    ``refine_steps`` > 0 refines each code on its input first (``fitting.autoencoder.refine_code``). The kind table's
+    entry point: options of subject runs are refused."""
+    r = request
+    run_dir = run_folder(run)
+    options = {"--motion": r.motion, "--camera": r.camera is not None, "--start": r.start, "--motion-fps": r.motion_fps}
+    refuse_options(run_dir, "autoencoder", options, "subject runs")
+    kind, inputs, n_frames, device, refine_steps = r.kind, list(r.inputs), r.frames, r.device, r.refine_steps
+    if kind not in AUTOENCODER_VIDEO_KINDS:
+        raise ValueError(f"an autoencoder run renders --kind {', '.join(AUTOENCODER_VIDEO_KINDS)}, not '{kind}'")
     needed = 2 if kind == "interpolate" else 1
     if len(inputs) != needed:
         raise ValueError(f"--kind {kind} takes {needed} --input, got {len(inputs)}")
-    run = load_autoencoder_run(run_dir, device)
+    run = load_autoencoder_run(run, device)
     check_refinable(run, run_dir, refine_steps)
     body_model = BodyModel()
     items = [read_input(spec, body_model) for spec in inputs]
@@ -154,19 +151,9 @@ def render_autoencoder_video(
         )
         plan = [blend(w) for w in np.linspace(0, 1, n_frames)]
     frames = []
-    for camera, joints, code, tile in tqdm(plan, desc=f"video {kind}", unit="frame", disable=not progress):
+    for camera, joints, code, tile in tqdm(plan, desc=f"video {kind}", unit="frame", disable=not r.progress):
         pose = pose_batch_from_joints(joints.double()).to(torch.float32)
         with torch.no_grad():
             render = to_numpy(render_view(run.field, camera, pose.to(device), run.config, code))
         frames.append(np.concatenate([(np.clip(tile, 0, 1) * 255 + 0.5).astype(np.uint8), video_frame(render)], axis=1))
-    return write_mp4(out, frames, fps)
-
-
-def render(run_dir: Path, request: VideoRequest) -> Path:
-    """``render_autoencoder_video`` for a request (the kind table's entry point)."""
-    r = request
-    options = {"--motion": r.motion, "--camera": r.camera is not None, "--start": r.start, "--motion-fps": r.motion_fps}
-    refuse_options(run_dir, "autoencoder", options, "subject runs")
-    return render_autoencoder_video(
-        run_dir, r.kind, list(r.inputs), r.out, r.frames, r.fps, r.device, r.progress, r.refine_steps
-    )
+    return write_mp4(r.out, frames, r.fps)

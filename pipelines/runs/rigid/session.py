@@ -13,8 +13,8 @@ from tqdm import tqdm
 
 from fitting.config import FitConfig
 from fitting.data import FitData, TrainingSet
-from fitting.evaluate import average_metrics, frame_metrics, library_versions, render_view, spread, write_report
-from fitting.fitted import load_fitted
+from fitting.evaluate import average_metrics, evaluate_splits, frame_metrics, render_view, spread
+from fitting.fitted import SavedRun, load_fitted, read_run
 from fitting.plots import grid, save_png, to_numpy
 from fitting.trainer import Trainer
 from fitting.trainers import trainer_class
@@ -68,34 +68,38 @@ def start(
     return trainer_class(config)(config, run_dir, device, data, state=state, progress=progress)
 
 
-def evaluate_rigid_run(run_dir: Path, limit: int | None, device, progress: bool = True, grids: int = 4) -> dict:
+def evaluate_rigid_run(run: Path | SavedRun, request: EvalRequest) -> dict:
     """Render the test images of a rigid-object run; write ``RUN/eval/metrics.json`` / ``metrics.md`` (split
-    ``test``: full-image Mask L2 x10^4 / PSNR / SSIM) and grids (ground truth | render | depth | error)."""
-    run_dir = Path(run_dir)
-    fitted = load_fitted(run_dir, device, kind="rigid")
+    ``test``: full-image Mask L2 x10^4 / PSNR / SSIM) and grids (ground truth | render | depth | error). The kind
+    table's entry point: options of other kinds are refused."""
+    saved = read_run(run)
+    run_dir, r = saved.run_dir, request
+    options = {"--mesh": r.mesh, "--surreal": r.surreal, "--refine-steps": r.refine_steps, "--capture": r.capture}
+    refuse_options(run_dir, "rigid", options, "subject and autoencoder runs")
+    fitted = load_fitted(saved, r.device, kind="rigid")
     config, field = fitted.config, fitted.field
     rigid: RigidSet = open_rigid(resolve_rigid(config, quiet=True, generate=False))
-    indices = spread(list(range(rigid.counts["test"])), limit)
-    views, poses = load_rigid_views(rigid, "test", indices)
-    bg = 1.0 if config.data.white_background else 0.0
-    records = []
-    for k, view in enumerate(tqdm(views, desc="eval test", unit="view", disable=not progress)):
-        render = to_numpy(render_view(field, view.camera, poses.select(torch.tensor([k])).to(device), config))
-        empty = np.zeros(view.mask.shape, bool)
-        records.append({"image": indices[k], **frame_metrics(render, view.image, view.mask, empty, bg)})
-        if k < grids:
-            save_png(run_dir / "eval" / "grids" / "test" / f"{indices[k]:05d}.png", grid(view.image, render, False))
-    report = {
-        "run": str(run_dir),
-        "step": fitted.step,
-        "model": config.model.name,
-        "width": config.model.width,
-        "dataset": str(rigid.root),
-        "splits": {"test": {"n_views": len(records), "full": average_metrics(records, "full"), "per_view": records}},
-        "versions": library_versions(),
-    }
-    write_report(run_dir / "eval", report, markdown_rigid(report))
-    return report
+
+    def score(split: str) -> dict:
+        indices = spread(list(range(rigid.counts[split])), r.limit)
+        views, poses = load_rigid_views(rigid, split, indices)
+        bg = 1.0 if config.data.white_background else 0.0
+        records = []
+        for k, view in enumerate(tqdm(views, desc=f"eval {split}", unit="view", disable=not r.progress)):
+            pose = poses.select(torch.tensor([k])).to(r.device)
+            render = to_numpy(render_view(field, view.camera, pose, config))
+            empty = np.zeros(view.mask.shape, bool)
+            records.append({"image": indices[k], **frame_metrics(render, view.image, view.mask, empty, bg)})
+            if k < r.grids:
+                path = run_dir / "eval" / "grids" / split / f"{indices[k]:05d}.png"
+                save_png(path, grid(view.image, render, False))
+        return {"n_views": len(records), "full": average_metrics(records, "full"), "per_view": records}
+
+    def header() -> dict:
+        c = config.model
+        return {"run": str(run_dir), "step": fitted.step, "model": c.name, "width": c.width, "dataset": str(rigid.root)}
+
+    return evaluate_splits(run_dir / "eval", ("test",), score, header, markdown_rigid)
 
 
 def markdown_rigid(report: dict) -> str:
@@ -112,11 +116,3 @@ def markdown_rigid(report: dict) -> str:
             "",
         ]
     )
-
-
-def evaluate(run_dir: Path, request: EvalRequest) -> dict:
-    """``evaluate_rigid_run`` for a request (the kind table's entry point); its one split is ``test``."""
-    r = request
-    options = {"--mesh": r.mesh, "--surreal": r.surreal, "--refine-steps": r.refine_steps, "--capture": r.capture}
-    refuse_options(run_dir, "rigid", options, "subject and autoencoder runs")
-    return evaluate_rigid_run(run_dir, r.limit, r.device, r.progress, r.grids)

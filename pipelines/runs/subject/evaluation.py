@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import torch
@@ -10,14 +9,14 @@ from tqdm import tqdm
 
 from fitting.evaluate import (
     average_metrics,
+    evaluate_splits,
     frame_metrics,
-    library_versions,
     markdown_table,
     nb_crop_region,
     render_view,
     spread,
-    write_report,
 )
+from fitting.fitted import SavedRun, read_run
 from fitting.plots import grid, save_png, to_numpy
 from pipelines.body.locate import file_sha256
 from pipelines.datasets.capture import ZjuCapture
@@ -26,17 +25,20 @@ from pipelines.runs.requests import EvalRequest, refuse_options
 from pipelines.runs.subject.session import capture_body_record, load_run, poses_for_frames
 
 
-def _view_metrics(run, split: str, items, frames: list[int], out_dir: Path, grids: int, device: str, progress: bool):
+def _view_metrics(run, split: str, items, out_dir: Path, request: EvalRequest) -> list[dict]:
     """Render every (frame, camera) of ``items`` and score it against the capture (full image and NB crop); the
-    first ``grids`` views also go to ``out_dir/grids/<split>/``. Returns one record per view. The run's own capture
-    is posed as the run shows it (corrected training frames); another capture (``run.other``) with its own poses."""
-    config, field = run.config, run.field
+    first ``request.grids`` views also go to ``out_dir/grids/<split>/``. Returns one record per view. The run's own
+    capture is posed as the run shows it (corrected training frames); another capture (``run.other``) with its own
+    poses."""
+    config, field, device = run.config, run.field, request.device
     capture = run.capture if split != "capture" else run.other
+    frames = sorted({f for f, _ in items})
     poses, _, _ = poses_for_frames(run if split != "capture" else capture, run.body_model, frames)
     poses = poses.to(device)
     bg = 1.0 if config.data.white_background else 0.0
     records = []
-    for index, (frame, cam) in enumerate(tqdm(items, desc=f"eval {split}", unit="view", disable=not progress)):
+    views = tqdm(items, desc=f"eval {split}", unit="view", disable=not request.progress)
+    for index, (frame, cam) in enumerate(views):
         item = capture.load_frame(frame, cam)
         pose = poses.select(torch.tensor([frames.index(frame)], device=device))
         render = to_numpy(render_view(field, item.camera, pose, config))
@@ -44,97 +46,72 @@ def _view_metrics(run, split: str, items, frames: list[int], out_dir: Path, grid
         records.append(
             {"frame": frame, "camera": cam, **frame_metrics(render, item.image, item.mask, region, bg, item.band)}
         )
-        if index < grids:
+        if index < request.grids:
             save_png(out_dir / "grids" / split / f"frame{frame:05d}_cam{cam:02d}.png", grid(item.image, render))
     return records
 
 
-def evaluate_run(
-    run_dir: Path,
-    splits: list[str],
-    limit: int | None = None,
-    device: str = "cpu",
-    progress: bool = True,
-    grids: int = 4,
-    mesh: bool = False,
-    mesh_resolution: int = 256,
-    mesh_level: float | None = None,
-    other: Path | None = None,
-) -> dict:
-    """Evaluate ``splits`` of the run's protocol; update ``run_dir/eval/metrics.json`` and ``metrics.md``.
+def _score_split(run, split: str, out_dir: Path, request: EvalRequest) -> dict:
+    """One split's report: the averages of both protocols, each view's record and, with ``request.mesh``, the
+    surface against the true one (``pipelines.runs.subject.mesh.mesh_accuracy``, meshes in ``eval/meshes/``)."""
+    if split == "capture":
+        every = run.other.protocol()
+        items = spread(every.usable(range(run.other.n_frames), range(run.other.n_cameras)), request.limit)
+    else:
+        items = spread(run.protocol.split(split), request.limit)
+    if not items:
+        raise ValueError(f"split '{split}' is empty for {run.capture.root} under the {run.protocol.name} protocol")
+    records = _view_metrics(run, split, items, out_dir, request)
+    result = {
+        "n_views": len(records),
+        "limit": request.limit,
+        "full": average_metrics(records, "full"),
+        "nb_crop": average_metrics(records, "nb_crop"),
+        "per_view": records,
+        **({"capture": str(run.other.root)} if split == "capture" else {}),
+    }
+    if request.mesh:
+        from pipelines.runs.subject.mesh import mesh_accuracy
 
-    With ``mesh``, also the surface of each split frame that has a true surface (``surfaces/<frame>.ply``):
-    ``pipelines.runs.subject.mesh.mesh_accuracy``, meshes in ``eval/meshes/<split>/``. ``other``: another prepared
-    capture of the same person, evaluated as split ``capture`` (:func:`open_other_capture`).
-    """
-    run_dir = Path(run_dir)
-    run = load_run(run_dir, device)
-    config, capture, protocol = run.config, run.capture, run.protocol
-    if other is not None:
-        run.other = open_other_capture(run, run_dir, Path(other))
-    out_dir = run_dir / "eval"
-    metrics_path = out_dir / "metrics.json"
-    report = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {"splits": {}}
-    for split in splits:
-        if split == "capture":
-            every = run.other.protocol()
-            items = spread(every.usable(range(run.other.n_frames), range(run.other.n_cameras)), limit)
-        else:
-            items = spread(protocol.split(split), limit)
-        if not items:
-            raise ValueError(f"split '{split}' is empty for {capture.root} under the {protocol.name} protocol")
         frames = sorted({f for f, _ in items})
-        records = _view_metrics(run, split, items, frames, out_dir, grids, device, progress)
-        report["splits"][split] = {
-            "n_views": len(records),
-            "limit": limit,
-            "full": average_metrics(records, "full"),
-            "nb_crop": average_metrics(records, "nb_crop"),
-            "per_view": records,
-            **({"capture": str(run.other.root)} if split == "capture" else {}),
-        }
-        if mesh:
-            from pipelines.runs.subject.mesh import mesh_accuracy
+        result["mesh"] = mesh_accuracy(run, frames, out_dir / "meshes" / split, request)
+    return result
 
-            report["splits"][split]["mesh"] = mesh_accuracy(
-                run, frames, out_dir / "meshes" / split, mesh_resolution, mesh_level, device, progress
-            )
-    report.update(
-        {
+
+def evaluate_run(run: Path | SavedRun, request: EvalRequest) -> dict:
+    """Evaluate ``request.splits`` of the run's protocol; update ``RUN/eval/metrics.json`` and ``metrics.md`` (the
+    kind table's entry point; options of other kinds are refused).
+
+    With ``request.mesh``, also the surface of each split frame that has a true surface (``surfaces/<frame>.ply``).
+    ``request.capture``: another prepared capture of the same person, evaluated as split ``capture``
+    (:func:`open_other_capture`).
+    """
+    saved = read_run(run)
+    run_dir, r = saved.run_dir, request
+    users = "autoencoder runs"
+    refuse_options(run_dir, "subject", {"--surreal": r.surreal, "--refine-steps": r.refine_steps}, users)
+    if r.capture is not None and tuple(r.splits) != ("capture",):
+        raise ValueError("--capture evaluates every frame and camera of the other recording as the split 'capture'")
+    loaded = load_run(saved, r.device)
+    if r.capture is not None:
+        loaded.other = open_other_capture(loaded, run_dir, Path(r.capture))
+    out_dir = run_dir / "eval"
+    config = loaded.config
+
+    def header() -> dict:
+        return {
             "run": str(run_dir),
-            "step": run.step,
+            "step": loaded.step,
             "model": config.model.name,
             "width": config.model.width,
             "image_size": config.model.image_size,
-            "subject": str(capture.root),
-            "protocol": protocol.name,
-            "poses": "corrected" if run.refined else "capture",
-            "versions": library_versions(),
+            "subject": str(loaded.capture.root),
+            "protocol": loaded.protocol.name,
+            "poses": "corrected" if loaded.refined else "capture",
         }
-    )
-    write_report(out_dir, report, markdown_table(report))
-    return report
 
-
-def evaluate(run_dir: Path, request: EvalRequest) -> dict:
-    """``evaluate_run`` for a request (the kind table's entry point)."""
-    users = "autoencoder runs"
-    refuse_options(run_dir, "subject", {"--surreal": request.surreal, "--refine-steps": request.refine_steps}, users)
-    r = request
-    if r.capture is not None and tuple(r.splits) != ("capture",):
-        raise ValueError("--capture evaluates every frame and camera of the other recording as the split 'capture'")
-    return evaluate_run(
-        run_dir,
-        list(r.splits),
-        r.limit,
-        r.device,
-        r.progress,
-        r.grids,
-        r.mesh,
-        r.mesh_resolution,
-        r.mesh_level,
-        r.capture,
-    )
+    score = lambda split: _score_split(loaded, split, out_dir, r)  # noqa: E731
+    return evaluate_splits(out_dir, r.splits, score, header, markdown_table)
 
 
 def open_other_capture(run, run_dir: Path, root: Path) -> ZjuCapture:

@@ -14,11 +14,13 @@ import torch
 import trimesh
 
 from fitting.files import atomic_write_bytes
+from fitting.fitted import SavedRun, run_folder
 from fitting.mesh import ExtractedMesh, extract_mesh, surface_metrics
 from fitting.mesh_level import LevelChoice, LevelView, choose_level
 from narf.fields import model_spec
 from pipelines.body.model import pose_batch
 from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.runs.requests import EvalRequest, ExportRequest, MotionClip
 from pipelines.runs.subject.session import LoadedRun, box_frames, load_run, poses_for_frames
 from pipelines.runs.subject.video import motion_params
 
@@ -88,34 +90,26 @@ def resolve_level(run: LoadedRun, level: float | None, device: str) -> tuple[flo
     return run.mesh_level["level"], dict(run.mesh_level)
 
 
-def export_run_meshes(
-    run_dir: Path,
-    out: Path,
-    frame: int | None = None,
-    motion: Path | None = None,
-    window: tuple[int, int] | None = None,
-    resolution: int = 256,
-    level: float | None = None,
-    device: str = "cpu",
-    progress: bool = True,
-) -> tuple[list[Path], dict]:
+def export_run_meshes(run: Path | SavedRun, request: ExportRequest) -> tuple[list[Path], dict]:
     """Export the fitted body at a capture frame, or at frames ``window = (A, B)`` (B excluded) of a motion file
     placed on the capture's stage as for videos (one file per frame: ``<stem>_<frame>.<ext>``). ``level`` None:
     chosen from the fit (:func:`resolve_level`). Returns the files written and the level's record."""
-    out = Path(out)
+    r = request
+    out, frame, motion, device, progress = Path(r.out), r.frame, r.motion, r.device, r.progress
     if out.suffix.lower() not in MESH_SUFFIXES:
         raise ValueError(f"{out}: unknown mesh format '{out.suffix}'; use {', '.join(MESH_SUFFIXES)}")
-    run = load_run(Path(run_dir), device)
+    run_dir = run_folder(run)
+    run = load_run(run, device)
     if not model_spec(run.config.model.name).meshes:
         raise ValueError(f"{run_dir}: the CNN baseline renders images, not a density field: no mesh to export")
     if motion is None and (frame is None or not 0 <= frame < run.capture.n_frames):
         raise CaptureError(f"{run.capture.root}: frame {frame} out of range (0..{run.capture.n_frames - 1})")
     if motion is not None:
-        start, stop = window or (0, None)
-        params, _ = motion_params(
-            run, Path(motion), None, start, None if stop is None else stop - start, flag="--frames"
-        )
-    level, record = resolve_level(run, level, device)
+        start, stop = r.window or (0, None)
+        clip = MotionClip(Path(motion), start, None if stop is None else stop - start, flag="--frames")
+        params, _ = motion_params(run, clip)
+    level, record = resolve_level(run, r.level, device)
+    resolution = r.resolution
     if motion is None:
         mesh = extract_mesh(run.field, _capture_pose(run, frame, device), resolution, level, progress=progress)
         return write_mesh(out, mesh), record
@@ -139,12 +133,12 @@ def true_surface(root: Path, frame: int) -> trimesh.Trimesh | None:
         raise CaptureError(f"{path}: unreadable PLY mesh ({err})") from err
 
 
-def mesh_accuracy(
-    run: LoadedRun, frames: list[int], out_dir: Path, resolution: int, level: float | None, device: str, progress: bool
-) -> dict:
+def mesh_accuracy(run: LoadedRun, frames: list[int], out_dir: Path, request: EvalRequest) -> dict:
     """Surface distance and normal consistency of the exported mesh against the true surface, per frame and
-    averaged, over the ``frames`` that have a true surface; the meshes go to ``out_dir/<frame>.ply``. ``level``
-    None: chosen from the fit (:func:`resolve_level`), as narf-export-mesh does."""
+    averaged, over the ``frames`` that have a true surface; the meshes go to ``out_dir/<frame>.ply``, extracted at
+    ``request.mesh_resolution`` and ``request.mesh_level`` (None: chosen from the fit, :func:`resolve_level`, as
+    narf-export-mesh does)."""
+    resolution, device, progress = request.mesh_resolution, request.device, request.progress
     truths = {f: true_surface(run.capture.root, f) for f in frames}
     frames = [f for f in frames if truths[f] is not None]
     if not frames:
@@ -152,7 +146,7 @@ def mesh_accuracy(
             f"{run.capture.root}: no true surfaces (surfaces/<frame>.ply) for the split's frames; --mesh needs a "
             "capture that ships them, as the synthetic captures do"
         )
-    level, level_record = resolve_level(run, level, device)
+    level, level_record = resolve_level(run, request.mesh_level, device)
     records = []
     for frame in frames:
         mesh = extract_mesh(run.field, _capture_pose(run, frame, device), resolution, level, progress=progress)

@@ -25,6 +25,7 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from fitting.files import atomic_write_bytes
+from fitting.fitted import SavedRun, run_folder
 from fitting.mesh import extract_mesh, vertex_normals
 from narf.extraction import nearest_part, query_points
 from narf.fields import model_spec
@@ -32,6 +33,7 @@ from narf.kinematics import JOINT_NAMES, PART_JOINTS, SMPL_PARENTS
 from pipelines.body.model import pose_batch
 from pipelines.datasets.gltf import Animation, Skeleton, SkinnedMesh, skinned_glb
 from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.runs.requests import ExportRequest, MotionClip
 from pipelines.runs.subject.mesh import resolve_level
 from pipelines.runs.subject.session import load_run
 from pipelines.runs.subject.video import capture_stage, motion_params
@@ -83,10 +85,12 @@ def _bind_pose(run, frame: int | None, stage_from_world: np.ndarray, shapes: tor
     return body, stage_from_world
 
 
-def _animation(run, motion: Path, window, fps, motion_fps, staged, stage_from_world) -> tuple[Animation, dict]:
-    start, stop = window or (0, None)
+def _animation(run, request: ExportRequest, staged, stage_from_world) -> tuple[Animation, dict]:
+    """The request's motion window as the skeleton's animation in the export frame, and the motion's report."""
+    start, stop = request.window or (0, None)
     n_frames = None if stop is None else stop - start
-    params, report = motion_params(run, Path(motion), fps, start, n_frames, motion_fps, staged, flag="--frames")
+    clip = MotionClip(Path(request.motion), start, n_frames, request.fps, request.motion_fps, "--frames")
+    params, report = motion_params(run, clip, staged)
     stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
     with torch.no_grad():
         world_from_joint = run.body_model.pose_zju(*stack).world_from_joint.double().numpy()
@@ -94,39 +98,28 @@ def _animation(run, motion: Path, window, fps, motion_fps, staged, stage_from_wo
     return Animation(times, stage_from_world @ world_from_joint), report
 
 
-def export_rigged(
-    run_dir: Path,
-    out: Path,
-    frame: int | None = None,
-    motion: Path | None = None,
-    window: tuple[int, int] | None = None,
-    fps: float | None = None,
-    resolution: int = 256,
-    level: float | None = None,
-    skin: str = "selector",
-    motion_fps: float | None = None,
-    device: str = "cpu",
-    progress: bool = True,
-) -> tuple[Path, dict]:
+def export_rigged(run: Path | SavedRun, request: ExportRequest) -> tuple[Path, dict]:
     """Write the rigged glb (module docstring); returns its path and a record (level, vertices, frames)."""
-    out = Path(out)
+    r = request
+    out, skin, device = Path(r.out), r.skin, r.device
     if out.suffix.lower() != ".glb":
         raise ValueError(f"{out}: a rigged export is glTF binary; name it .glb")
     if skin not in SKINS:
         raise ValueError(f"--skin must be one of {', '.join(SKINS)}, got '{skin}'")
-    run = load_run(Path(run_dir), device)
+    run_dir = run_folder(run)
+    run = load_run(run, device)
     if not model_spec(run.config.model.name).meshes:
         raise ValueError(f"{run_dir}: the CNN baseline renders images, not a density field: no mesh to export")
     staged = capture_stage(run)
     stage, _, shapes = staged
     stage_from_world = export_from_world(stage)
-    body, bind_from_world = _bind_pose(run, frame, stage_from_world, shapes)
+    body, bind_from_world = _bind_pose(run, r.frame, stage_from_world, shapes)
     animation = report = None
-    if motion is not None:
-        animation, report = _animation(run, motion, window, fps, motion_fps, staged, stage_from_world)
-    level, record = resolve_level(run, level, device)
+    if r.motion is not None:
+        animation, report = _animation(run, r, staged, stage_from_world)
+    level, record = resolve_level(run, r.level, device)
     pose = pose_batch(body).to(device)
-    mesh = extract_mesh(run.field, pose, resolution, level, progress=progress)
+    mesh = extract_mesh(run.field, pose, r.resolution, level, progress=r.progress)
     points = torch.as_tensor(mesh.vertices, dtype=torch.float32, device=device)
     probs = query_points(run.field, points, pose)["part_probs"]
     if probs is None:  # a field without a part selector: every vertex follows the part whose box holds it deepest

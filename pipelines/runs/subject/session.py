@@ -14,13 +14,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from fitting.checkpoint import CheckpointError, load_checkpoint
+from fitting.checkpoint import CheckpointError
 from fitting.config import FitConfig
 from fitting.corrections import pose_correction_from_state
 from fitting.data import FitData, TrainingSet
 from fitting.distributed import SINGLE
 from fitting.files import staged_folder
-from fitting.fitted import load_fitted, run_config
+from fitting.fitted import SavedRun, load_fitted, read_run
 from fitting.trainer import Trainer
 from fitting.trainers import trainer_class
 from narf.fields.common import PoseBatch
@@ -246,12 +246,13 @@ def refined_params(state: dict, capture: ZjuCapture, path: Path) -> dict[int, Sm
     return {f: SmplParams(poses[i], rh[i], th[i], capture.params(f).shapes) for i, f in enumerate(frames)}
 
 
-def load_run(run_dir: Path, device="cpu") -> LoadedRun:
+def load_run(run: Path | SavedRun, device="cpu") -> LoadedRun:
     """Load a run folder written by ``narf-fit --out`` (checkpoint, config, the capture it was fitted on, its body
-    model and its corrected poses)."""
-    fitted = load_fitted(run_dir, device, kind="subject")  # the kind is checked before a capture is read or generated
-    source = f"{Path(run_dir) / 'checkpoint.pt'}"
-    body = BodyModel(recorded_body_file(fitted.state, source, str(run_dir)))  # None: the stand-in
+    model and its corrected poses); ``run``: the folder, or its checkpoint already read."""
+    saved = read_run(run)
+    fitted = load_fitted(saved, device, kind="subject")  # the kind is checked before a capture is read or generated
+    source = f"{saved.run_dir / 'checkpoint.pt'}"
+    body = BodyModel(recorded_body_file(fitted.state, source, str(saved.run_dir)))  # None: the stand-in
     capture = open_capture(fitted.config, quiet=True)
     protocol = capture.protocol(fitted.config.data.protocol)
     refined = refined_params(fitted.state, capture, Path(source))
@@ -267,11 +268,10 @@ def write_refined_params(run_dir: Path) -> Path | None:
     fit without pose correction."""
     from pipelines.datasets.zju_mocap import param_index_from_image, write_params
 
-    run_dir = Path(run_dir)
-    state = load_checkpoint(run_dir)
+    saved = read_run(Path(run_dir))
+    state, config, run_dir = saved.state, saved.config, saved.run_dir
     if state.get("pose_correction") is None:
         return None
-    config = run_config(state, run_dir)
     capture = open_capture(config, quiet=True)
     refined = refined_params(state, capture, run_dir / "checkpoint.pt")
     with staged_folder(run_dir / REFINED) as partial:

@@ -14,6 +14,7 @@ from tqdm import tqdm
 
 from fitting.evaluate import render_view
 from fitting.files import atomic_write_bytes
+from fitting.fitted import SavedRun, run_folder
 from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
 from narf.kinematics import JOINT_NAMES, PART_JOINTS, SMPL_PARENTS, rigid_from_rotvec_translation
@@ -22,11 +23,11 @@ from pipelines.body.motion import load_motion, place, resample, stage_of
 from pipelines.datasets.camera_path import interpolate, intrinsics, read_camera_path
 from pipelines.datasets.floor import camera_up
 from pipelines.datasets.zju_mocap import CaptureError
-from pipelines.runs.requests import VideoRequest, refuse_options
+from pipelines.runs.requests import MotionClip, VideoRequest, refuse_options
 from pipelines.runs.subject.session import LoadedRun, box_frames, load_run, poses_for_frames
 from pipelines.synthetic.scene import look_at
 
-KINDS = ("orbit", "poses", "bones", "path")
+VIDEO_KINDS = ("orbit", "poses", "bones", "path")
 #: Bone-length edit: joints whose offset from their parent is scaled (legs: knees, ankles, feet).
 LEG_JOINTS = (4, 5, 7, 8, 10, 11)
 
@@ -91,21 +92,19 @@ def capture_stage(run: LoadedRun):
     return stage, train_pose, shapes
 
 
-def motion_params(
-    run: LoadedRun, motion_path: Path, fps, start: int, n_frames, motion_fps=None, staged=None, flag="--start"
-):
-    """The subject's ZJU parameters performing a motion file at ``fps`` (None: the motion's own rate) from source
-    frame ``start`` for at most ``n_frames`` (None: to the end), placed on the capture's stage, and a report of the
-    frames whose parts leave the trained range (``docs/design.md`` *Driving the avatar*). ``staged``: what
-    :func:`capture_stage` returned, when the caller has it already; ``flag``: the option that gave ``start``, named
-    when it lies outside the motion."""
+def motion_params(run: LoadedRun, clip: MotionClip, staged=None):
+    """The subject's ZJU parameters performing ``clip`` of a motion file, placed on the capture's stage, and a report
+    of the frames whose parts leave the trained range (``docs/design.md`` *Driving the avatar*). ``staged``: what
+    :func:`capture_stage` returned, when the caller has it already."""
     body = run.body_model
     stage, train_pose, shapes = staged or capture_stage(run)
     rest_pelvis = body.rest_joints(shapes[:1].to(body.dtype))[0, 0].double().numpy()
-    source = load_motion(motion_path, rest_pelvis, motion_fps)
+    source = load_motion(clip.path, rest_pelvis, clip.source_fps)
+    start = clip.start
     if not 0 <= start < source.n_frames:
-        raise ValueError(f"{flag} {start}: {motion_path} has {source.n_frames} frames (0..{source.n_frames - 1})")
-    motion = resample(source, fps or source.fps, start, n_frames)
+        n = source.n_frames
+        raise ValueError(f"{clip.flag} {start}: {clip.path} has {n} frames (0..{n - 1})")
+    motion = resample(source, clip.fps or source.fps, start, clip.frames)
     params = place(motion, stage, body, shapes[0].double().numpy())
     stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
     with torch.no_grad():
@@ -127,34 +126,27 @@ def motion_params(
     return params, report
 
 
-def render_video(
-    run_dir: Path,
-    kind: str,
-    out: Path,
-    n_frames: int = 60,
-    fps: int = 24,
-    device: str = "cpu",
-    motion: Path | None = None,
-    camera_index: int | None = None,
-    scale: float = 1.3,
-    progress: bool = True,
-    start: int = 0,
-    motion_fps: float | None = None,
-    camera_path: Path | None = None,
-) -> Path:
-    """Render ``kind`` (orbit | poses | bones) of a fitted run to an H.264 mp4 of RGB | depth | segmentation.
+def render_video(run: Path | SavedRun, request: VideoRequest) -> Path:
+    """Render ``request.kind`` (orbit | poses | bones | path) of a fitted run to an H.264 mp4 of RGB | depth |
+    segmentation (the kind table's entry point; options of autoencoder runs are refused).
 
     With ``motion`` (an AMASS .npz, a ZJU params folder or a SURREAL _info.mat) ``poses`` plays that motion at
     ``fps`` from source frame ``start`` (``motion_params``); its report goes to ``out`` with the suffix ``.json``,
-    and the frames outside the trained range are named on stderr. ``path`` renders ``n_frames`` cameras along a
+    and the frames outside the trained range are named on stderr. ``path`` renders ``frames`` cameras along a
     ``camera_path`` saved by narf-view (``pipelines.datasets.camera_path``).
     """
-    if kind not in KINDS:
-        raise ValueError(f"unknown video kind '{kind}'; choose from {', '.join(KINDS)}")
-    run = load_run(run_dir, device)
+    r = request
+    run_dir = run_folder(run)
+    refuse_options(run_dir, "subject", {"--input": r.inputs, "--refine-steps": r.refine_steps}, "autoencoder runs")
+    if r.motion is not None and r.kind != "poses":
+        raise ValueError("--motion plays with --kind poses")
+    kind, n_frames, out, progress = r.kind, r.frames, r.out, r.progress
+    if kind not in VIDEO_KINDS:
+        raise ValueError(f"unknown video kind '{kind}'; choose from {', '.join(VIDEO_KINDS)}")
+    run = load_run(run, r.device)
     config, field, capture, protocol, body_model = run.config, run.field, run.capture, run.protocol, run.body_model
     held = (protocol.novel_frames or protocol.train_frames)[0]
-    view = camera_index if camera_index is not None else (protocol.test_views or protocol.train_views)[0]
+    view = r.camera if r.camera is not None else (protocol.test_views or protocol.train_views)[0]
     if not 0 <= view < capture.n_cameras:
         raise ValueError(f"camera {view} out of range ({capture.n_cameras} cameras)")
     camera = capture.load_frame(held, view).camera
@@ -162,9 +154,9 @@ def render_video(
     shapes = torch.as_tensor(base.shapes)[None]
     frames_out = []
     if kind == "path":
-        params, cameras = path_views(run, camera_path, n_frames)
-    elif kind == "poses" and motion is not None:
-        params, report = motion_params(run, Path(motion), fps, start, n_frames, motion_fps)
+        params, cameras = path_views(run, r.camera_path, n_frames)
+    elif kind == "poses" and r.motion is not None:
+        params, report = motion_params(run, MotionClip(Path(r.motion), r.start, n_frames, r.fps, r.motion_fps))
         _report_motion(report, Path(out).with_suffix(".json"))
     elif kind == "poses":
         params = [run.params(f) for f in list(protocol.novel_frames or protocol.train_frames)[:n_frames]]
@@ -180,13 +172,13 @@ def render_video(
         args = [torch.as_tensor(v)[None] for v in (p.poses, p.rh, p.th)]
         with torch.no_grad():
             if kind == "bones":
-                factor = 1 + (scale - 1) * 0.5 * (1 - np.cos(2 * np.pi * k / max(len(params) - 1, 1)))
+                factor = 1 + (r.scale - 1) * 0.5 * (1 - np.cos(2 * np.pi * k / max(len(params) - 1, 1)))
                 rest = scaled_skeleton(body_model.rest_joints(shapes), LEG_JOINTS, float(factor))
                 pose = pose_batch(posed_from_rest_joints(args[0], rigid_from_rotvec_translation(*args[1:]), rest))
             else:
                 pose = pose_batch(body_model.pose_zju(*args, shapes))
-        frames_out.append(video_frame(to_numpy(render_view(field, cam, pose.to(device), config))))
-    return write_mp4(out, frames_out, fps)
+        frames_out.append(video_frame(to_numpy(render_view(field, cam, pose.to(r.device), config))))
+    return write_mp4(out, frames_out, r.fps)
 
 
 def path_views(run: LoadedRun, camera_path: Path | None, n_frames: int) -> tuple[list, list]:
@@ -244,26 +236,3 @@ def _pelvis(body_model: BodyModel, params) -> np.ndarray:
             *(torch.as_tensor(v)[None] for v in (params.poses, params.rh, params.th, params.shapes))
         )
     return body.world_from_joint[0, 0, :3, 3].numpy().astype(np.float64)
-
-
-def render(run_dir: Path, request: VideoRequest) -> Path:
-    """``render_video`` for a request (the kind table's entry point)."""
-    r = request
-    refuse_options(run_dir, "subject", {"--input": r.inputs, "--refine-steps": r.refine_steps}, "autoencoder runs")
-    if r.motion is not None and r.kind != "poses":
-        raise ValueError("--motion plays with --kind poses")
-    return render_video(
-        run_dir,
-        r.kind,
-        r.out,
-        r.frames,
-        r.fps,
-        r.device,
-        r.motion,
-        r.camera,
-        r.scale,
-        r.progress,
-        r.start,
-        r.motion_fps,
-        r.camera_path,
-    )
