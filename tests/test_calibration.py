@@ -258,7 +258,7 @@ def test_colmap_model_round_trip(tmp_path):
 
 def test_compare_cameras_undoes_a_change_of_world_frame():
     from pipelines.calibration.report import compare_cameras
-    from pipelines.datasets.zju_mocap import Camera
+    from pipelines.datasets.camera import Camera
 
     cameras = ring_cameras(21, 256, seed=2)[::4]
     new_from_old = np.eye(4)
@@ -336,8 +336,8 @@ def test_checkerboard_flags_are_checked_before_the_work(tmp_path, capsys):
     """--compare with no camera in common, and an --out that is a file, are refused before any shot is read."""
     from pipelines.cli import calibrate
     from pipelines.cli.common import run_cli
+    from pipelines.datasets.camera import Camera
     from pipelines.datasets.rig_files import write_qualisys
-    from pipelines.datasets.zju_mocap import Camera
 
     folder = tmp_path / "shots" / "int_cam01_img"
     folder.mkdir(parents=True)

@@ -295,8 +295,8 @@ def test_a_run_keeps_its_body_model(data_root_64, tmp_path, monkeypatch):
     shell (no NARF_SMPL_DIR), refused in one line once the file is gone, and found again through --smpl-dir (the
     variable it sets) by its hash; a capture that records another body model refuses the fit."""
     from pipelines.body.locate import ensure_standin
+    from pipelines.datasets.errors import CaptureError
     from pipelines.datasets.smpl_files import SmplFileError, load_smpl_dict, write_smpl_pickle
-    from pipelines.datasets.zju_mocap import CaptureError
     from pipelines.runs.fit import fit
     from pipelines.runs.requests import FitRequest
     from pipelines.runs.subject.session import load_run

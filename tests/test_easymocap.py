@@ -4,8 +4,9 @@ import cv2
 import numpy as np
 import pytest
 
+from pipelines.datasets.camera import Camera
 from pipelines.datasets.easymocap import read_easymocap_cameras, write_easymocap_cameras
-from pipelines.datasets.zju_mocap import Camera, CaptureError
+from pipelines.datasets.errors import CaptureError
 
 
 def _mat(key, value):

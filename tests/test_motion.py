@@ -12,7 +12,7 @@ from pipelines.body.motion import Motion, Stage, load_motion, place, resample
 from pipelines.cli import render_video as cli_video
 from pipelines.cli.common import run_cli
 from pipelines.datasets.amass import read_amass, write_amass
-from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.datasets.errors import CaptureError
 
 
 def _walk(n=12):

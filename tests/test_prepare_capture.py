@@ -17,9 +17,9 @@ from pipelines.body.motion import stage_of
 from pipelines.cli import prepare_capture
 from pipelines.cli.common import run_cli
 from pipelines.datasets.capture import ZjuCapture
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import TARGET_JOINTS, read_openpose, to_targets, write_openpose
 from pipelines.datasets.rig_files import read_qualisys, read_rig, read_toml, write_qualisys
-from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.prepare.checks import project_distorted
 from pipelines.prepare.triangulate import project, triangulate, triangulate_robust
 from pipelines.synthetic.capture import SynthConfig, generate_capture
@@ -219,7 +219,7 @@ def test_body25b_files_prepare_the_truth_and_are_never_read_as_body25(recording,
 
 
 def test_a_capture_whose_every_camera_is_flagged_is_refused_unless_kept():
-    from pipelines.datasets.zju_mocap import CaptureError
+    from pipelines.datasets.errors import CaptureError
     from pipelines.prepare.run import PrepareRequest, _refuse_all_flagged
 
     report = {"cameras": {"a": {}, "b": {}}, "flagged_cameras": {"a": "turned", "b": "turned"}}
@@ -318,8 +318,8 @@ def test_the_floor_is_found_under_the_feet_or_given(recording, prepared, tmp_pat
 
 
 def test_a_bad_floor_file_names_itself(tmp_path):
+    from pipelines.datasets.errors import CaptureError
     from pipelines.datasets.floor import read_floor
-    from pipelines.datasets.zju_mocap import CaptureError
 
     for text in (
         '{"up": [0, 0], "height": 0}',
@@ -338,7 +338,7 @@ def test_camera_names_match_up_to_case_separators_and_padding():
     the order; the report says how; a recording behind two cameras through --camera-map is refused."""
     from types import SimpleNamespace
 
-    from pipelines.datasets.zju_mocap import CaptureError
+    from pipelines.datasets.errors import CaptureError
     from pipelines.prepare.sources import Source, match_cameras, name_key
 
     assert {name_key(n) for n in ("cam_01", "cam01", "Cam1", "CAM-001", "cam 1")} == {"cam1"}

@@ -8,9 +8,10 @@ import pytest
 import torch
 
 from fitting.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.safe_pickle import UnsafePickleError, load_npy_object
 from pipelines.datasets.smpl_files import SmplFileError, load_smpl_dict
-from pipelines.datasets.zju_mocap import CaptureError, read_params
+from pipelines.datasets.zju_mocap import read_params
 
 
 class _Payload:

@@ -10,8 +10,8 @@ import pytest
 import torch
 from scipy.ndimage import map_coordinates
 
+from pipelines.datasets.camera import Camera
 from pipelines.datasets.capture import ZjuCapture
-from pipelines.datasets.zju_mocap import Camera
 from pipelines.prepare.silhouettes import SilhouetteSettings, SilhouetteTerm, silhouette_targets
 
 

@@ -6,7 +6,7 @@ import spawn
 
 from pipelines.cli import synth as cli_synth
 from pipelines.cli.common import run_cli
-from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.datasets.errors import CaptureError
 from pipelines.runs.subject.session import resolve_subject
 
 

@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import scipy.io
 
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.surreal import (
     SURREAL_K,
     check_clip,
@@ -13,7 +14,6 @@ from pipelines.datasets.surreal import (
     right_handed_view,
     surreal_cam_from_world,
 )
-from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.synthetic.surreal_files import write_surreal_clip
 
 N_FRAMES = 4

@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.thuman import (
     THUMAN_K,
     count_renders,
@@ -13,7 +14,6 @@ from pipelines.datasets.thuman import (
     read_render,
     read_smpl_params_txt,
 )
-from pipelines.datasets.zju_mocap import CaptureError
 
 
 def _smpl_params_text(betas, root, pose, newline="\r\n"):

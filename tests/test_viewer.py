@@ -13,8 +13,9 @@ import torch
 from scipy.spatial.transform import Rotation
 
 from narf.kinematics import SMPL_PARENTS
+from pipelines.datasets.camera import Camera
 from pipelines.datasets.camera_path import CameraPath, Keyframe, interpolate, intrinsics, read_camera_path
-from pipelines.datasets.zju_mocap import Camera, SmplParams
+from pipelines.datasets.zju_mocap import SmplParams
 from pipelines.viewer.avatar import BONE_GROUPS, AvatarPose, camera_from_viewer, viewer_from_camera, z_depth
 
 

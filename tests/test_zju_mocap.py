@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from pipelines.datasets.capture import ZjuCapture, make_protocol
-from pipelines.datasets.zju_mocap import CaptureError, param_index_from_image, read_annots, write_annots
+from pipelines.datasets.errors import CaptureError
+from pipelines.datasets.zju_mocap import param_index_from_image, read_annots, write_annots
 
 
 @pytest.fixture

@@ -22,8 +22,9 @@ from scipy.spatial.transform import Rotation, Slerp
 from pipelines.body.model import BodyModel
 from pipelines.body.surreal import surreal_world_pose
 from pipelines.datasets.amass import read_amass
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.surreal import read_surreal_info
-from pipelines.datasets.zju_mocap import CaptureError, SmplParams, read_params
+from pipelines.datasets.zju_mocap import SmplParams, read_params
 
 #: Frame rate assumed for sources that do not store one (ZJU params folders); ``--motion-fps`` overrides it.
 DEFAULT_FPS = 30.0

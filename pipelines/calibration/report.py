@@ -10,7 +10,7 @@ from scipy.spatial.transform import Rotation
 from skimage.transform import SimilarityTransform
 
 from fitting.files import atomic_output
-from pipelines.datasets.zju_mocap import Camera
+from pipelines.datasets.camera import Camera
 
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
 

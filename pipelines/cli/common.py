@@ -10,8 +10,8 @@ import os
 import sys
 from collections.abc import Callable
 
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.smpl_files import SmplFileError
-from pipelines.datasets.zju_mocap import CaptureError
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.datasets.errors import CaptureError
 
 #: SMPL's first 22 joints (pelvis ... wrists) are the body joints of SMPL+H and SMPL-X in the same order; SMPL's
 #: joints 22/23 (hands) stay at rest.

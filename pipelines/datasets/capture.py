@@ -13,9 +13,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.images import read_image
 from pipelines.datasets.zju_mocap import (
-    CaptureError,
     Frame,
     SmplParams,
     boundary_band,

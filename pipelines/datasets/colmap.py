@@ -12,7 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.datasets.zju_mocap import Camera, CaptureError
+from pipelines.datasets.camera import Camera
+from pipelines.datasets.errors import CaptureError
 
 #: COLMAP camera models read back as OpenCV cameras: their parameters after fx, fy, cx, cy, in OpenCV's order.
 READABLE = {"PINHOLE": 0, "OPENCV": 4, "FULL_OPENCV": 8}

@@ -17,7 +17,8 @@ import cv2
 import numpy as np
 
 from fitting.files import atomic_write_bytes
-from pipelines.datasets.zju_mocap import Camera, CaptureError
+from pipelines.datasets.camera import Camera
+from pipelines.datasets.errors import CaptureError
 
 #: Characters a camera name cannot hold: they would end the YAML key or the quoted ``names`` entry.
 _FORBIDDEN = set('":#\\\r\n\t')

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.datasets.errors import CaptureError
 
 _GIVEN = re.compile(r"^([xyz])-(up|down)(?:=(.+))?$")
 

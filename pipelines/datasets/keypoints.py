@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from fitting.files import atomic_write_bytes
-from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.datasets.errors import CaptureError
 
 LAYOUT_SIZES = {"body25": 25, "body25b": 25, "coco18": 18, "coco17": 17, "halpe26": 26, "blazepose": 33}
 #: The layouts of OpenPose-style JSON files, by their number of points (25 is checked: :func:`layout_of_25`).

@@ -23,7 +23,9 @@ import cv2
 import numpy as np
 
 from fitting.files import atomic_write_bytes
-from pipelines.datasets.zju_mocap import Camera, CaptureError, read_annots
+from pipelines.datasets.camera import Camera
+from pipelines.datasets.errors import CaptureError
+from pipelines.datasets.zju_mocap import read_annots
 
 #: Qualisys stores intrinsics in sub-pixel units: 64 per pixel (as Pose2Sim reads them; binning 1).
 QUALISYS_SUBPIXELS = 64.0

@@ -14,8 +14,9 @@ import torch
 
 from narf.fields.common import PoseBatch
 from narf.geometry import se3_log
+from pipelines.datasets.camera import Camera
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.thuman import ThumanView, count_renders, load_array, read_render
-from pipelines.datasets.zju_mocap import Camera, CaptureError
 
 RIGID_SPLITS = ("train", "test")
 

@@ -16,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import frame_number
-from pipelines.datasets.zju_mocap import CaptureError, SmplParams, read_params
+from pipelines.datasets.zju_mocap import SmplParams, read_params
 
 SIZES = {"poses": 72, "Rh": 3, "Th": 3, "shapes": 10}
 

@@ -12,7 +12,7 @@ import os
 import sys
 from pathlib import Path
 
-from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.datasets.errors import CaptureError
 
 #: ZJU-MoCap action names -> subject ids (docs/formats.md, ZJU-MoCap).
 ZJU_SUBJECTS = {

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import scipy.io
 
-from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.datasets.errors import CaptureError
 
 WIDTH, HEIGHT = 320, 240
 #: Blender: 60 mm lens, 32 mm sensor width, 320 x 240 pixels -> f = 600 px, centre (160, 120).

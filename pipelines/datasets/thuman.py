@@ -20,8 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.images import read_image
-from pipelines.datasets.zju_mocap import CaptureError
 
 RENDER_SIZE = 128
 #: NARF's render_128 intrinsics (pixel centres at +0.5) converted to the project's convention (c - 0.5).

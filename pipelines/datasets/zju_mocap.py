@@ -11,52 +11,16 @@ from __future__ import annotations
 
 import pickle
 import re
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from fitting.files import atomic_write_bytes
+from pipelines.datasets.camera import Camera
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.safe_pickle import load_npy_object
-
-
-class CaptureError(ValueError):
-    """A capture file is missing or malformed; the message names the file and the problem."""
-
-
-@dataclass(frozen=True)
-class Camera:
-    """An OpenCV pinhole camera. ``x_cam = R x_world + t`` with t in metres; pixel centres at integers.
-
-    Attributes:
-        name: camera folder name, e.g. ``Camera_B1``.
-        K: (3, 3) intrinsics.
-        dist: (5,) k1, k2, p1, p2, k3.
-        cam_from_world: (4, 4) extrinsics, metres.
-        width, height: image size in pixels.
-    """
-
-    name: str
-    K: np.ndarray
-    dist: np.ndarray
-    cam_from_world: np.ndarray
-    width: int
-    height: int
-
-    @property
-    def centre(self) -> np.ndarray:
-        """Camera centre in world coordinates, ``-R^T t``."""
-        return -self.cam_from_world[:3, :3].T @ self.cam_from_world[:3, 3]
-
-    def scaled(self, ratio: float) -> Camera:
-        """The camera after resizing the image by ``ratio`` (first two rows of K scaled)."""
-        K = self.K.copy()
-        K[:2] *= ratio
-        return replace(self, K=K, width=int(round(self.width * ratio)), height=int(round(self.height * ratio)))
-
-    def undistorted(self) -> Camera:
-        return replace(self, dist=np.zeros(5))
 
 
 @dataclass(frozen=True)

@@ -7,7 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pipelines.datasets.zju_mocap import Camera
+from pipelines.datasets.camera import Camera
 
 #: a camera is flagged when its median reprojection error exceeds this fraction of the image height ...
 FLAG_ERROR = 0.015

@@ -13,7 +13,7 @@ import sys
 
 import numpy as np
 
-from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.datasets.errors import CaptureError
 
 #: mask threshold on the segmenter's person probability
 MASK_THRESHOLD = 0.5

@@ -13,6 +13,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipelines.datasets.camera import Camera
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import (
     FILE_LAYOUTS,
     LAYOUT_HINTS,
@@ -24,7 +26,6 @@ from pipelines.datasets.keypoints import (
     to_targets,
 )
 from pipelines.datasets.rig_files import natural_key
-from pipelines.datasets.zju_mocap import Camera, CaptureError
 from pipelines.prepare.sources import IMAGE_SUFFIXES, Source, read_frames, recording_size
 
 #: a video narrower or wider than its calibration window by at most this fraction is taken as the window cropped

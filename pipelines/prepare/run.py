@@ -18,9 +18,9 @@ from scipy.spatial.transform import Rotation
 
 from fitting.files import partial_folder, publish_folder
 from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.floor import Floor, camera_up, floor_from_feet, write_floor
 from pipelines.datasets.rig_files import read_rig
-from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.prepare.body_fit import FitSettings, fit_body
 from pipelines.prepare.layout import finish_capture, write_sequence
 from pipelines.prepare.observe import observe

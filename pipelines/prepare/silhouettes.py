@@ -22,7 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from pipelines.datasets.zju_mocap import Camera
+from pipelines.datasets.camera import Camera
 from pipelines.prepare.checks import mask_near_body, silhouette
 
 

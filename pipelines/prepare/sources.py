@@ -19,9 +19,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipelines.datasets.camera import Camera
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.images import read_image
 from pipelines.datasets.rig_files import natural_key
-from pipelines.datasets.zju_mocap import Camera, CaptureError
 
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".webm")
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff")

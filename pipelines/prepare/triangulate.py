@@ -13,7 +13,7 @@ from itertools import combinations
 import cv2
 import numpy as np
 
-from pipelines.datasets.zju_mocap import Camera
+from pipelines.datasets.camera import Camera
 
 #: fewest joints two views must share for a consensus hypothesis
 MIN_SHARED_JOINTS = 6

@@ -7,8 +7,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from pipelines.datasets.camera import Camera
 from pipelines.datasets.keypoints import TARGETS, mirror_index
-from pipelines.datasets.zju_mocap import Camera
 from pipelines.prepare.triangulate import consensus, project, projection_matrix, triangulate_robust, undistort_points
 
 #: least detector confidence of a keypoint that is used

@@ -25,9 +25,10 @@ from fitting.files import partial_folder, publish_folder
 from fitting.mesh import vertex_normals
 from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.body.model import BodyModel
+from pipelines.datasets.camera import Camera
 from pipelines.datasets.capture import make_protocol
 from pipelines.datasets.easymocap import write_easymocap_cameras
-from pipelines.datasets.zju_mocap import Camera, SmplParams, write_annots, write_params
+from pipelines.datasets.zju_mocap import SmplParams, write_annots, write_params
 from pipelines.synthetic.scene import (
     albedo,
     facing_normals,

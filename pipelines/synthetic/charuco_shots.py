@@ -25,7 +25,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pipelines.calibration.board import BoardSpec
-from pipelines.datasets.zju_mocap import Camera
+from pipelines.datasets.camera import Camera
 from pipelines.synthetic.scene import pixel_directions, studio_background
 
 _MARGIN = 0.04  # white panel border around the printed board, metres

@@ -20,8 +20,8 @@ from tqdm import tqdm
 
 from fitting.files import partial_folder, publish_folder
 from pipelines.body.model import BodyModel
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.thuman import RENDER_SIZE, THUMAN_K, item_gender, read_colored_obj, read_smpl_params_txt
-from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.synthetic.people import raycast
 
 SPLITS = {"train": False, "same_view": False, "novel_view": True}  # split -> novel-view camera distribution

@@ -9,7 +9,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pipelines.datasets.zju_mocap import Camera
+from pipelines.datasets.camera import Camera
 
 #: SMPL rest frame (y up, z forward) -> world (z down): x -> x, y -> -z, z -> +y.
 WORLD_FROM_SMPL_BASE = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])

@@ -11,8 +11,8 @@ from dataclasses import asdict
 from pathlib import Path
 
 from fitting.files import partial_folder, publish_folder
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.subjects import stand_in_notice
-from pipelines.datasets.zju_mocap import CaptureError
 
 MARKER = "synthetic.json"
 

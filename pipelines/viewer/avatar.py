@@ -16,8 +16,9 @@ from scipy.spatial.transform import Rotation
 
 from narf.kinematics import SMPL_PARENTS, rest_offsets_from_world, rigid_from_rotvec_translation, world_from_joints
 from pipelines.body.model import pose_batch_from_joints
+from pipelines.datasets.camera import Camera
 from pipelines.datasets.camera_path import intrinsics
-from pipelines.datasets.zju_mocap import Camera, SmplParams
+from pipelines.datasets.zju_mocap import SmplParams
 
 #: Bone-length groups (NARF's bone edits, docs/model.md §1): the joints whose offsets from their parents scale.
 BONE_GROUPS: dict[str, tuple[int, ...]] = {

@@ -33,9 +33,10 @@ from narf.fields import model_spec
 from narf.metrics import mask_l2, psnr_of
 from pipelines.body.model import BodyModel, pose_batch_from_joints
 from pipelines.body.surreal import pose_surreal
+from pipelines.datasets.camera import Camera
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.subjects import data_root, stand_in_notice
 from pipelines.datasets.surreal import check_clip, read_frame_maps, right_handed_view
-from pipelines.datasets.zju_mocap import Camera, CaptureError
 from pipelines.runs.autoencoder.session import ThumanSet, ThumanView, load_views, open_thuman, resolve_thuman
 from pipelines.runs.requests import EvalRequest, refuse_options
 from pipelines.synthetic.surreal import SurrealSynthConfig, generate_surreal, is_surreal_complete

@@ -19,10 +19,11 @@ from fitting.config import FitConfig
 from fitting.data import TrainingSet
 from fitting.trainers import trainer_class
 from pipelines.body.model import BodyModel, pose_batch_from_joints
+from pipelines.datasets.camera import Camera
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.smpl_files import cache_dir
 from pipelines.datasets.subjects import data_root
 from pipelines.datasets.thuman import ThumanView, count_renders, read_render
-from pipelines.datasets.zju_mocap import Camera, CaptureError
 from pipelines.synthetic.staging import use_stand_in
 from pipelines.synthetic.thuman import ThumanSynthConfig, generate_thuman, is_thuman_complete
 

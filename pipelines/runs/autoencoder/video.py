@@ -24,9 +24,9 @@ from fitting.plots import to_numpy
 from fitting.video import video_frame, write_mp4
 from narf.kinematics import rest_offsets_from_world, retarget
 from pipelines.body.model import BodyModel, pose_batch_from_joints
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.surreal import check_clip
 from pipelines.datasets.thuman import read_render
-from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.runs.autoencoder.evaluation import (
     AutoencoderRun,
     check_refinable,

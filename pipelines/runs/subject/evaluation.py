@@ -20,7 +20,7 @@ from fitting.fitted import SavedRun, read_run
 from fitting.plots import grid, save_png, to_numpy
 from pipelines.body.locate import file_sha256
 from pipelines.datasets.capture import ZjuCapture
-from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.datasets.errors import CaptureError
 from pipelines.runs.requests import EvalRequest, refuse_options
 from pipelines.runs.subject.session import capture_body_record, load_run, poses_for_frames
 

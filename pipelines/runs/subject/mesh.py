@@ -19,7 +19,7 @@ from fitting.mesh import ExtractedMesh, extract_mesh, surface_metrics
 from fitting.mesh_level import LevelChoice, LevelView, choose_level
 from narf.fields import model_spec
 from pipelines.body.model import pose_batch
-from pipelines.datasets.zju_mocap import CaptureError
+from pipelines.datasets.errors import CaptureError
 from pipelines.runs.requests import EvalRequest, ExportRequest, MotionClip
 from pipelines.runs.subject.session import LoadedRun, box_frames, load_run, poses_for_frames
 from pipelines.runs.subject.video import motion_params

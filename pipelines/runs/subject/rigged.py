@@ -31,8 +31,8 @@ from narf.extraction import nearest_part, query_points
 from narf.fields import model_spec
 from narf.kinematics import JOINT_NAMES, PART_JOINTS, SMPL_PARENTS
 from pipelines.body.model import pose_batch
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.gltf import Animation, Skeleton, SkinnedMesh, skinned_glb
-from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.runs.requests import ExportRequest, MotionClip
 from pipelines.runs.subject.mesh import resolve_level
 from pipelines.runs.subject.session import load_run

@@ -34,9 +34,10 @@ from pipelines.body.locate import (
 )
 from pipelines.body.model import BodyModel, capture_poses, pose_batch
 from pipelines.datasets.capture import ZjuCapture
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.smpl_files import cache_dir
 from pipelines.datasets.subjects import data_root, find_subject, real_candidates, stand_in_notice, synthetic_path
-from pipelines.datasets.zju_mocap import CaptureError, SmplParams
+from pipelines.datasets.zju_mocap import SmplParams
 from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
 
 

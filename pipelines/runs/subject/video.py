@@ -21,8 +21,8 @@ from narf.kinematics import JOINT_NAMES, PART_JOINTS, SMPL_PARENTS, rigid_from_r
 from pipelines.body.model import BodyModel, pose_batch, posed_from_rest_joints
 from pipelines.body.motion import load_motion, place, resample, stage_of
 from pipelines.datasets.camera_path import interpolate, intrinsics, read_camera_path
+from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.floor import camera_up
-from pipelines.datasets.zju_mocap import CaptureError
 from pipelines.runs.requests import MotionClip, VideoRequest, refuse_options
 from pipelines.runs.subject.session import LoadedRun, box_frames, load_run, poses_for_frames
 from pipelines.synthetic.scene import look_at

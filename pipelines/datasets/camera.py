@@ -1,0 +1,41 @@
+"""The camera every reader returns and every writer takes: an OpenCV pinhole camera (docs/formats.md §0, §1.3)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    """An OpenCV pinhole camera. ``x_cam = R x_world + t`` with t in metres; pixel centres at integers.
+
+    Attributes:
+        name: camera folder name, e.g. ``Camera_B1``.
+        K: (3, 3) intrinsics.
+        dist: (5,) k1, k2, p1, p2, k3.
+        cam_from_world: (4, 4) extrinsics, metres.
+        width, height: image size in pixels.
+    """
+
+    name: str
+    K: np.ndarray
+    dist: np.ndarray
+    cam_from_world: np.ndarray
+    width: int
+    height: int
+
+    @property
+    def centre(self) -> np.ndarray:
+        """Camera centre in world coordinates, ``-R^T t``."""
+        return -self.cam_from_world[:3, :3].T @ self.cam_from_world[:3, 3]
+
+    def scaled(self, ratio: float) -> Camera:
+        """The camera after resizing the image by ``ratio`` (first two rows of K scaled)."""
+        K = self.K.copy()
+        K[:2] *= ratio
+        return replace(self, K=K, width=int(round(self.width * ratio)), height=int(round(self.height * ratio)))
+
+    def undistorted(self) -> Camera:
+        return replace(self, dist=np.zeros(5))
