@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 
 from fitting.config import load_config
-from fitting.trainer import prepare_run_dir
+from fitting.run_folder import prepare_run_dir
 from pipelines.runs.fit import start_run
 from pipelines.synthetic.surreal import SurrealSynthConfig, generate_surreal
 from pipelines.synthetic.thuman import ThumanSynthConfig, generate_thuman
@@ -23,7 +23,7 @@ STEPS = {"ae_cpu": 12, "ae_paper": 3}
 
 def _throughput(root: Path, preset: str) -> dict:
     config = load_config(preset, [f"data.data_root={root}", "train.validate_every=0"])
-    trainer = start_run(prepare_run_dir(root.parent / preset, config, False), "cpu", config, progress=False)
+    trainer = start_run(prepare_run_dir(root.parent / preset, False), "cpu", config, progress=False)
     trainer.train_step()  # warm-up
     start = time.perf_counter()
     for _ in range(STEPS[preset]):

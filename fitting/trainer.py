@@ -11,7 +11,6 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import yaml
 from tqdm import tqdm
 
 from fitting.checkpoint import save_checkpoint
@@ -20,19 +19,12 @@ from fitting.corrections import CameraColour, PoseCorrection, corrected_colour_e
 from fitting.data import FitData
 from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
 from fitting.plots import write_curve, write_validation
+from fitting.run_folder import write_config
 from narf.fields import model_spec
 from narf.fields.common import PoseBatch
 from narf.metrics import psnr
 from narf.occupancy import OccupancyGrid, field_ray_bounds, refresh_cells
 from narf.renderer import bind_field, bind_grid_proposal, render_rays
-
-
-def auto_device(name: str = "auto") -> torch.device:
-    if name == "auto":
-        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    if name.startswith("cuda") and not torch.cuda.is_available():
-        raise ValueError(f"device '{name}' requested but CUDA is not available")
-    return torch.device(name)
 
 
 def make_field(config: FitConfig):
@@ -177,8 +169,8 @@ class Trainer:
         if state is not None:
             self._restore(state)
             self._saved_step = self.step
-        if processes.is_main:  # the config as run; resumed runs rewrite it
-            (self.run_dir / "config.yaml").write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))
+        if processes.is_main:  # the config as run (resumed runs: with their overrides), the one place it is written
+            write_config(self.run_dir, config)
 
     def _build_extra_modules(self) -> None:
         """Subclasses add trained modules here (after the seed, before the optimiser)."""
@@ -442,47 +434,3 @@ class Trainer:
         )
         self.field.train()
         return path
-
-
-#: What a run folder holds (hidden names too: a checkpoint being written); anything else means it is not one.
-RUN_ENTRIES = frozenset(
-    {
-        "checkpoint.pt",
-        "config.yaml",
-        "log.jsonl",
-        "curve.png",
-        "val",
-        "eval",
-        "videos",
-        "meshes",
-        "viewer",
-        "refined_params",
-        "body_model.json",
-    }
-)
-
-
-def prepare_run_dir(out: Path, config: FitConfig, resume: bool, write: bool = True) -> Path:
-    """Create the run folder (refusing a file, a folder that holds a fit unless resuming, and a folder that holds
-    anything a run does not write) and write config.yaml (the Trainer rewrites it with the run's world size).
-    ``write=False`` (data-parallel ranks other than 0) only checks."""
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"{out}: output path exists and is a file")
-    if not resume and out.is_dir() and (out / "checkpoint.pt").exists():
-        raise FileExistsError(f"{out}: holds a fit already; pass --resume to continue it or choose another --out")
-    foreign = (
-        sorted(p.name for p in out.iterdir() if p.name not in RUN_ENTRIES and not p.name.startswith("."))
-        if out.is_dir()
-        else []
-    )
-    if foreign:
-        raise FileExistsError(
-            f"{out}: not a run folder (it holds {', '.join(foreign[:3])}{', ...' if len(foreign) > 3 else ''}); "
-            "choose a new or empty --out"
-        )
-    out.mkdir(parents=True, exist_ok=True)
-    if not resume and write:
-        (out / "log.jsonl").unlink(missing_ok=True)
-        (out / "config.yaml").write_text(yaml.safe_dump(config.to_dict(), sort_keys=False))
-    return out

@@ -80,11 +80,11 @@ def tiny_run(data_root_64, tmp_path_factory):
     import torch
 
     from fitting.config import load_config
-    from fitting.trainer import prepare_run_dir
+    from fitting.run_folder import prepare_run_dir
     from pipelines.runs.fit import start_run
 
     config = load_config("tiny", [f"data.data_root={data_root_64}", "data.ratio=1.0", "train.steps=2"])
-    run = prepare_run_dir(tmp_path_factory.mktemp("tiny_run") / "run", config, False)
+    run = prepare_run_dir(tmp_path_factory.mktemp("tiny_run") / "run", False)
     start_run(run, torch.device("cpu"), config, progress=False).fit()
     return run
 

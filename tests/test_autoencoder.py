@@ -12,7 +12,7 @@ from fitting.autoencoder import colour_gains, encode, refine_code
 from fitting.checkpoint import load_checkpoint
 from fitting.cnn_trainer import CnnAutoencoderTrainer
 from fitting.config import ConfigError, load_config
-from fitting.trainer import prepare_run_dir
+from fitting.run_folder import prepare_run_dir
 from narf.fields.cnn import POSE_DIM
 from narf.fields.encoder import ImageEncoder
 from pipelines.body.model import pose_batch, pose_batch_from_joints
@@ -70,9 +70,9 @@ def test_colour_jitter_gains_scale_the_encoder_input():
 def test_fit_learns_and_resumes_exactly(sets, tmp_path):
     # with colour jitter on, so that its draws are shown to replay from the checkpointed generator too
     config = _config(sets, "train.steps=16", "train.colour_jitter=0.3")
-    straight = start_run(prepare_run_dir(tmp_path / "a", config, False), "cpu", config, progress=False)
+    straight = start_run(prepare_run_dir(tmp_path / "a", False), "cpu", config, progress=False)
     straight.fit()
-    first = start_run(prepare_run_dir(tmp_path / "b", config, False), "cpu", config, progress=False)
+    first = start_run(prepare_run_dir(tmp_path / "b", False), "cpu", config, progress=False)
     for _ in range(6):
         first.train_step()
     first.checkpoint()
@@ -89,7 +89,7 @@ def test_fit_learns_and_resumes_exactly(sets, tmp_path):
 
 def test_longer_fit_lowers_the_loss(sets, tmp_path):
     config = _config(sets, "train.steps=200", "train.log_every=20", "train.rays_per_image=64")
-    trainer = start_run(prepare_run_dir(tmp_path / "run", config, False), "cpu", config, progress=False)
+    trainer = start_run(prepare_run_dir(tmp_path / "run", False), "cpu", config, progress=False)
     trainer.fit()
     log = [json.loads(line) for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
     assert np.mean([r["loss"] for r in log[-3:]]) < 0.7 * np.mean([r["loss"] for r in log[:2]])
@@ -98,7 +98,7 @@ def test_longer_fit_lowers_the_loss(sets, tmp_path):
 def test_evaluation_splits_and_grids(sets, tmp_path, monkeypatch):
     monkeypatch.setenv("NARF_DATA", str(sets))
     config = _config(sets, "train.steps=4")
-    start_run(prepare_run_dir(tmp_path / "run", config, False), "cpu", config, progress=False).fit()
+    start_run(prepare_run_dir(tmp_path / "run", False), "cpu", config, progress=False).fit()
     splits = ["same_pose_same_view", "novel_pose_novel_view", "cross_dataset"]
     report = evaluate_autoencoder_run(
         tmp_path / "run", EvalRequest(tuple(splits), 1, progress=False, grids=1, refine_steps=2)
@@ -121,7 +121,7 @@ def test_evaluation_splits_and_grids(sets, tmp_path, monkeypatch):
 def test_cnn_autoencoder_fits_resumes_and_evaluates(sets, tmp_path, monkeypatch):
     monkeypatch.setenv("NARF_DATA", str(sets))
     config = _config(sets, "model.name=cnn", "model.image_size=32", "train.steps=2", "train.images_per_step=2")
-    trainer = start_run(prepare_run_dir(tmp_path / "run", config, False), "cpu", config, progress=False)
+    trainer = start_run(prepare_run_dir(tmp_path / "run", False), "cpu", config, progress=False)
     assert isinstance(trainer, CnnAutoencoderTrainer)
     trainer.fit()
     resumed = resume_run(tmp_path / "run", "cpu", progress=False)
@@ -170,7 +170,7 @@ def test_mixed_up_runs_and_settings_fail_clearly(sets, tmp_path, capsys, data_ro
     assert run_cli("narf-fit", cli_fit.main, resume) == 2  # a run resumes as the kind it was fitted as
     assert "--resume continues the run as it was configured" in capsys.readouterr().err
     config = _config(sets, "train.steps=1")
-    start_run(prepare_run_dir(tmp_path / "ae", config, False), "cpu", config, progress=False).fit()
+    start_run(prepare_run_dir(tmp_path / "ae", False), "cpu", config, progress=False).fit()
     code = run_cli("narf-eval", cli_eval.main, ["--run", str(tmp_path / "ae"), "--split", "novel_pose"])
     assert code == 2 and "an autoencoder run; 'novel_pose' is not one of its splits" in capsys.readouterr().err
     argv = ["--run", str(tmp_path / "ae"), "--split", "novel_pose_same_view", "--refine-steps", "5"]
@@ -187,7 +187,7 @@ def test_videos_of_encoded_people(sets, tmp_path, capsys):
     from pipelines.cli import render_video as cli_video
 
     config = _config(sets, "train.steps=2")
-    start_run(prepare_run_dir(tmp_path / "ae", config, False), "cpu", config, progress=False).fit()
+    start_run(prepare_run_dir(tmp_path / "ae", False), "cpu", config, progress=False).fit()
     render = str(sets / "thuman" / "same_view" / "render_128" / "color" / "color_00000009.png")
     info = str(sorted((sets / "synthetic" / "surreal").rglob("*_info.mat"))[0])
     base = ["--run", str(tmp_path / "ae"), "--frames", "3", "--quiet"]
@@ -247,7 +247,7 @@ def test_viewer_offers_the_people_and_blends_their_codes(sets, tmp_path):
     from pipelines.viewer.app import Viewer, autoencoder_viewer_data
 
     config = _config(sets, "train.steps=2")
-    start_run(prepare_run_dir(tmp_path / "ae", config, False), "cpu", config, progress=False).fit()
+    start_run(prepare_run_dir(tmp_path / "ae", False), "cpu", config, progress=False).fit()
     data = autoencoder_viewer_data(tmp_path / "ae", "cpu", preview=48, full=64)
     # 4 people x (2 training + 1 held-out poses) = 12 meshes, all offered (at most 16)
     assert len(data.people) == 12 and sum("held out" in p.name for p in data.people) == 4

@@ -195,12 +195,12 @@ def test_fit_arguments(capture, tmp_path, capsys):
 
 def test_unwritable_or_full_output(capture, tmp_path, capsys, monkeypatch):
     import pipelines.cli.fit as fit_module
-    from fitting import trainer
+    from fitting import files, trainer
 
     def refuse(*args, **kwargs):
         raise PermissionError(errno.EACCES, "Permission denied", str(tmp_path / "ro" / "config.yaml"))
 
-    monkeypatch.setattr(trainer.Path, "write_text", refuse)  # a read-only folder (root ignores chmod)
+    monkeypatch.setattr(files.tempfile, "mkstemp", refuse)  # a read-only folder (root ignores chmod)
     expect_error(capsys, "narf-fit", _fit_args(capture, tmp_path / "ro"), "config.yaml: Permission denied")
     monkeypatch.undo()
 

@@ -7,7 +7,7 @@ import torch
 
 from fitting.checkpoint import load_checkpoint
 from fitting.config import load_config
-from fitting.trainer import prepare_run_dir
+from fitting.run_folder import prepare_run_dir
 from narf.cnn_render import cnn_inputs, render_cnn_image, scaled_intrinsics
 from narf.fields import CnnBaseline, model_spec
 from pipelines.runs.fit import resume_run, start_run
@@ -19,7 +19,7 @@ CNN = ["model.name=cnn", "model.image_size=32", "train.images_per_step=4", "trai
 
 def _fit(root, out, *extra, resume=False):
     config = load_config("tiny", [f"data.data_root={root}", "data.ratio=1.0", *CNN, *extra])
-    run = prepare_run_dir(out, config, resume)
+    run = prepare_run_dir(out, resume)
     if resume:
         return resume_run(run, torch.device("cpu"), progress=False)
     return start_run(run, torch.device("cpu"), config, progress=False)

@@ -192,11 +192,11 @@ def _split(root, train_views, frames=10):
 
 def _tiny_fit(subject, out, *sets):
     from fitting.config import load_config
-    from fitting.trainer import prepare_run_dir
+    from fitting.run_folder import prepare_run_dir
     from pipelines.runs.fit import start_run
 
     config = load_config("tiny", [f"data.subject={subject}", "data.ratio=1.0", *sets])
-    trainer = start_run(prepare_run_dir(out, config, False), torch.device("cpu"), config, progress=False)
+    trainer = start_run(prepare_run_dir(out, False), torch.device("cpu"), config, progress=False)
     trainer.fit()
     return trainer
 

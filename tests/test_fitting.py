@@ -15,7 +15,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from fitting.checkpoint import CheckpointError, load_checkpoint
 from fitting.config import ConfigError, load_config
 from fitting.evaluate import average_metrics, frame_metrics
-from fitting.trainer import prepare_run_dir
+from fitting.run_folder import prepare_run_dir
 from pipelines.cli import eval as cli_eval
 from pipelines.cli import fit as cli_fit
 from pipelines.cli.common import run_cli
@@ -30,7 +30,7 @@ def _config(root, *extra):
 
 def _fit(root, out, *extra, resume=False):
     config = _config(root, *extra)
-    run = prepare_run_dir(out, config, resume)
+    run = prepare_run_dir(out, resume)
     if resume:
         return resume_run(run, torch.device("cpu"), progress=False)
     return start_run(run, torch.device("cpu"), config, progress=False)

@@ -198,14 +198,14 @@ def test_grid_update_decays_and_keeps_maxima():
 def test_fit_with_occupancy_refreshes_the_grid_and_resumes_exactly(data_root_64, tmp_path):
     from fitting.checkpoint import load_checkpoint
     from fitting.config import load_config
-    from fitting.trainer import prepare_run_dir
+    from fitting.run_folder import prepare_run_dir
     from pipelines.runs.fit import resume_run, start_run
 
     settings = ["render.occupancy=true", "render.occupancy_every=2", "render.occupancy_rounds=2", "train.steps=12"]
 
     def fit(out, resume=False):
         config = load_config("tiny", [f"data.data_root={data_root_64}", "data.ratio=1.0", *settings])
-        run = prepare_run_dir(out, config, resume)
+        run = prepare_run_dir(out, resume)
         if resume:
             return resume_run(run, torch.device("cpu"), progress=False)
         return start_run(run, torch.device("cpu"), config, progress=False)

@@ -94,7 +94,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from fitting.trainer import auto_device
+    from fitting.run_folder import auto_device
     from pipelines.runs.kinds import open_run
     from pipelines.runs.requests import EvalRequest
 

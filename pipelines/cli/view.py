@@ -34,7 +34,7 @@ def main(argv: list[str] | None = None) -> int:
     add_smpl_dir(parser)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     args = parser.parse_args(argv)
-    from fitting.trainer import auto_device
+    from fitting.run_folder import auto_device
     from pipelines.runs.kinds import open_run
     from pipelines.runs.requests import a_run
 

@@ -12,7 +12,7 @@ from fitting.checkpoint import load_checkpoint
 from fitting.config import FitConfig, load_config
 from fitting.distributed import SINGLE, Processes, barrier, from_environment, shutdown
 from fitting.fitted import run_config
-from fitting.trainer import auto_device, prepare_run_dir
+from fitting.run_folder import auto_device, prepare_run_dir
 from narf.fields import model_spec
 from pipelines.runs.kinds import RUN_KINDS
 from pipelines.runs.requests import FitInterrupted, FitOutcome, FitRequest
@@ -100,7 +100,7 @@ def fit(request: FitRequest, announce: Callable[[str], None] | None = None) -> F
     if request.resume and not (Path(out) / "checkpoint.pt").exists():
         raise FileNotFoundError(f"{out}: no checkpoint to resume")
     fresh = not request.resume and not Path(out).exists()
-    run_dir = prepare_run_dir(out, config, request.resume, write=processes.is_main)
+    run_dir = prepare_run_dir(out, request.resume, write=processes.is_main)
     barrier(processes)
     try:
         if request.resume:
