@@ -139,3 +139,17 @@ def test_numbers_as_users_type_them(text, tmp_path):
     preset.write_text(f"train:\n  lr: {text}\n  steps: 1e3\n")
     config = load_config(str(preset))
     assert config.train.lr == 0.001 and config.train.steps == 1000 and isinstance(config.train.steps, int)
+
+
+def test_a_presets_model_section_applies_to_its_model_before_the_overrides(tmp_path):
+    """The autoencoder presets train P-NeRF and NARF_H at lr 0.001 (supplement §F); other models keep the preset's
+    rate, an override still wins, and a section naming no model is refused."""
+    for preset in ("ae_cpu", "ae_paper", "ae_tiny"):
+        assert load_config(preset, ["model.name=p_nerf"]).train.lr == 0.001
+        assert load_config(preset, ["model.name=narf_h"]).train.lr == 0.001
+        assert load_config(preset).train.lr == 0.01
+        assert load_config(preset, ["model.name=narf_h", "train.lr=0.05"]).train.lr == 0.05
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("models:\n  narf_x:\n    train:\n      lr: 0.1\n")
+    with pytest.raises(ConfigError, match=r"bad.yaml: models: unknown model\(s\) \['narf_x'\]"):
+        load_config(str(bad))

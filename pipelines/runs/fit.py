@@ -71,8 +71,6 @@ def request_config(request: FitRequest, gpu: bool) -> FitConfig | None:
     overrides[:0] = [f"{key}={value}" for key, value in named if value]
     if request.kind:
         overrides.insert(0, f"kind={request.kind}")
-    if request.kind == "autoencoder" and request.model in ("p_nerf", "narf_h"):
-        overrides.insert(0, "train.lr=0.001")  # the supplement's exception for these two autoencoders (§F)
     kind = RUN_KINDS[request.kind or "subject"]
     return load_config(request.preset or kind.preset(request.model, gpu), overrides)
 
