@@ -142,7 +142,7 @@ class AutoencoderTrainer(Trainer):
 
     def train_step(self) -> tuple[float, float]:
         t = self.config.train
-        batch = self.data.sample(
+        batch = self.views.sample(
             t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction, self.generator
         )
         images, batch.frames = torch.unique(batch.frames, return_inverse=True)
@@ -156,7 +156,7 @@ class AutoencoderTrainer(Trainer):
                 self.config,
                 self.field,
                 batch,
-                self.data.poses.select(images),
+                self.views.poses.select(images),
                 self.generator,
                 self.config.render.train_coarse,
                 self.config.render.train_fine,

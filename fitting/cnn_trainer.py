@@ -32,13 +32,13 @@ class CnnTrainer(Trainer):
         progress: bool = True,
     ):
         super().__init__(config, run_dir, device, data, state, progress)
-        if self.data.poses.world_from_joint is None:
+        if self.views.poses.world_from_joint is None:
             raise ValueError("the CNN baseline needs every training pose's world_from_joint")
         size = config.model.image_size
         self.rays_per_step = config.train.images_per_step * size * size
         rgb, mask, weight = [], [], []
-        for index in range(len(self.data)):  # one view at a time: only the network-size copies stay in memory
-            image, silhouette, band = (torch.as_tensor(a)[None].float() for a in self.data.full_view(index))
+        for index in range(len(self.views)):  # one view at a time: only the network-size copies stay in memory
+            image, silhouette, band = (torch.as_tensor(a)[None].float() for a in self.views.full_view(index))
             rgb.append(F.interpolate(image.permute(0, 3, 1, 2) / 255.0, size=(size, size), mode="area")[0])
             mask.append(F.interpolate(silhouette[None], size=(size, size), mode="area")[0, 0])
             weight.append(F.interpolate(band[None], size=(size, size), mode="area")[0, 0] == 0)
@@ -50,12 +50,12 @@ class CnnTrainer(Trainer):
 
     def _choose_images(self) -> torch.Tensor:
         n = self.config.train.images_per_step
-        return torch.randint(0, len(self.data), (n,), generator=self.generator).to(self.device)
+        return torch.randint(0, len(self.views), (n,), generator=self.generator).to(self.device)
 
     def image_loss(self, chosen: torch.Tensor, latent: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """(loss, colour MSE) of the training images ``chosen`` (B,): colour MSE + lambda_mask masked mask MSE;
         ``latent`` (B, 2 L): the autoencoder's codes of those images."""
-        t, data = self.config.train, self.data
+        t, data = self.config.train, self.views
         joints = data.poses.world_from_joint[data.frame_of_image[chosen]]
         maps, bones = cnn_inputs(
             joints, data.cam_from_world[chosen], data.Ks[chosen], data.height, data.width, self.config.model.image_size

@@ -141,7 +141,9 @@ class Trainer:
         torch.manual_seed(config.train.seed)
         np.random.seed(config.train.seed)
         random.seed(config.train.seed)
-        self.data, self.frames = data.training, data.frames
+        # views: the training views the rays are drawn from; fit_data: everything the fit was given (views,
+        # frames, boxes, validation, provenance)
+        self.views, self.frames = data.training, data.frames
         self.fit_data = data
         self.field = make_field(config).to(device)
         grid = getattr(self.field, "occupancy", None)
@@ -204,7 +206,7 @@ class Trainer:
     def poses_at(self, index: torch.Tensor | None = None, grad: bool = True) -> PoseBatch:
         """The PoseBatch of training frames ``index`` (all when None): corrected once ``train.pose_start`` is
         reached, else the capture's. ``grad`` False: without gradient (occupancy refreshes, validation)."""
-        base = self.data.poses
+        base = self.views.poses
         if index is None:
             index = torch.arange(base.reach.shape[0], device=self.device)
         if self.pose_correction is None or self.step < self.config.train.pose_start:
@@ -283,7 +285,7 @@ class Trainer:
     def train_step(self) -> tuple[float, float]:
         """One step on the global batch; each process renders its share (``fitting.distributed``)."""
         t, r = self.config.train, self.config.render
-        batch = self.data.sample(
+        batch = self.views.sample(
             t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction, self.generator, t.views_per_frame
         )
         n = batch.origins.shape[0]
@@ -291,7 +293,7 @@ class Trainer:
         backgrounds = None
         if t.random_background:
             backgrounds = torch.rand(n, 3, generator=self.generator).to(self.device)
-        poses, index = self.data.poses, None
+        poses, index = self.views.poses, None
         if self.pose_correction is not None and self.step >= t.pose_start:  # only the frames this batch draws
             index, batch.frames = torch.unique(batch.frames, return_inverse=True)
             poses = self.poses_at(index)

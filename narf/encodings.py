@@ -25,3 +25,18 @@ def positional_encoding(values: torch.Tensor, n_freqs: int) -> torch.Tensor:
 def encoding_dim(n_inputs: int, n_freqs: int) -> int:
     """Output width of ``positional_encoding`` for ``n_inputs`` scalars."""
     return 2 * n_inputs * n_freqs
+
+
+#: Frequencies L of each encoded input (docs/model.md §2): gamma_10 for points and box coordinates, gamma_4 for
+#: the bone lengths zeta, the pose features xi and directions.
+POINT_FREQS = 10
+POSE_FREQS = 4
+#: Encoded widths: a 3D point or box coordinate (60), a direction (24), one part's xi, 6 values (48).
+POINT_WIDTH = encoding_dim(3, POINT_FREQS)
+DIRECTION_WIDTH = encoding_dim(3, POSE_FREQS)
+XI_WIDTH = encoding_dim(6, POSE_FREQS)
+
+
+def zeta_width(n_parts: int) -> int:
+    """Width of gamma_4(zeta), one bone length per part: 152 for NARF's 19 parts."""
+    return encoding_dim(n_parts, POSE_FREQS)

@@ -26,7 +26,8 @@ class Ball(Field):
         super().__init__(n_parts=1)
         self.anchor = torch.nn.Parameter(torch.zeros(1))
 
-    def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a):
+    def _forward(self, inputs):
+        points, dirs = inputs.points, inputs.dirs
         sigma = PEAK * torch.sigmoid((RADIUS - points.norm(dim=-1)) / RAMP)
         rgb = ((dirs[:, None] + 1) / 2).expand(*points.shape[:2], 3)
         return FieldOutput(sigma + 0 * self.anchor, rgb)

@@ -31,7 +31,8 @@ class BallField(Field):
         super().__init__(n_parts=2)
         self.dummy = torch.nn.Parameter(torch.zeros(()))  # render_image reads the device and dtype of a parameter
 
-    def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a):
+    def _forward(self, inputs):
+        x_local = inputs.x_local
         sigma = torch.where(x_local[:, :, 0].norm(dim=-1) <= RADIUS, SIGMA, 0.0) + 0 * self.dummy
         rgb = torch.tensor([0.2, 0.5, 0.8]).expand(*sigma.shape, 3)
         return FieldOutput(sigma, rgb, None)

@@ -21,7 +21,7 @@ from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import TARGET_JOINTS, read_openpose, to_targets, write_openpose
 from pipelines.datasets.rig_files import read_qualisys, read_rig, read_toml, write_qualisys
 from pipelines.prepare.checks import project_distorted
-from pipelines.prepare.triangulate import project, triangulate, triangulate_robust
+from pipelines.prepare.multiview import project, triangulate, triangulate_robust
 from pipelines.synthetic.capture import SynthConfig, generate_capture
 from pipelines.synthetic.recording import true_joints, write_recording
 

@@ -9,7 +9,7 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from narf.encodings import positional_encoding
+from narf.encodings import POSE_FREQS, positional_encoding
 from narf.fields.common import PoseBatch, RadianceHead, part_box_coordinates, part_directions, part_local
 from narf.geometry import check_shape
 from narf.layers import GroupedLinear
@@ -56,8 +56,9 @@ SAMPLES_FOR_COST = 96
 class Field(nn.Module):
     """A NeRF-type field over P parts with fixed boxes (centres, half-extents in body units).
 
-    Subclasses implement ``_forward(points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a)``; x_local is None
-    unless the subclass sets ``uses_part_points``.
+    Subclasses implement ``_forward(inputs: FieldInputs)`` (and may implement ``_density`` alike); ``inputs.x_local``
+    is None unless the subclass sets ``uses_part_points``. Encoded widths come from ``narf.encodings`` and
+    ``n_parts``.
     """
 
     #: whether ``_forward`` reads x_local (R, S, P, 3); the others get None and skip computing it
@@ -87,7 +88,7 @@ class Field(nn.Module):
     @staticmethod
     def zeta_encoding(pose: PoseBatch) -> torch.Tensor:
         """gamma_4(zeta) per ray: (R, 1, 152)."""
-        return positional_encoding(pose.bone_lengths, 4)[:, None]
+        return positional_encoding(pose.bone_lengths, POSE_FREQS)[:, None]
 
     def forward(
         self, points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch, latent: torch.Tensor | None = None
@@ -104,7 +105,7 @@ class Field(nn.Module):
             FieldOutput; sigma is 0 wherever no part box contains the point.
         """
         inputs = self._inputs(points, dirs, pose, latent)
-        out = self._forward(*inputs)
+        out = self._forward(inputs)
         out.sigma = torch.where(inputs.in_box.any(dim=-1), out.sigma, torch.zeros_like(out.sigma))
         return out
 
@@ -114,7 +115,7 @@ class Field(nn.Module):
         """sigma (R, S) alone, equal to ``forward(...).sigma`` (arguments as :meth:`forward`); fields whose density
         does not need their colour branch skip it (``_density``), e.g. for the occupancy grid's refresh."""
         inputs = self._inputs(points, dirs, pose, latent)
-        sigma = self._density(*inputs)
+        sigma = self._density(inputs)
         return torch.where(inputs.in_box.any(dim=-1), sigma, torch.zeros_like(sigma))
 
     def _inputs(self, points, dirs, pose, latent) -> FieldInputs:
@@ -137,10 +138,10 @@ class Field(nn.Module):
             z_s, z_a = latent[None, :, None, : self.latent_dim], latent[None, :, None, self.latent_dim :]
         return FieldInputs(points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a)
 
-    def _density(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> torch.Tensor:
-        return self._forward(points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a).sigma
+    def _density(self, inputs: FieldInputs) -> torch.Tensor:
+        return self._forward(inputs).sigma
 
-    def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+    def _forward(self, inputs: FieldInputs) -> FieldOutput:
         raise NotImplementedError
 
     def cost(self) -> Cost:

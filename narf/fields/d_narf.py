@@ -6,8 +6,16 @@ import math
 
 import torch
 
-from narf.encodings import positional_encoding
-from narf.fields.base import Field, FieldOutput, masked_softmax
+from narf.encodings import (
+    DIRECTION_WIDTH,
+    POINT_FREQS,
+    POINT_WIDTH,
+    POSE_FREQS,
+    XI_WIDTH,
+    positional_encoding,
+    zeta_width,
+)
+from narf.fields.base import Field, FieldInputs, FieldOutput, masked_softmax
 from narf.fields.common import RadianceHead
 from narf.fields.selector import PartSelector
 from narf.fields.sparse_parts import in_box_pairs, segment_softmax, selector_logits
@@ -38,30 +46,36 @@ class DNarf(Field):
         self.fast = fast
         self.selector = PartSelector(n_parts)
         self.head = RadianceHead(
-            {"x": 60, "zeta": 152}, {"dirs": 24, "pose": 48}, width, latent_dim=latent_dim, density_act=density_act
+            {"x": POINT_WIDTH, "zeta": zeta_width(n_parts)},
+            {"dirs": DIRECTION_WIDTH, "pose": XI_WIDTH},
+            width,
+            latent_dim=latent_dim,
+            density_act=density_act,
         )
 
-    def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+    def _forward(self, inputs: FieldInputs) -> FieldOutput:
+        _, _, pose, x_local, d_local, u, in_box, z_s, z_a = inputs
         if self.fast:
-            return self._forward_in_box(pose, x_local, d_local, u, in_box, z_s, z_a)
+            return self._forward_in_box(inputs)
         encoded_zeta = self.zeta_encoding(pose)
-        probs = masked_softmax(self.selector(positional_encoding(u, 10), encoded_zeta), in_box)  # (R, S, P)
+        probs = masked_softmax(self.selector(positional_encoding(u, POINT_FREQS), encoded_zeta), in_box)  # (R, S, P)
         canonical = torch.einsum("rsp,rspc->rsc", probs, x_local + pose.rest_offsets[:, None])
         blended_dirs = torch.einsum("rsp,rpc->rsc", probs, d_local)
         blended_xi = torch.einsum("rsp,rpc->rsc", probs, pose.pose_features)
-        density = {"x": positional_encoding(canonical / 1.25, 10)[None], "zeta": encoded_zeta[None]}
+        density = {"x": positional_encoding(canonical / 1.25, POINT_FREQS)[None], "zeta": encoded_zeta[None]}
         colour = {
-            "dirs": positional_encoding(blended_dirs, 4)[None],
-            "pose": positional_encoding(blended_xi / math.pi, 4)[None],
+            "dirs": positional_encoding(blended_dirs, POSE_FREQS)[None],
+            "pose": positional_encoding(blended_xi / math.pi, POSE_FREQS)[None],
         }
         sigma, rgb = self.head(density, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], probs)
 
-    def _forward_in_box(self, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+    def _forward_in_box(self, inputs: FieldInputs) -> FieldOutput:
+        _, _, pose, x_local, d_local, u, in_box, z_s, z_a = inputs
         r_count, s_count, p_count = in_box.shape
         ray, sample, part = in_box_pairs(in_box)
         flat = ray * s_count + sample
-        encoded = positional_encoding(u[ray, sample, part], 10)  # (M, 60)
+        encoded = positional_encoding(u[ray, sample, part], POINT_FREQS)  # (M, 60)
         chunks = torch.split(encoded, torch.bincount(part, minlength=p_count).tolist())
         logit = selector_logits(self.selector, chunks, ray, part, self.zeta_encoding(pose))
         probs = segment_softmax(logit, flat, r_count * s_count)  # (M,)
@@ -75,12 +89,12 @@ class DNarf(Field):
         live = in_box.reshape(-1, p_count).any(dim=-1).nonzero()[:, 0]  # samples inside some box
         live_rays = live // s_count
         density = {
-            "x": positional_encoding(canonical[live] / 1.25, 10)[None, None],
+            "x": positional_encoding(canonical[live] / 1.25, POINT_FREQS)[None, None],
             "zeta": self.zeta_encoding(pose)[live_rays, 0][None, None],
         }
         colour = {
-            "dirs": positional_encoding(blended_dirs[live], 4)[None, None],
-            "pose": positional_encoding(blended_xi[live] / math.pi, 4)[None, None],
+            "dirs": positional_encoding(blended_dirs[live], POSE_FREQS)[None, None],
+            "pose": positional_encoding(blended_xi[live] / math.pi, POSE_FREQS)[None, None],
         }
         z_s = None if z_s is None else z_s[0, live_rays, 0][None, None]
         z_a = None if z_a is None else z_a[0, live_rays, 0][None, None]

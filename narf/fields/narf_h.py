@@ -4,8 +4,16 @@ from __future__ import annotations
 
 import math
 
-from narf.encodings import positional_encoding
-from narf.fields.base import Field, FieldOutput
+from narf.encodings import (
+    DIRECTION_WIDTH,
+    POINT_FREQS,
+    POINT_WIDTH,
+    POSE_FREQS,
+    XI_WIDTH,
+    positional_encoding,
+    zeta_width,
+)
+from narf.fields.base import Field, FieldInputs, FieldOutput
 from narf.fields.common import RadianceHead
 from narf.fields.sparse_parts import sparse_density_inputs, sparse_masked_inputs
 
@@ -33,16 +41,17 @@ class NarfH(Field):
         super().__init__(n_parts, latent_dim)
         self.fast = fast
         self.head = RadianceHead(
-            {"parts": 60 * n_parts, "zeta": 152},
-            {"pose": 48 * n_parts, "dirs": 24 * n_parts},
+            {"parts": POINT_WIDTH * n_parts, "zeta": zeta_width(n_parts)},
+            {"pose": XI_WIDTH * n_parts, "dirs": DIRECTION_WIDTH * n_parts},
             width,
             latent_dim=latent_dim,
             density_act=density_act,
         )
 
-    def _density(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a):
+    def _density(self, inputs: FieldInputs):
+        _, _, pose, _, _, u, in_box, z_s, *_ = inputs
         if not self.fast:  # the dense reference: sigma of the full forward
-            return super()._density(points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a)
+            return super()._density(inputs)
         encoded_zeta = self.zeta_encoding(pose)
         density = sparse_density_inputs(self, u, in_box, encoded_zeta)
         return self.head.density_embedded(density, {"zeta": encoded_zeta[None]}, z_s)[0]
@@ -52,22 +61,23 @@ class NarfH(Field):
         weights = in_box.to(encoded_u.dtype)
         return weights, weights / weights.sum(-1, keepdim=True).clamp_min(1)
 
-    def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+    def _forward(self, inputs: FieldInputs) -> FieldOutput:
+        _, _, pose, _, d_local, u, in_box, z_s, z_a = inputs
         if self.fast:
             encoded_zeta = self.zeta_encoding(pose)
             density, colour, probs = sparse_masked_inputs(self, u, in_box, d_local, pose, encoded_zeta)
             sigma, rgb = self.head.forward_embedded(density, colour, {"zeta": encoded_zeta[None]}, z_s, z_a)
             return FieldOutput(sigma[0], rgb[0], probs)
         r, s, p, _ = u.shape
-        encoded_u = positional_encoding(u, 10)  # (R, S, P, 60)
+        encoded_u = positional_encoding(u, POINT_FREQS)  # (R, S, P, 60)
         encoded_zeta = self.zeta_encoding(pose)
         weights, probs = self.part_weights(encoded_u, in_box, encoded_zeta)
-        masked_u = (weights[..., None] * encoded_u).reshape(1, r, s, p * 60)
-        encoded_xi = positional_encoding(pose.pose_features / math.pi, 4)[:, None]  # (R, 1, P, 48)
-        encoded_d = positional_encoding(d_local, 4)[:, None]  # (R, 1, P, 24)
+        masked_u = (weights[..., None] * encoded_u).reshape(1, r, s, p * POINT_WIDTH)
+        encoded_xi = positional_encoding(pose.pose_features / math.pi, POSE_FREQS)[:, None]  # (R, 1, P, 48)
+        encoded_d = positional_encoding(d_local, POSE_FREQS)[:, None]  # (R, 1, P, 24)
         colour = {
-            "pose": (weights[..., None] * encoded_xi).reshape(1, r, s, p * 48),
-            "dirs": (weights[..., None] * encoded_d).reshape(1, r, s, p * 24),
+            "pose": (weights[..., None] * encoded_xi).reshape(1, r, s, p * XI_WIDTH),
+            "dirs": (weights[..., None] * encoded_d).reshape(1, r, s, p * DIRECTION_WIDTH),
         }
         sigma, rgb = self.head({"parts": masked_u, "zeta": encoded_zeta[None]}, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], probs)

@@ -6,8 +6,16 @@ import math
 
 import torch
 
-from narf.encodings import positional_encoding
-from narf.fields.base import Field, FieldOutput, masked_softmax
+from narf.encodings import (
+    DIRECTION_WIDTH,
+    POINT_FREQS,
+    POINT_WIDTH,
+    POSE_FREQS,
+    XI_WIDTH,
+    positional_encoding,
+    zeta_width,
+)
+from narf.fields.base import Field, FieldInputs, FieldOutput, masked_softmax
 from narf.fields.common import RadianceHead
 from narf.fields.sparse_parts import in_box_pairs
 
@@ -43,15 +51,16 @@ class NarfP(Field):
             raise ValueError(f"temperature must be positive, got {temperature}")
         self.temperature = temperature
         self.head = RadianceHead(
-            {"u": 60, "zeta": 152},
-            {"pose": 48, "dirs": 24},
+            {"u": POINT_WIDTH, "zeta": zeta_width(n_parts)},
+            {"pose": XI_WIDTH, "dirs": DIRECTION_WIDTH},
             width,
             groups=n_parts,
             latent_dim=latent_dim,
             density_act=density_act,
         )
 
-    def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+    def _forward(self, inputs: FieldInputs) -> FieldOutput:
+        _, _, pose, _, d_local, u, in_box, z_s, z_a = inputs
         # the packed pass costs at most 1.5 x the in-box pairs (see _in_box_heads): where most pairs are in box it
         # saves little over the dense pass and only adds the packing
         if self.fast and in_box.sum() <= PACKED_SHARE * in_box.numel():
@@ -69,12 +78,12 @@ class NarfP(Field):
         """Every part's network on every sample (the reference): sigma_i (R, S, P), c_i (R, S, P, 3)."""
         p = self.n_parts
         density = {
-            "u": positional_encoding(u, 10).permute(2, 0, 1, 3),
+            "u": positional_encoding(u, POINT_FREQS).permute(2, 0, 1, 3),
             "zeta": self.zeta_encoding(pose)[None].expand(p, -1, -1, -1),
         }
         colour = {
-            "pose": positional_encoding(pose.pose_features / math.pi, 4).permute(1, 0, 2)[:, :, None],
-            "dirs": positional_encoding(d_local, 4).permute(1, 0, 2)[:, :, None],
+            "pose": positional_encoding(pose.pose_features / math.pi, POSE_FREQS).permute(1, 0, 2)[:, :, None],
+            "dirs": positional_encoding(d_local, POSE_FREQS).permute(1, 0, 2)[:, :, None],
         }
         sigma_parts, rgb_parts = self.head(density, colour, z_s, z_a)  # (P, R, S), (P, R, S, 3)
         return sigma_parts.permute(1, 2, 0), rgb_parts.permute(1, 2, 0, 3)
@@ -102,12 +111,12 @@ class NarfP(Field):
             return out.index_put((block_id, position), values)[:, None]
 
         density = {
-            "u": packed(positional_encoding(u[ray, sample, part], 10)),
+            "u": packed(positional_encoding(u[ray, sample, part], POINT_FREQS)),
             "zeta": packed(self.zeta_encoding(pose)[ray, 0]),
         }
         colour = {
-            "pose": packed(positional_encoding(pose.pose_features[ray, part] / math.pi, 4)),
-            "dirs": packed(positional_encoding(d_local[ray, part], 4)),
+            "pose": packed(positional_encoding(pose.pose_features[ray, part] / math.pi, POSE_FREQS)),
+            "dirs": packed(positional_encoding(d_local[ray, part], POSE_FREQS)),
         }
         z_s = None if z_s is None else packed(z_s[0, ray, 0])
         z_a = None if z_a is None else packed(z_a[0, ray, 0])

@@ -4,8 +4,16 @@ from __future__ import annotations
 
 import math
 
-from narf.encodings import positional_encoding
-from narf.fields.base import Field, FieldOutput
+from narf.encodings import (
+    DIRECTION_WIDTH,
+    POINT_FREQS,
+    POINT_WIDTH,
+    POSE_FREQS,
+    XI_WIDTH,
+    positional_encoding,
+    zeta_width,
+)
+from narf.fields.base import Field, FieldInputs, FieldOutput
 from narf.fields.common import RadianceHead
 
 
@@ -26,21 +34,21 @@ class PNerf(Field):
     ):
         super().__init__(n_parts, latent_dim)
         self.pose_in_color = pose_in_color
-        colour = {"pose": 48 * n_parts, "dirs": 24} if pose_in_color else {"dirs": 24}
-        self.head = RadianceHead(
-            {"x": 60, "pose": 48 * n_parts, "zeta": 152}, colour, width, latent_dim=latent_dim, density_act=density_act
-        )
+        colour = {"pose": XI_WIDTH * n_parts, "dirs": DIRECTION_WIDTH} if pose_in_color else {"dirs": DIRECTION_WIDTH}
+        density = {"x": POINT_WIDTH, "pose": XI_WIDTH * n_parts, "zeta": zeta_width(n_parts)}
+        self.head = RadianceHead(density, colour, width, latent_dim=latent_dim, density_act=density_act)
 
-    def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+    def _forward(self, inputs: FieldInputs) -> FieldOutput:
+        points, dirs, pose, _, _, _, _, z_s, z_a = inputs
         pelvis = pose.world_from_part[:, 0, :3, 3]
         x_hat = (points - pelvis[:, None]) / (1.25 * pose.reach[:, None, None])
-        encoded_pose = positional_encoding(pose.pose_features / math.pi, 4).flatten(1)[None, :, None]
+        encoded_pose = positional_encoding(pose.pose_features / math.pi, POSE_FREQS).flatten(1)[None, :, None]
         density = {
-            "x": positional_encoding(x_hat, 10)[None],
+            "x": positional_encoding(x_hat, POINT_FREQS)[None],
             "pose": encoded_pose,
             "zeta": self.zeta_encoding(pose)[None],
         }
-        colour = {"dirs": positional_encoding(dirs, 4)[None, :, None]}
+        colour = {"dirs": positional_encoding(dirs, POSE_FREQS)[None, :, None]}
         if self.pose_in_color:
             colour["pose"] = encoded_pose
         sigma, rgb = self.head(density, colour, z_s, z_a)

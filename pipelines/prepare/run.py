@@ -24,9 +24,9 @@ from pipelines.datasets.rig_files import read_rig
 from pipelines.prepare.body_fit import FitSettings, fit_body
 from pipelines.prepare.layout import finish_capture, write_sequence
 from pipelines.prepare.observe import observe
+from pipelines.prepare.person_targets import triangulate_people
 from pipelines.prepare.silhouettes import silhouette_stage
 from pipelines.prepare.sources import find_sources, frame_rate, match_cameras
-from pipelines.prepare.triangulation import triangulate_people
 
 CALIBRATION_PATTERNS = ("*.qca.txt", "*.toml", "intri.yml", "annots.npy")
 MARKER = "prepared.json"
@@ -213,7 +213,7 @@ def corrected_cameras(seen, cam_from_world: np.ndarray):
 
 
 def _fit_inputs(cameras, found):
-    from pipelines.prepare.triangulate import projection_matrix
+    from pipelines.prepare.multiview import projection_matrix
 
     P = np.stack([projection_matrix(c) for c in cameras])
     heights = np.array([c.height for c in cameras], np.float64)

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
-import cv2
 import numpy as np
 import trimesh
 
@@ -198,16 +197,3 @@ def raycast(
         "labels": np.where(covered, labels_px, 0).astype(np.uint8),
         "depth": np.where(covered, depth_px, 0).astype(np.float32),
     }
-
-
-def random_lights(rng: np.random.Generator, n: int = 3) -> list[tuple[np.ndarray, float]]:
-    """``n`` random directional lights from the upper hemisphere of a y-down world, intensities summing to ~1."""
-    dirs = rng.normal(size=(n, 3))
-    dirs[:, 1] = -np.abs(dirs[:, 1]) - 0.3
-    weights = rng.dirichlet(np.ones(n)) * rng.uniform(0.7, 1.0)
-    return [(d / np.linalg.norm(d), float(w)) for d, w in zip(dirs, weights)]
-
-
-def rodrigues(rotvec: np.ndarray) -> np.ndarray:
-    """(3, 3) rotation matrix of a rotation vector (OpenCV)."""
-    return cv2.Rodrigues(np.asarray(rotvec, dtype=np.float64).reshape(3, 1))[0]

@@ -9,7 +9,7 @@ import numpy as np
 
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.keypoints import TARGETS, mirror_index
-from pipelines.prepare.triangulate import consensus, project, projection_matrix, triangulate_robust, undistort_points
+from pipelines.prepare.multiview import consensus, project, projection_matrix, triangulate_robust, undistort_points
 
 #: least detector confidence of a keypoint that is used
 MIN_CONFIDENCE = 0.3
