@@ -16,11 +16,11 @@ from pipelines.body.model import BodyModel
 from pipelines.body.motion import stage_of
 from pipelines.cli import prepare_capture
 from pipelines.cli.common import run_cli
+from pipelines.datasets.camera import project_distorted
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import TARGET_JOINTS, read_openpose, to_targets, write_openpose
 from pipelines.datasets.rig_files import read_qualisys, read_rig, read_toml, write_qualisys
-from pipelines.prepare.checks import project_distorted
 from pipelines.prepare.multiview import project, triangulate, triangulate_robust
 from pipelines.synthetic.capture import SynthConfig, generate_capture
 from pipelines.synthetic.recording import true_joints, write_recording

@@ -56,7 +56,7 @@ class NarfH(Field):
         density = sparse_density_inputs(self, u, in_box, encoded_zeta)
         return self.head.density_embedded(density, {"zeta": encoded_zeta[None]}, z_s)[0]
 
-    def part_weights(self, encoded_u, in_box, pose):
+    def part_weights(self, encoded_u, in_box, encoded_zeta):
         """Per-sample part weights used to mask the blocks (R, S, P) and the segmentation probabilities."""
         weights = in_box.to(encoded_u.dtype)
         return weights, weights / weights.sum(-1, keepdim=True).clamp_min(1)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 
+import cv2
 import numpy as np
 
 
@@ -39,3 +40,12 @@ class Camera:
 
     def undistorted(self) -> Camera:
         return replace(self, dist=np.zeros(5))
+
+
+def project_distorted(camera: Camera, points: np.ndarray) -> np.ndarray:
+    """(N, 3) world points -> (N, 2) pixels of the camera with its distortion (OpenCV model)."""
+    rvec, _ = cv2.Rodrigues(camera.cam_from_world[:3, :3])
+    pixels, _ = cv2.projectPoints(
+        np.ascontiguousarray(points, np.float64), rvec, camera.cam_from_world[:3, 3], camera.K, camera.dist
+    )
+    return pixels[:, 0]

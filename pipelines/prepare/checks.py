@@ -7,7 +7,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pipelines.datasets.camera import Camera
+from pipelines.datasets.camera import Camera, project_distorted
 
 #: a camera is flagged when its median reprojection error exceeds this fraction of the image height ...
 FLAG_ERROR = 0.015
@@ -19,15 +19,6 @@ FLAG_IOU = 0.6
 FLAG_DISAGREED = 0.2
 #: or when the body fit had to turn it by more than this many degrees or move it by more than this many cm
 FLAG_TURN, FLAG_SHIFT = 2.0, 3.0
-
-
-def project_distorted(camera: Camera, points: np.ndarray) -> np.ndarray:
-    """(N, 3) world points -> (N, 2) pixels of the camera with its distortion (OpenCV model)."""
-    rvec, _ = cv2.Rodrigues(camera.cam_from_world[:3, :3])
-    pixels, _ = cv2.projectPoints(
-        np.ascontiguousarray(points, np.float64), rvec, camera.cam_from_world[:3, 3], camera.K, camera.dist
-    )
-    return pixels[:, 0]
 
 
 def silhouette(camera: Camera, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:

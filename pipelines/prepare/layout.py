@@ -15,11 +15,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipelines.datasets.camera import project_distorted
 from pipelines.datasets.easymocap import write_easymocap_cameras
 from pipelines.datasets.floor import feet_against_floor
 from pipelines.datasets.keypoints import TARGET_NAMES
 from pipelines.datasets.zju_mocap import SmplParams, write_annots, write_params
-from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, mask_near_body, project_distorted, silhouette
+from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, mask_near_body, silhouette
 from pipelines.prepare.multiview import projection_matrix, relative_errors
 
 OVERLAY_HEIGHT = 480  # rows of each camera's tile in overlay.mp4

@@ -14,10 +14,10 @@ import torch
 
 from fitting.video import write_mp4
 from pipelines.body.model import BodyModel
+from pipelines.datasets.camera import project_distorted
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.keypoints import keypoints_from_joints, write_openpose
 from pipelines.datasets.rig_files import write_qualisys
-from pipelines.prepare.checks import project_distorted
 
 
 def true_joints(capture: ZjuCapture, body: BodyModel) -> np.ndarray:
