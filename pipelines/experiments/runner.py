@@ -19,7 +19,7 @@ import numpy as np
 from fitting.checkpoint import load_checkpoint
 from fitting.config import load_config
 from fitting.files import atomic_write_text
-from fitting.fitted import run_config
+from fitting.fitted import SavedRun, read_run
 from fitting.run_folder import auto_device
 from fitting.trainer import make_field
 from pipelines.experiments.orderings import check_orderings
@@ -84,18 +84,20 @@ def run_fit(table: Table, row: Row, settings: Settings, run_dir: Path) -> None:
             return
 
 
-def evaluate(table: Table, run_dir: Path, settings: Settings) -> dict:
-    """The table's protocol on a fitted row: split -> {mask_l2, psnr, ssim} (full image)."""
+def evaluate(table: Table, run: Path | SavedRun, settings: Settings) -> dict:
+    """The table's protocol on a fitted row (its folder, or its checkpoint already read): split -> {mask_l2, psnr,
+    ssim} (full image)."""
     request = EvalRequest(tuple(table.splits), settings.limit, str(auto_device(settings.device)), progress=False)
-    report = RUN_KINDS[table.kind].evaluate(run_dir, request)
+    report = RUN_KINDS[table.kind].evaluate(run, request)
     return {split: report["splits"][split]["full"] for split in table.splits}
 
 
-def row_costs(run_dir: Path) -> dict:
+def row_costs(run: Path | SavedRun) -> dict:
     """#params, FLOPs and activation memory per ray of the fitted model (docs/model.md §8), its training steps,
     seconds and median rays/s from the run's log."""
-    state = load_checkpoint(run_dir)
-    model = make_field(run_config(state, run_dir))
+    saved = read_run(run)
+    run_dir, state = saved.run_dir, saved.state
+    model = make_field(saved.config)
     cost = model.cost() if hasattr(model, "cost") else None
     log_path = run_dir / "log.jsonl"  # absent when the fit ran fewer steps than train.log_every
     log = [json.loads(line) for line in log_path.read_text().splitlines() if line.strip()] if log_path.is_file() else []
@@ -118,7 +120,8 @@ def run_row(table: Table, row: Row, out_dir: Path, settings: Settings, fitter=ru
     run_dir = out_dir / row.name / "run"
     start = time.perf_counter()
     fitter(table, row, settings, run_dir)
-    metrics = evaluator(table, run_dir, settings)
+    saved = read_run(run_dir)  # the fitted checkpoint, read once for the evaluation and the costs
+    metrics = evaluator(table, saved, settings)
     result = {
         "row": row.name,
         "label": row.label,
@@ -127,7 +130,7 @@ def run_row(table: Table, row: Row, out_dir: Path, settings: Settings, fitter=ru
         "budget_minutes": settings.budget_minutes,
         "views_per_split": settings.limit,
         "metrics": metrics,
-        "cost": row_costs(run_dir),
+        "cost": row_costs(saved),
         "wall_seconds": time.perf_counter() - start,
     }
     atomic_write_text(result_path, json.dumps(result, indent=1))
