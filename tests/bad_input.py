@@ -12,7 +12,16 @@ import numpy as np
 import pytest
 import spawn
 
-from pipelines.cli import calibrate, convert_smpl, export_mesh, fit, prepare_thuman, render_video, synth
+from pipelines.cli import (
+    calibrate,
+    convert_smpl,
+    export_mesh,
+    fit,
+    prepare_capture,
+    prepare_thuman,
+    render_video,
+    synth,
+)
 from pipelines.cli import eval as cli_eval
 from pipelines.cli.common import run_cli
 
@@ -84,3 +93,12 @@ def _interrupt_after(argv: list[str], ready, timeout: float = 240.0) -> subproce
 
 def _cli(name: str) -> list[str]:
     return [sys.executable, "-c", f"from pipelines.cli.{name} import entrypoint; entrypoint()"]
+
+
+def prepare_error(capsys, argv) -> str:
+    """narf-prepare-capture in-process: exit code 2 and exactly one error line, returned."""
+    capsys.readouterr()
+    assert run_cli("narf-prepare-capture", prepare_capture.main, [str(a) for a in argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("narf-prepare-capture: error: "), err
+    return err[0]

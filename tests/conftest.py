@@ -95,3 +95,21 @@ def capture(data_root_64, tmp_path):
     root = tmp_path / "data"
     shutil.copytree(data_root_64 / "synthetic" / "taichi", root / "synthetic" / "taichi")
     return root
+
+
+#: the keypoint noise of the synthetic recording (pixels)
+NOISE_PX = 1.0
+
+
+@pytest.fixture(scope="session")
+def recording(tmp_path_factory):
+    """The synthetic capture (10 frames x 4 cameras, 256^2) written back as a raw recording: videos, a Qualisys file
+    of the true cameras, OpenPose JSON of the true joints with ``NOISE_PX`` of noise, the true masks."""
+    from pipelines.synthetic.capture import SynthConfig, generate_capture
+    from pipelines.synthetic.recording import write_recording
+
+    root = tmp_path_factory.mktemp("recording")
+    config = SynthConfig(resolution=256, frames=10, cameras=4, calib_shots=0, calib_close_ups=0, workers=1)
+    generate_capture(root / "truth", config, progress=False)
+    write_recording(root / "truth", root / "rec", noise_px=NOISE_PX)
+    return root

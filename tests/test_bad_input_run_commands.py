@@ -7,6 +7,7 @@ import shutil
 import numpy as np
 import pytest
 import scipy.io
+import torch
 from bad_input import _cli, _interrupt_after, expect_error, expect_usage_error
 
 from pipelines.cli import eval as cli_eval
@@ -37,7 +38,6 @@ def test_run_commands_on_bad_runs(tiny_run, tmp_path, capsys):
     ],
 )
 def test_damaged_checkpoint_contents_name_the_file(tiny_run, tmp_path, capsys, mutate, message):
-    import torch
 
     from fitting.checkpoint import save_checkpoint
 
@@ -179,3 +179,34 @@ def test_ctrl_c_during_video_leaves_no_video(tiny_run, tmp_path):
     done = _interrupt_after(args, lambda err: "video orbit:" in err and ("frame/s" in err or "s/frame" in err))
     assert done.returncode == 130 and "interrupted" in done.stderr and "Traceback" not in done.stderr
     assert not out.exists() and not list(tmp_path.glob("*.mp4"))
+
+
+def test_video_and_export_flags_of_the_new_outputs_are_checked(tiny_run, tmp_path, capsys):
+    from pipelines.cli import export_mesh, render_video
+    from pipelines.cli.common import run_cli
+
+    cases = [
+        (render_video, ["--kind", "path"], "give --camera-path FILE"),
+        (render_video, ["--camera-path", str(tmp_path / "missing.json")], "not readable JSON"),
+        (render_video, ["--camera-path", str(tmp_path / "a.json"), "--kind", "orbit"], "cannot be a --kind orbit"),
+        (export_mesh, ["--rigged", "--fps", "0", "--out", str(tmp_path / "a.glb")], "--fps must be in (0, 1000]"),
+        (export_mesh, ["--frame", "0", "--fps", "30", "--out", str(tmp_path / "a.ply")], "--fps and --motion-fps set"),
+        (export_mesh, ["--out", str(tmp_path / "a.ply")], "one of --frame N or --motion FILE is required"),
+        (export_mesh, ["--frame", "0", "--out", str(tmp_path)], "is a folder; --out names the mesh file"),
+    ]
+    for module, args, message in cases:
+        name = "narf-render-video" if module is render_video else "narf-export-mesh"
+        assert run_cli(name, module.main, ["--run", str(tiny_run), "--quiet", *args]) == 2
+        err = capsys.readouterr().err.strip()
+        assert message in err and len(err.splitlines()) == 1
+    # a flag's value out of range is a usage error (argparse: the usage line, then the error)
+    level = ["--run", str(tiny_run), "--frame", "0", "--level", "-5", "--out", str(tmp_path / "a.ply")]
+    with pytest.raises(SystemExit) as stop:
+        export_mesh.main(level)
+    assert stop.value.code == 2 and "argument --level: expected a finite number > 0" in capsys.readouterr().err
+    # a range starting with a minus reaches --frames' own check, not argparse's "expected one argument"
+    frames = ["--run", str(tiny_run), "--motion", "m.npz", "--frames", "-5:3", "--out", str(tmp_path / "a.ply")]
+    with pytest.raises(SystemExit) as stop:
+        export_mesh.main(frames)
+    assert stop.value.code == 2 and "argument --frames: expected A:B with 0 <= A < B" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())

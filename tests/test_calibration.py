@@ -330,26 +330,3 @@ def test_checkerboard_intrinsics_recover_the_focal_length(tmp_path):
     assert abs(result["K"][0, 0] / 520 - 1) < 0.01 and abs(result["K"][1, 1] / 520 - 1) < 0.01
     assert np.abs(result["K"][:2, 2] - [322, 238]).max() < 6 and result["rms_px"] < 0.5
     assert "cam01_99_int.png" in result["rejected"] and len(result["used"]) == 8
-
-
-def test_checkerboard_flags_are_checked_before_the_work(tmp_path, capsys):
-    """--compare with no camera in common, and an --out that is a file, are refused before any shot is read."""
-    from pipelines.cli import calibrate
-    from pipelines.cli.common import run_cli
-    from pipelines.datasets.camera import Camera
-    from pipelines.datasets.rig_files import write_qualisys
-
-    folder = tmp_path / "shots" / "int_cam01_img"
-    folder.mkdir(parents=True)
-    cv2.imwrite(str(folder / "a.png"), np.zeros((48, 64), np.uint8))  # would fail to calibrate: never reached
-    other = Camera("x9", np.array([[100.0, 0, 32], [0, 100, 24], [0, 0, 1]]), np.zeros(5), np.eye(4), 64, 48)
-    write_qualisys(tmp_path / "rig.qca.txt", [other])
-    (tmp_path / "file").write_text("x")
-    for extra, message in (
-        (["--compare", tmp_path / "rig.qca.txt"], "none of its cameras ['x9'] is one of the shots' cameras ['cam01']"),
-        (["--out", tmp_path / "file"], "file: exists and is not a folder"),
-    ):
-        argv = [str(a) for a in [tmp_path / "shots", "--checkerboard", "4x7", *extra]]
-        assert run_cli("narf-calibrate", calibrate.main, argv) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and message in err[0], err

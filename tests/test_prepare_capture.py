@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from bad_input import prepare_error
 from scipy.spatial.transform import Rotation
 
 from pipelines.body.model import BodyModel
@@ -22,19 +23,9 @@ from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import TARGET_JOINTS, read_openpose, to_targets, write_openpose
 from pipelines.datasets.rig_files import read_qualisys, read_rig, read_toml, write_qualisys
 from pipelines.prepare.multiview import project, triangulate, triangulate_robust
-from pipelines.synthetic.capture import SynthConfig, generate_capture
 from pipelines.synthetic.recording import true_joints, write_recording
 
-NOISE_PX = 1.0
-
-
-@pytest.fixture(scope="module")
-def recording(tmp_path_factory):
-    root = tmp_path_factory.mktemp("recording")
-    config = SynthConfig(resolution=256, frames=10, cameras=4, calib_shots=0, calib_close_ups=0, workers=1)
-    generate_capture(root / "truth", config, progress=False)
-    write_recording(root / "truth", root / "rec", noise_px=NOISE_PX)
-    return root
+NOISE_PX = 1.0  # the keypoint noise of the recording fixture (tests/conftest.py)
 
 
 def _prepare(rec: Path, out: Path, *extra) -> int:
@@ -193,7 +184,7 @@ def test_body25b_files_prepare_the_truth_and_are_never_read_as_body25(recording,
         frame = int(path.name.split("_")[-2])
         path.rename(path.with_name(f"{path.parent.name[:-5]}.{frame:04d}.json"))
     flags = ["--keypoints", rec / "keypoints", "--masks", rec / "masks", "--quiet", "--silhouette-iterations", "0"]
-    assert "--keypoint-layout body25b" in _error(
+    assert "--keypoint-layout body25b" in prepare_error(
         capsys, [rec, "--out", tmp_path / "x", *flags, "--keypoint-layout", "body25"]
     )
     assert (
@@ -202,7 +193,9 @@ def test_body25b_files_prepare_the_truth_and_are_never_read_as_body25(recording,
         )
         == 0
     )
-    assert "give --keypoints too" in _error(capsys, [rec, "--out", tmp_path / "z", "--keypoint-layout", "body25"])
+    assert "give --keypoints too" in prepare_error(
+        capsys, [rec, "--out", tmp_path / "z", "--keypoint-layout", "body25"]
+    )
     truth = ZjuCapture(recording / "truth")
     joints = true_joints(truth, BodyModel())[:, list(TARGET_JOINTS)]
     error_cm = 100 * np.linalg.norm(np.load(tmp_path / "out" / "keypoints3d.npy") - joints, axis=-1)
@@ -215,62 +208,7 @@ def test_body25b_files_prepare_the_truth_and_are_never_read_as_body25(recording,
         for p in people:
             p[:9, 2] = 0  # face and arms unseen: neither test can run
         write_openpose(path, people)
-    assert "cannot tell BODY_25 from BODY_25B" in _error(capsys, [rec, "--out", tmp_path / "y", *flags])
-
-
-def test_a_capture_whose_every_camera_is_flagged_is_refused_unless_kept():
-    from pipelines.datasets.errors import CaptureError
-    from pipelines.prepare.run import PrepareRequest, _refuse_all_flagged
-
-    report = {"cameras": {"a": {}, "b": {}}, "flagged_cameras": {"a": "turned", "b": "turned"}}
-    with pytest.raises(CaptureError, match="every camera is flagged .a: turned.; nothing was written"):
-        _refuse_all_flagged(report, PrepareRequest(recording=Path("rec"), out=Path("out")))
-    _refuse_all_flagged(report, PrepareRequest(recording=Path("rec"), out=Path("out"), keep_flagged=True))
-    report["flagged_cameras"].pop("b")
-    _refuse_all_flagged(report, PrepareRequest(recording=Path("rec"), out=Path("out")))
-
-
-def _error(capsys, argv) -> str:
-    capsys.readouterr()
-    assert run_cli("narf-prepare-capture", prepare_capture.main, [str(a) for a in argv]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("narf-prepare-capture: error: "), err
-    return err[0]
-
-
-def test_bad_recordings_are_one_line(recording, tmp_path, capfd):
-    """One line each, at the file descriptor too (ffmpeg's own complaints about a broken video are kept out)."""
-    rec = tmp_path / "rec"
-    shutil.copytree(recording / "rec", rec)
-    out = tmp_path / "out"
-    flags = ["--out", out, "--keypoints", rec / "keypoints", "--masks", rec / "masks", "--quiet"]
-    assert "no such folder" in _error(capfd, [tmp_path / "missing", *flags])
-    shutil.copy(rec / "videos" / "Camera_B1.mp4", rec / "videos" / "Camera_B1.webm")
-    assert "camera 'Camera_B1' has several videos (Camera_B1.mp4, Camera_B1.webm)" in _error(capfd, [rec, *flags])
-    (rec / "videos" / "Camera_B1.webm").unlink()
-    mask = next((rec / "masks" / "Camera_B2").iterdir())
-    original = mask.read_bytes()
-    cv2.imwrite(str(mask), np.zeros((100, 80), np.uint8))
-    assert f"{mask}: mask is 80x100, camera 'Camera_B2' records 256x256" in _error(capfd, [rec, *flags])
-    mask.write_bytes(original)
-    (rec / "calibration" / "rig.txt").write_text("hello")
-    assert "unknown calibration format" in _error(
-        capfd, [rec, *flags, "--calibration", rec / "calibration" / "rig.txt"]
-    )
-    other = [c for c in read_qualisys(rec / "calibration" / "Calib.qca.txt")[:3]]
-    write_qualisys(
-        tmp_path / "three.qca.txt", [type(c)(**{**c.__dict__, "name": f"x{i}"}) for i, c in enumerate(other)]
-    )
-    assert "match none of the recordings" in _error(capfd, [rec, *flags, "--calibration", tmp_path / "three.qca.txt"])
-    bad_json = rec / "keypoints" / "Camera_B1_json" / "Camera_B1_000000000003_keypoints.json"
-    write_openpose(bad_json, [np.zeros((20, 3))])
-    assert "Camera_B1_000000000003_keypoints.json" in _error(capfd, [rec, *flags])
-    for path in (rec / "keypoints").rglob("*.json"):
-        write_openpose(path, [])
-    assert "no person is seen" in _error(capfd, [rec, *flags])
-    (rec / "videos" / "Camera_B2.mp4").write_bytes(b"\x00" * 4096)
-    assert "Camera_B2.mp4: cannot be decoded" in _error(capfd, [rec, *flags])
-    assert not out.exists() and not list(tmp_path.glob(".out*")), "nothing half-written"
+    assert "cannot tell BODY_25 from BODY_25B" in prepare_error(capsys, [rec, "--out", tmp_path / "y", *flags])
 
 
 def test_training_views_of_different_sizes_sample_only_their_own_pixels():
@@ -315,22 +253,6 @@ def test_the_floor_is_found_under_the_feet_or_given(recording, prepared, tmp_pat
         prepare_capture.main([str(recording / "rec"), "--out", str(tmp_path / "bad"), "--floor", "down"])
     assert usage.value.code == 2 and "argument --floor: expected 'auto'" in capsys.readouterr().err.splitlines()[-1]
     assert not (tmp_path / "bad").exists()
-
-
-def test_a_bad_floor_file_names_itself(tmp_path):
-    from pipelines.datasets.errors import CaptureError
-    from pipelines.datasets.floor import read_floor
-
-    for text in (
-        '{"up": [0, 0], "height": 0}',
-        '{"up": [0, 0, 0], "height": 0}',
-        '{"height": 1}',
-        "[1, 2",
-        '{"up": [0, 0, 1], "height": "NaN"}',
-    ):
-        (tmp_path / "floor.json").write_text(text)
-        with pytest.raises(CaptureError, match="floor.json"):
-            read_floor(tmp_path / "floor.json")
 
 
 def test_camera_names_match_up_to_case_separators_and_padding():
@@ -436,7 +358,7 @@ def test_bodies_users_bring_are_taken_as_given(recording, tmp_path, capsys):
     assert "several people" not in capsys.readouterr().err
 
     def refused(extra, message):
-        assert message in _error(capsys, [rec, "--out", tmp_path / "x", *flags, *extra])
+        assert message in prepare_error(capsys, [rec, "--out", tmp_path / "x", *flags, *extra])
 
     refused(["--smpl-params", easymocap], "000000.json: 2 people (ids [3, 7]); choose one with --person ID")
     refused(["--smpl-params", easymocap, "--person", "5"], "no person with id 5")
