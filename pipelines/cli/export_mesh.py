@@ -83,20 +83,7 @@ def main(argv: list[str] | None = None) -> int:
     from pipelines.runs.requests import ExportRequest, a_run
 
     use_smpl_dir(args.smpl_dir)
-    if args.fps is not None and not (args.fps > 0 and args.fps <= 1000):
-        raise ValueError(f"--fps must be in (0, 1000], got {args.fps:g}")
-    if (args.fps, args.motion_fps) != (None, None) and not (args.rigged and args.motion is not None):
-        raise ValueError("--fps and --motion-fps set the animation's rates of --rigged --motion FILE")
-    if not args.rigged and args.frame is None and args.motion is None:
-        raise ValueError("one of --frame N or --motion FILE is required (or --rigged for the rest pose)")
-    if args.frames is not None and args.motion is None:
-        raise ValueError("--frames A:B picks frames of a --motion; use --frame N for a capture frame")
-    if Path(args.out).is_dir():  # checked before the work, not when the file is put in place
-        raise ValueError(
-            f"{args.out}: is a folder; --out names the mesh file to write (e.g. {Path(args.out) / 'body.ply'})"
-        )
-    if not args.run.is_dir():
-        raise FileNotFoundError(f"{args.run}: no such run folder")
+    _check_flags(args)
     kind, run = open_run(args.run)
     if kind.export is None:
         raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-export-mesh exports subject runs")
@@ -126,6 +113,24 @@ def main(argv: list[str] | None = None) -> int:
     _print_level(level)
     print(f"narf-export-mesh: wrote {written[0]}" + (f" ... ({len(written)} files)" if len(written) > 1 else ""))
     return 0
+
+
+def _check_flags(args) -> None:
+    """The flags that contradict each other, an --out that is a folder and a missing run, before any work."""
+    if args.fps is not None and not (args.fps > 0 and args.fps <= 1000):
+        raise ValueError(f"--fps must be in (0, 1000], got {args.fps:g}")
+    if (args.fps, args.motion_fps) != (None, None) and not (args.rigged and args.motion is not None):
+        raise ValueError("--fps and --motion-fps set the animation's rates of --rigged --motion FILE")
+    if not args.rigged and args.frame is None and args.motion is None:
+        raise ValueError("one of --frame N or --motion FILE is required (or --rigged for the rest pose)")
+    if args.frames is not None and args.motion is None:
+        raise ValueError("--frames A:B picks frames of a --motion; use --frame N for a capture frame")
+    if Path(args.out).is_dir():  # checked before the work, not when the file is put in place
+        raise ValueError(
+            f"{args.out}: is a folder; --out names the mesh file to write (e.g. {Path(args.out) / 'body.ply'})"
+        )
+    if not args.run.is_dir():
+        raise FileNotFoundError(f"{args.run}: no such run folder")
 
 
 def entrypoint() -> None:
