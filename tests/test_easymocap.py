@@ -137,3 +137,15 @@ def test_files_opencv_cannot_parse_are_one_line(tmp_path, intri, message):
     with pytest.raises(CaptureError, match=message) as caught:
         read_easymocap_cameras(tmp_path)
     assert "\n" not in str(caught.value)
+
+
+def test_a_file_of_skipped_cameras_only_is_one_error_line(tmp_path, capsys):
+    """Every name 'none': the error alone, no note before it (one line, our own)."""
+    from pipelines.datasets.errors import CaptureError
+
+    (tmp_path / "intri.yml").write_text('%YAML:1.0\n---\nnames:\n  - "none"\n  - "none"\n')
+    (tmp_path / "extri.yml").write_text('%YAML:1.0\n---\nnames:\n  - "none"\n  - "none"\n')
+    capsys.readouterr()
+    with pytest.raises(CaptureError, match=r"no camera with K .*all 2 camera names are 'none'"):
+        read_easymocap_cameras(tmp_path)
+    assert capsys.readouterr().err == ""

@@ -173,12 +173,13 @@ def read_easymocap_cameras(folder: Path, images: Path | None = None) -> list[Cam
         if measured is not None and camera.width == 0:
             camera = Camera(camera.name, camera.K, camera.dist, camera.cam_from_world, *measured)
         cameras.append(camera)
+    if not cameras:  # one line: the error says what the note would have said
+        also = f" (all {len(names)} camera names are 'none' or lack K/R/T)" if skipped else ""
+        raise CaptureError(f"{folder}: no camera with K in intri.yml and R/T in extri.yml{also}")
     if skipped:
         print(
             f"{Path(sys.argv[0]).name}: note: {folder}: skipped {len(skipped)} of {len(names)} camera names ('none' "
             "or without K/R/T), as EasyMocap does",
             file=sys.stderr,
         )
-    if not cameras:
-        raise CaptureError(f"{folder}: no camera with K in intri.yml and R/T in extri.yml")
     return cameras
