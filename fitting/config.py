@@ -219,7 +219,7 @@ def load_config(preset: str | None = None, overrides: list[str] | None = None, b
         except yaml.YAMLError as err:
             raise ConfigError(f"{path}: not valid YAML ({err})") from err
         try:
-            sections = values.pop("models", None) or {} if isinstance(values, dict) else {}
+            sections = (values.pop("models", None) if isinstance(values, dict) else None) or {}
             _apply(config, values)
             named = [n["model"]["name"] for n in parsed if isinstance(n.get("model"), dict) and "name" in n["model"]]
             model = named[-1] if named else config.model.name

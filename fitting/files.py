@@ -70,21 +70,23 @@ def atomic_output(path: Path) -> Iterator[Path]:
         tmp.unlink(missing_ok=True)
 
 
-def partial_folder(out: Path) -> Path:
-    """The hidden staging folder of ``out``: ``.<name>.partial`` beside it."""
+def fresh_partial(out: Path) -> Path:
+    """The hidden staging folder of ``out``, ``.<name>.partial`` beside it, created empty (what an interrupted run
+    left there is cleared)."""
     out = Path(out)
-    return out.parent / f".{out.name}.partial"
+    partial = out.parent / f".{out.name}.partial"
+    shutil.rmtree(partial, ignore_errors=True)
+    partial.mkdir(parents=True)
+    return partial
 
 
 @contextlib.contextmanager
 def staged_folder(out: Path, replace: bool = True) -> Iterator[Path]:
-    """Build the folder ``out`` in a fresh staging folder (:func:`partial_folder`; an old one is cleared) and move it
+    """Build the folder ``out`` in a fresh staging folder (:func:`fresh_partial`) and move it
     into place when the block ends without error, replacing an older ``out`` (``replace=False``: ``out`` must be
     absent or an empty folder). On an error or Ctrl-C the staging folder is removed and ``out`` is left as it was."""
     out = Path(out)
-    partial = partial_folder(out)
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
+    partial = fresh_partial(out)
     try:
         yield partial
     except BaseException:

@@ -1,6 +1,6 @@
-"""The calibration workflows behind ``narf-calibrate``: a ChArUco rig (detection, per-camera intrinsics, a graph
-over shared shots, one joint bundle adjustment; docs/guides/calibration.md) and checkerboard intrinsics; where their
-outputs go (staged, then moved into place: ``fitting.files``)."""
+"""The calibration workflows behind ``narf-calibrate``: a ChArUco rig (detection, per-camera intrinsics, a graph over
+the shots that several cameras see, one joint bundle adjustment; docs/guides/calibration.md) and checkerboard
+intrinsics; where their outputs go (staged, then moved into place: ``fitting.files``)."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from fitting.files import atomic_write_bytes, merge_folder, partial_folder
+from fitting.files import atomic_write_bytes, fresh_partial, merge_folder
 from pipelines.calibration.board import BoardSpec
 from pipelines.calibration.charuco import CalibrationError, calibrate_intrinsics, detect_folder
 from pipelines.calibration.report import compare_cameras, draw_residuals, draw_rig
@@ -100,9 +100,7 @@ def calibrate_capture(
 
 def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None, report: dict, figures: dict) -> None:
     """Write into a hidden temporary folder, then move the files into ``out`` (nothing partial on failure)."""
-    staging = partial_folder(out)
-    shutil.rmtree(staging, ignore_errors=True)
-    staging.mkdir(parents=True)
+    staging = fresh_partial(out)
     write_annots(staging / "annots.npy", cameras, ims or [])
     write_easymocap_cameras(staging, cameras)
     write_colmap_model(staging / "colmap", cameras)

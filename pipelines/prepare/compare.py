@@ -34,12 +34,12 @@ def compare_captures(a: Path, b: Path) -> dict:
     """Each capture's fit quality (report summary, per-camera reprojection and IoU, flags) and the distance between
     the two bodies over the frames both kept: per frame the mean vertex distance, then its median, mean and
     95th percentile over frames (cm)."""
-    reports = {str(p): _report(Path(p)) for p in (a, b)}
-    frames = [sorted(r["frames"]["source_frames"]) for r in reports.values()]
-    shared = sorted(set(frames[0]) & set(frames[1]))
+    reports = [(str(p), _report(Path(p))) for p in (a, b)]  # a list: a capture may be compared with itself
+    # source frame -> the capture's frame number, per capture
+    index = [{f: i for i, f in enumerate(r["frames"]["source_frames"])} for _, r in reports]
+    shared = sorted(set(index[0]) & set(index[1]))
     if not shared:
         raise CaptureError(f"{a}, {b}: no frame in common")
-    index = [{f: i for i, f in enumerate(r["frames"]["source_frames"])} for r in reports.values()]
     distance = [
         100 * np.linalg.norm(_vertices(Path(a), index[0][f]) - _vertices(Path(b), index[1][f]), axis=1).mean()
         for f in shared
@@ -53,7 +53,7 @@ def compare_captures(a: Path, b: Path) -> dict:
                 for cam, c in r["cameras"].items()
             },
         }
-        for name, r in reports.items()
+        for name, r in reports
     }
     body = {"frames": len(shared), "median_cm": float(np.median(distance)), "mean_cm": float(np.mean(distance))}
     return {"fit": fit, "body_distance": body | {"p95_cm": float(np.percentile(distance, 95))}}

@@ -10,6 +10,7 @@ files, byte for byte.
 
 from __future__ import annotations
 
+import argparse
 import subprocess
 import sys
 import zipfile
@@ -56,13 +57,13 @@ def unpack(wheel: Path, prefix: str, target: Path, marker: str) -> Path:
 
 
 def main() -> None:
-    args = [a for a in sys.argv[1:] if a != "--body25b"]
-    if len(args) != 2:
-        sys.exit("usage: python -m pipelines.prepare.demo_data CACHE OUT [--body25b]")
-    cache, out = Path(args[0]), Path(args[1])
-    parts = PARTS + ((BODY25B,) if "--body25b" in sys.argv[1:] else ())
-    for wheel, prefix, folder in parts:
-        print(f"demo recording: {unpack(fetch_wheel(cache, wheel), prefix, out / folder, wheel)}")
+    parser = argparse.ArgumentParser(prog="python -m pipelines.prepare.demo_data", description=__doc__)
+    parser.add_argument("cache", type=Path, help="where the wheels are downloaded (once)")
+    parser.add_argument("out", type=Path, help="where the demo folders are unpacked")
+    parser.add_argument("--body25b", action="store_true", help="also Pose2Sim's BODY_25B keypoints of the demo")
+    args = parser.parse_args()
+    for wheel, prefix, folder in PARTS + ((BODY25B,) if args.body25b else ()):
+        print(f"demo recording: {unpack(fetch_wheel(args.cache, wheel), prefix, args.out / folder, wheel)}")
 
 
 if __name__ == "__main__":

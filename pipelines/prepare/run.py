@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from fitting.files import partial_folder, publish_folder
+from fitting.files import fresh_partial, publish_folder
 from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.floor import Floor, camera_up, floor_from_feet, write_floor
@@ -112,8 +112,7 @@ def prepare_capture(request: PrepareRequest) -> dict:
 
         detector = BlazePose()
     body = BodyModel(request.smpl_dir)  # a bad --smpl-dir fails before any frame is read
-    staging = partial_folder(out)
-    shutil.rmtree(staging, ignore_errors=True)
+    staging = fresh_partial(out)
     try:
         unused = [s.name for s in sources if s.name not in {source.name for _, source, _ in matched}]
         report = _build(staging, (matched, unused), detector, body, holdout, calibration, request)

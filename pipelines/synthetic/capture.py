@@ -21,7 +21,7 @@ import torch
 import trimesh
 from tqdm import tqdm
 
-from fitting.files import partial_folder, publish_folder
+from fitting.files import fresh_partial, publish_folder
 from fitting.mesh import vertex_normals
 from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.body.model import BodyModel
@@ -281,9 +281,7 @@ def generate_capture(
                 f"{out}: folder is not empty and holds no finished synthetic capture; choose another --out or remove it"
             )
         shutil.rmtree(out)  # a finished capture with other settings: regenerate
-    partial = partial_folder(out)
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
+    partial = fresh_partial(out)
     body = BodyModel(smpl_path)
     params, old, new = pose_sequence(body, taichi_motion(config.frames, config.seed))
     cameras = ring_cameras(config.cameras, config.resolution, config.seed)

@@ -10,7 +10,6 @@ training-distribution camera: the autoencoder's encoder input.
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import cv2
@@ -18,7 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from fitting.files import partial_folder, publish_folder
+from fitting.files import fresh_partial, publish_folder
 from pipelines.body.model import BodyModel
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.thuman import RENDER_SIZE, THUMAN_K, item_gender, read_colored_obj, read_smpl_params_txt
@@ -150,9 +149,7 @@ def prepare_thuman(
         scan = read_colored_obj(Path(raw_dir) / item / "mesh.obj")
         item_gender(Path(raw_dir) / item)
         meshes.append((params, scan))
-    partial = partial_folder(out)
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
+    partial = fresh_partial(out)
     prepare_folders(partial)
     body = BodyModel(smpl_path, dtype=torch.float64)
     per_mesh = {"train": renders_per_mesh, "same_view": 1, "novel_view": 1}

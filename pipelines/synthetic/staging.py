@@ -5,12 +5,11 @@ holds a marker is complete and an interrupted generation never looks finished.""
 from __future__ import annotations
 
 import json
-import shutil
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 
-from fitting.files import partial_folder, publish_folder
+from fitting.files import fresh_partial, publish_folder
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.subjects import stand_in_notice
 
@@ -34,9 +33,7 @@ def start_staging(out: Path, dataset: str, description: str) -> Path:
     out = Path(out)
     if out.exists() and (not out.is_dir() or any(out.iterdir())) and not is_finished(out, dataset):
         raise FileExistsError(f"{out}: exists and holds no finished {description}; choose another --out")
-    partial = partial_folder(out)
-    shutil.rmtree(partial, ignore_errors=True)
-    partial.mkdir(parents=True)
+    partial = fresh_partial(out)
     return partial
 
 
