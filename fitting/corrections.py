@@ -6,6 +6,7 @@ trainer adds their parameters to its optimiser and their penalties to its loss (
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, replace
 
 import torch
@@ -15,6 +16,18 @@ from torch import nn
 from narf.fields.common import PoseBatch
 from narf.geometry import check_shape, so3_log
 from narf.kinematics import N_JOINTS, part_pose_features, parts_from_joints, world_from_joint_rotations
+
+
+@dataclass(frozen=True)
+class PosePrior:
+    """The pose correction's prior (:meth:`PoseCorrection.penalty`): ``weight`` of the robust pull towards the
+    capture's pose, at ``turn_degrees`` per joint turn and ``shift_cm`` of the body's shift; ``smooth`` the weight of
+    the pull of neighbouring knots together (in the same units)."""
+
+    weight: float = 1e-4
+    turn_degrees: float = 5.0
+    shift_cm: float = 3.0
+    smooth: float = 0.0
 
 
 @dataclass
@@ -43,11 +56,24 @@ class CapturePoses:
 
 def knots(frames: torch.Tensor, every: int) -> tuple[torch.Tensor, torch.Tensor, int]:
     """Where each training frame lies among correction knots placed every ``every`` capture frames from the first
-    training frame: (left knot (F,), weight of the right knot (F,), number of knots). ``every`` 1: a knot per frame."""
+    training frame: (left knot (F,), weight of the right knot (F,), number of knots). ``every`` 1: a knot per frame.
+    The last knot is the last frame's (or the one after it, when that frame falls between knots)."""
     position = (frames - frames.min()).double() / every
-    n_knots = int(position.max().floor()) + 2
-    left = position.floor().long().clamp(max=n_knots - 2)
+    n_knots = int(position.max().ceil()) + 1
+    left = position.floor().long().clamp(max=max(n_knots - 2, 0))
     return left, (position - left).to(torch.get_default_dtype()), n_knots
+
+
+def _right(left: torch.Tensor, n_knots: int) -> torch.Tensor:
+    """The right knot of each frame (its left one for a frame on the last knot, whose weight is then 1 or 0)."""
+    return (left + 1).clamp(max=n_knots - 1)
+
+
+def robust(r2: torch.Tensor) -> torch.Tensor:
+    """Geman-McClure of a squared residual, ``r^2 / (r^2 + 1)``: quadratic below 1, bounded by 1 beyond (a large
+    correction costs at most 1, so the prior holds the poses the images do not see and lets through those they do).
+    Taking r^2 keeps its gradient finite at r = 0."""
+    return r2 / (r2 + 1)
 
 
 class PoseCorrection(nn.Module):
@@ -63,10 +89,13 @@ class PoseCorrection(nn.Module):
         capture: the training frames' parameters (:class:`CapturePoses`); kept as buffers, so the checkpoint holds
             what the corrections apply to.
         knot_every: capture frames between knots.
-        centred: the corrections' mean over the knots is held at zero. A correction shared by every frame (a joint
-            turned, the body moved, the same in all frames) is the field's to learn: its parts can turn or move
-            inside their own frames and render the same images, so nothing in the images fixes the mean, and
-            without this it drifts with the optimiser's noise.
+        centred: the corrections' mean over the knots is held at zero (:meth:`centre`, after each optimiser
+            step). A correction shared by every frame (a joint turned, the body moved, the same in all frames) is
+            the field's to learn: its parts can turn or move inside their own frames and render the same images, so
+            nothing in the images fixes the mean, and without this it drifts with the optimiser's noise. The mean
+            is taken out of the parameters, not of the values the frames use: subtracting it inside the forward pass
+            would hand every step's gradient to every knot, and Adam would turn that shared sliver into a full step
+            of each knot that no ray saw.
     """
 
     def __init__(self, capture: CapturePoses, knot_every: int = 1, centred: bool = True):
@@ -78,6 +107,7 @@ class PoseCorrection(nn.Module):
         self.register_buffer("frames", capture.frames.clone())
         left, weight, n_knots = knots(capture.frames, knot_every)
         self.register_buffer("knot_left", left)
+        self.register_buffer("knot_right", _right(left, n_knots))
         self.register_buffer("knot_weight", weight.to(capture.rotvecs.dtype))
         dtype = capture.rotvecs.dtype
         self.joints = nn.Parameter(torch.zeros(n_knots, N_JOINTS - 1, 3, dtype=dtype))
@@ -85,18 +115,23 @@ class PoseCorrection(nn.Module):
         self.shift = nn.Parameter(torch.zeros(n_knots, 3, dtype=dtype))
 
     def knot_values(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The knots' corrections (joint turns (K, 23, 3), root turns (K, 3), shifts (K, 3)); with ``centred``, the
-        parameters less their mean over the knots."""
-        values = (self.joints, self.root, self.shift)
-        return tuple(v - v.mean(dim=0) for v in values) if self.centred else values
+        """The knots' corrections: joint turns (K, 23, 3), root turns (K, 3), shifts (K, 3)."""
+        return self.joints, self.root, self.shift
+
+    @torch.no_grad()
+    def centre(self) -> None:
+        """With ``centred``, take the corrections' mean over the knots out of the parameters (after a step)."""
+        if self.centred:
+            for value in self.knot_values():
+                value.sub_(value.mean(dim=0))
 
     def values(self, index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """The corrections (joint turns (n, 23, 3), root turn (n, 3), shift (n, 3)) of training frames ``index``."""
-        left, weight = self.knot_left[index], self.knot_weight[index]
+        left, right, weight = self.knot_left[index], self.knot_right[index], self.knot_weight[index]
 
         def blend(knot_values: torch.Tensor) -> torch.Tensor:
             w = weight.reshape(-1, *(1,) * (knot_values.dim() - 1))
-            return (1 - w) * knot_values[left] + w * knot_values[left + 1]
+            return (1 - w) * knot_values[left] + w * knot_values[right]
 
         return tuple(blend(v) for v in self.knot_values())
 
@@ -137,21 +172,29 @@ class PoseCorrection(nn.Module):
             selected, world_from_part=world_from_part, pose_features=features, world_from_joint=world_from_joint
         )
 
-    def penalty(self, prior: float, smooth: float, index: torch.Tensor | None = None) -> torch.Tensor:
-        """``prior mean_k |c_k|^2 + smooth mean_k |c_(k+1) - c_k|^2`` over the knots k that training frames ``index``
-        (all when None) rest on, c_k their corrections (joint and root turns in radians, shift in metres). Taken over
-        the frames a step draws, the pulls meet each knot as often as its frames' images do."""
-        joints, root, shift = self.knot_values()
-        values = torch.cat([joints.flatten(1), root, shift], dim=1)  # (K, 75)
+    def penalty(self, prior: PosePrior, index: torch.Tensor | None = None) -> torch.Tensor:
+        """The pull of the knots that training frames ``index`` (all when None) rest on (docs/model.md §6):
+
+        ``w_p mean_k [sum_j rho(|delta_kj| / s_turn) + rho(|omega_k| / s_turn) + rho(|tau_k| / s_shift)]
+        + w_s mean_k |(c_(k+1) - c_k) / s|^2``
+
+        with rho :func:`robust`, c_k a knot's corrections in units of the scales (turns in degrees, shifts in cm) and
+        the smoothness over neighbouring knots of which one is drawn. A knot enters only where one of the frames
+        has weight on it, so no knot is pulled in a step whose rays do not see it."""
+        turns = torch.cat([self.joints, self.root[:, None]], dim=1) / math.radians(prior.turn_degrees)
+        shifts = self.shift / (prior.shift_cm / 100)
+        cost = robust(turns.pow(2).sum(dim=-1)).sum(dim=1) + robust(shifts.pow(2).sum(dim=-1))  # (K,)
         left = self.knot_left if index is None else self.knot_left[index]
-        chosen = torch.zeros(values.shape[0], dtype=torch.bool, device=values.device)
-        chosen[left] = True
-        chosen[left + 1] = True
-        term = prior * values[chosen].pow(2).sum(dim=1).mean()
+        weight = self.knot_weight if index is None else self.knot_weight[index]
+        right = _right(left, cost.shape[0])
+        chosen = torch.zeros(cost.shape[0], dtype=torch.bool, device=cost.device)
+        chosen[left[weight < 1]] = True
+        chosen[right[weight > 0]] = True
+        term = prior.weight * cost[chosen].mean()
         starts = torch.nonzero(chosen[:-1] | chosen[1:])[:, 0]
-        if smooth and starts.numel():
-            step = values[starts + 1] - values[starts]
-            term = term + smooth * step.pow(2).sum(dim=1).mean()
+        if prior.smooth and starts.numel():
+            scaled = torch.cat([turns.flatten(1), shifts], dim=1)
+            term = term + prior.smooth * (scaled[starts + 1] - scaled[starts]).pow(2).sum(dim=1).mean()
         return term
 
     @torch.no_grad()
@@ -210,16 +253,62 @@ class CameraColour(nn.Module):
 
 
 def pose_correction_from_state(state: dict) -> PoseCorrection | None:
-    """The pose correction a checkpoint holds (None for a fit without one); its knots are the saved ones."""
+    """The pose correction a checkpoint holds (None for a fit without one); its knots are the saved ones. A checkpoint
+    of an earlier version, whose centring subtracted the mean inside the forward pass and whose knots had no
+    ``knot_right``, gives the same corrections: its parameters are centred here and its right knots derived."""
     saved = state.get("pose_correction")
     if saved is None:
         return None
+    saved = dict(saved)
     capture = CapturePoses(*(saved[k] for k in ("rotvecs", "world_from_smpl", "rest_joints", "frames")))
     module = PoseCorrection(capture)
     for name in ("joints", "root", "shift"):  # sized by the saved knots, whatever knot_every made them
         setattr(module, name, nn.Parameter(torch.zeros_like(saved[name])))
+    if "knot_right" not in saved:
+        saved["knot_right"] = _right(saved["knot_left"], saved["joints"].shape[0])
+        saved.update({name: saved[name] - saved[name].mean(dim=0) for name in ("joints", "root", "shift")})
     module.load_state_dict(saved)
     return module
+
+
+class RowAdam(torch.optim.Optimizer):
+    """Adam whose every parameter row (``p[k]``: one knot's corrections) keeps moments and a step count of its own
+    and moves only in the steps that give it a gradient, as ``torch.optim.SparseAdam`` does for embeddings.
+
+    A training frame is drawn once in tens of steps. Plain Adam would go on moving its knot on momentum in the steps
+    between, each visit's noise turned into a full step in that visit's direction; here a row's first moment
+    averages over its own last visits (about 1 / (1 - beta1) of them), so noise cancels and a steady pull adds up.
+    Rows whose gradient is exactly zero in a step (no ray of the step saw them) are left as they are."""
+
+    def __init__(self, params, lr: float, betas: tuple[float, float] = (0.9, 0.999), eps: float = 1e-12):
+        super().__init__(params, {"lr": lr, "betas": betas, "eps": eps})
+
+    @torch.no_grad()
+    def step(self, closure=None):
+        for group in self.param_groups:
+            beta1, beta2 = group["betas"]
+            for p in group["params"]:
+                if p.grad is None:
+                    continue
+                grad = p.grad.reshape(p.shape[0], -1)
+                rows = grad.ne(0).any(dim=1)
+                if not rows.any():
+                    continue
+                state = self.state[p]
+                if not state:
+                    state["step"] = torch.zeros(p.shape[0], dtype=torch.float64, device=p.device)
+                    state["exp_avg"] = torch.zeros_like(grad)
+                    state["exp_avg_sq"] = torch.zeros_like(grad)
+                count = state["step"][rows] + 1
+                state["step"][rows] = count
+                m = state["exp_avg"][rows].mul_(beta1).add_(grad[rows], alpha=1 - beta1)
+                v = state["exp_avg_sq"][rows].mul_(beta2).addcmul_(grad[rows], grad[rows], value=1 - beta2)
+                state["exp_avg"][rows], state["exp_avg_sq"][rows] = m, v
+                m_hat = m / (1 - beta1**count)[:, None].to(m.dtype)
+                v_hat = v / (1 - beta2**count)[:, None].to(v.dtype)
+                update = group["lr"] * m_hat / (v_hat.sqrt() + group["eps"])
+                p.reshape(p.shape[0], -1)[rows] -= update
+        return None
 
 
 def corrected_colour_error(out, batch, background, camera_colour, backgrounds, colour_count, mask_count):

@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from fitting.checkpoint import save_checkpoint
 from fitting.config import FitConfig
-from fitting.corrections import CameraColour, PoseCorrection, corrected_colour_error
+from fitting.corrections import CameraColour, PoseCorrection, PosePrior, RowAdam, corrected_colour_error
 from fitting.data import FitData
 from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
 from fitting.plots import write_curve, write_validation
@@ -165,6 +165,12 @@ class Trainer:
         )
         decay, floor = config.train.lr_decay, config.train.lr_min / config.train.lr
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimiser, lambda step: max(decay**step, floor))
+        self.pose_optimiser = self.pose_scheduler = None
+        if self.pose_correction is not None and config.train.pose_correction:  # per-knot moments (RowAdam)
+            self.pose_optimiser = RowAdam(self._pose_groups(), lr=config.train.pose_lr, eps=config.train.adam_eps)
+            self.pose_scheduler = torch.optim.lr_scheduler.LambdaLR(
+                self.pose_optimiser, lambda step: max(decay**step, floor)
+            )
         self.generator = torch.Generator(device="cpu").manual_seed(config.train.seed + 1)
         self.step, self.elapsed = 0, 0.0
         self._saved_step, self._diverged = None, False  # the step of the last checkpoint written; a finite-loss stop
@@ -182,9 +188,9 @@ class Trainer:
         random numbers, so the field's initialisation is the same with or without them)."""
         t = self.config.train
         self.pose_correction = self.camera_colour = None
-        if t.pose_correction:
-            if data.capture_poses is None:
-                raise ValueError("train.pose_correction: this data has no body parameters to correct")
+        if t.pose_correction and data.capture_poses is None:
+            raise ValueError("train.pose_correction: this data has no body parameters to correct")
+        if data.capture_poses is not None:  # corrected while fitting, or refined against the masks: the run keeps them
             self.pose_correction = PoseCorrection(data.capture_poses, t.pose_knot_every).to(self.device)
         if t.camera_colour:
             self.camera_colour = CameraColour(data.training.n_cameras).to(self.device)
@@ -192,16 +198,25 @@ class Trainer:
     def _correction_groups(self) -> list[dict]:
         """Optimiser groups of the input corrections, each with its own learning rate (decayed as the field's)."""
         t, groups = self.config.train, []
-        if self.pose_correction is not None:
-            groups.append({"params": list(self.pose_correction.parameters()), "lr": t.pose_lr})
         if self.camera_colour is not None:
             groups.append({"params": list(self.camera_colour.parameters()), "lr": t.colour_lr})
         return groups
 
+    def _pose_groups(self) -> list[dict]:
+        """The pose correction's parameter groups: turns (radians) at ``train.pose_lr``, the shift (metres) at
+        ``train.pose_shift_lr``."""
+        c, t = self.pose_correction, self.config.train
+        return [{"params": [c.joints, c.root], "lr": t.pose_lr}, {"params": [c.shift], "lr": t.pose_shift_lr}]
+
     def _correction_state(self) -> dict:
         """The corrections' part of the checkpoint."""
-        modules = {"pose_correction": self.pose_correction, "camera_colour": self.camera_colour}
-        return {name: module.state_dict() for name, module in modules.items() if module is not None}
+        return {name: module.state_dict() for name, module in self._correction_modules().items()}
+
+    def correcting_poses(self) -> bool:
+        """Whether this step's poses are the photometric correction's (``train.pose_correction``, from
+        ``train.pose_start``); otherwise the training views' own (the capture's, refined against the masks)."""
+        t = self.config.train
+        return self.pose_correction is not None and t.pose_correction and self.step >= t.pose_start
 
     def poses_at(self, index: torch.Tensor | None = None, grad: bool = True) -> PoseBatch:
         """The PoseBatch of training frames ``index`` (all when None): corrected once ``train.pose_start`` is
@@ -209,7 +224,7 @@ class Trainer:
         base = self.views.poses
         if index is None:
             index = torch.arange(base.reach.shape[0], device=self.device)
-        if self.pose_correction is None or self.step < self.config.train.pose_start:
+        if not self.correcting_poses():
             return base.select(index)
         with torch.set_grad_enabled(grad and torch.is_grad_enabled()):
             return self.pose_correction.pose_batch(index, base)
@@ -218,8 +233,9 @@ class Trainer:
         """The pulls of the active corrections towards zero (``fitting.corrections``), summed; the pose pull over the
         training frames ``frames`` (those of the step)."""
         t, total = self.config.train, 0.0
-        if self.pose_correction is not None and self.step >= t.pose_start:
-            total = total + self.pose_correction.penalty(t.pose_prior, t.pose_smooth, frames)
+        if self.correcting_poses():
+            prior = PosePrior(t.pose_prior, t.pose_prior_degrees, t.pose_prior_cm, t.pose_smooth)
+            total = total + self.pose_correction.penalty(prior, frames)
         if self.camera_colour is not None:
             total = total + self.camera_colour.penalty(t.colour_prior)
         return total
@@ -238,15 +254,25 @@ class Trainer:
 
     def _restore(self, state: dict) -> None:
         self.field.load_state_dict(state["model"])
-        for name in ("pose_correction", "camera_colour"):
-            module = getattr(self, name)
-            if module is not None:
-                module.load_state_dict(state[name])
+        for name, module in self._correction_modules().items():
+            if name not in state:
+                raise ValueError(f"the checkpoint has no {name} (written by an earlier version; fit anew)")
+            module.load_state_dict(state[name])
         self.optimiser.load_state_dict(state["optimizer"])
         self.scheduler.load_state_dict(state["scheduler"])
         self.generator.set_state(state["rng"]["sampler"])
         torch.set_rng_state(state["rng"]["torch"])
         self.step, self.elapsed = state["step"], state.get("elapsed", 0.0)
+
+    def _correction_modules(self) -> dict:
+        """The input corrections and their optimiser, by their checkpoint keys (those in use)."""
+        modules = {
+            "pose_correction": self.pose_correction,
+            "camera_colour": self.camera_colour,
+            "pose_optimizer": self.pose_optimiser,
+            "pose_scheduler": self.pose_scheduler,
+        }
+        return {name: module for name, module in modules.items() if module is not None}
 
     def checkpoint(self) -> None:
         """Save the run's state; never after the loss stopped being finite (the last good checkpoint stays)."""
@@ -294,7 +320,7 @@ class Trainer:
         if t.random_background:
             backgrounds = torch.rand(n, 3, generator=self.generator).to(self.device)
         poses, index = self.views.poses, None
-        if self.pose_correction is not None and self.step >= t.pose_start:  # only the frames this batch draws
+        if self.correcting_poses():  # only the frames this batch draws
             index, batch.frames = torch.unique(batch.frames, return_inverse=True)
             poses = self.poses_at(index)
         share = self.processes.share(n)
@@ -325,10 +351,16 @@ class Trainer:
         """One optimiser and schedule step on ``loss`` (gradients summed over processes); returns (loss, PSNR of
         the colour MSE), summed over processes."""
         self.optimiser.zero_grad(set_to_none=True)
+        if self.pose_optimiser is not None:
+            self.pose_optimiser.zero_grad(set_to_none=True)
         loss.backward()
         sum_gradients(self._trained_parameters(), self.processes)
         self.optimiser.step()
         self.scheduler.step()
+        if self.pose_optimiser is not None:
+            self.pose_optimiser.step()
+            self.pose_scheduler.step()
+            self.pose_correction.centre()
         self.step += 1
         self.refresh_occupancy()
         values = torch.stack([loss.detach(), colour.detach()])
@@ -339,7 +371,7 @@ class Trainer:
     def _occupancy_row(self) -> dict:
         grid = getattr(self.field, "occupancy", None)
         row = {} if grid is None else {"occupied": round(grid.occupied_fraction(), 4)}
-        if self.pose_correction is not None:
+        if self.pose_optimiser is not None:
             row.update({k: round(v, 4) for k, v in self.pose_correction.magnitude().items()})
         return row
 
@@ -362,7 +394,8 @@ class Trainer:
         refresh_cells(grid, density, poses, field.box_centres, field.box_half_extents, cells, generator)
 
     def _trained_parameters(self) -> list[torch.nn.Parameter]:
-        return [p for group in self.optimiser.param_groups for p in group["params"]]
+        optimisers = [self.optimiser] + ([] if self.pose_optimiser is None else [self.pose_optimiser])
+        return [p for o in optimisers for group in o.param_groups for p in group["params"]]
 
     def fit(self, max_minutes: float | None = None) -> FitResult:
         """Train until ``train.steps`` or the time budget; checkpoints periodically and at the end."""

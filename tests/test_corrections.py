@@ -70,28 +70,36 @@ def test_corrected_params_pose_the_body_as_the_correction_does(data_root_64, bod
 
 
 def test_penalty_by_hand():
-    """prior * mean |c_k|^2 over the knots the frames rest on + smooth * mean |c_(k+1) - c_k|^2 over the knot pairs
-    that hold one of them; frames 0, 2, 1 and 10 with a knot every 2 frames lie at knots 0, 1, 0.5 and 5."""
-    from fitting.corrections import CapturePoses, knots
+    """w_p mean rho(|c_k / s|^2) over the knots the frames have weight on + w_s mean |(c_(k+1) - c_k) / s|^2 over the
+    knot pairs that hold one of them; frames 0, 2, 1 and 10 with a knot every 2 frames lie at knots 0, 1, 0.5 and 5
+    (the last knot's own, reached as the right knot of 4 with weight 1)."""
+    from fitting.corrections import CapturePoses, PosePrior, knots
 
     frames = torch.tensor([0, 2, 1, 10])
     left, weight, n_knots = knots(frames, 2)
-    assert left.tolist() == [0, 1, 0, 5] and weight.tolist() == [0.0, 0.0, 0.5, 0.0] and n_knots == 7
+    assert left.tolist() == [0, 1, 0, 4] and weight.tolist() == [0.0, 0.0, 0.5, 1.0] and n_knots == 6
     n = 4
     capture = CapturePoses(torch.zeros(n, 24, 3), torch.eye(4).repeat(n, 1, 1), torch.zeros(n, 24, 3), frames)
     correction = PoseCorrection(capture, knot_every=2, centred=False)
     with torch.no_grad():
-        correction.shift[:, 0] = torch.tensor([1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0])
-    # frame 2 (index 2) is halfway between knots 0 and 1
+        correction.shift[:, 0] = torch.tensor([1.0, 2.0, 4.0, 8.0, 16.0, 32.0])
+    # frame 2 (index 2) is halfway between knots 0 and 1; frame 10 (index 3) is knot 5's
     assert float(correction.values(torch.tensor([2]))[2][0, 0].detach()) == pytest.approx(1.5)
-    # frames 0, 1 (index 2) rest on knots 0, 1: |c|^2 = 1, 4 -> 2.5; pairs (0, 1), (1, 2): 1, 4 -> 2.5
-    got = correction.penalty(2.0, 3.0, torch.tensor([0, 2]))
-    assert float(got.detach()) == pytest.approx(2.0 * 2.5 + 3.0 * 2.5)
+    assert float(correction.values(torch.tensor([3]))[2][0, 0].detach()) == pytest.approx(32.0)
+    prior = PosePrior(weight=2.0, turn_degrees=5.0, shift_cm=100.0, smooth=3.0)  # shifts in units of 1 m
+    # frames 0, 1 (index 2) rest on knots 0, 1: rho(1) = 1/2, rho(4) = 4/5 -> mean 0.65; pairs (0, 1), (1, 2):
+    # steps 1, 2 -> mean of squares 2.5
+    got = correction.penalty(prior, torch.tensor([0, 2]))
+    assert float(got.detach()) == pytest.approx(2.0 * 0.65 + 3.0 * 2.5)
+    # frame 0 alone has no weight on knot 1: the prior pulls knot 0 only (its pair with knot 1 stays smoothed)
+    got = correction.penalty(PosePrior(weight=2.0, shift_cm=100.0, smooth=0.0), torch.tensor([0]))
+    assert float(got.detach()) == pytest.approx(2.0 * 0.5)
 
 
 def test_centred_corrections_have_zero_mean_over_the_knots():
-    """Centred, the knots' corrections are the parameters less their mean (exact in float64 up to rounding), and a
-    correction shared by every knot moves no frame."""
+    """Centred, a step's end takes the knots' mean out of the parameters (exact in float64 up to rounding), so a
+    correction shared by every knot moves no frame; the forward pass uses the parameters as they are, so a frame's
+    gradient reaches its own knots only."""
     from fitting.corrections import CapturePoses
 
     n = 5
@@ -105,9 +113,12 @@ def test_centred_corrections_have_zero_mean_over_the_knots():
     with torch.no_grad():
         correction.shift.copy_(torch.randn(correction.shift.shape, dtype=torch.float64) + 3.0)
         correction.joints.fill_(0.25)
+    correction.centre()
     joints, root, shift = (v.detach() for v in correction.knot_values())
     torch.testing.assert_close(shift.mean(dim=0), torch.zeros(3, dtype=torch.float64), rtol=0, atol=1e-12)
     assert joints.abs().max() == 0 and root.abs().max() == 0
+    correction.values(torch.tensor([1]))[2].sum().backward()
+    assert correction.shift.grad.abs().sum(dim=1).nonzero()[:, 0].tolist() == [1]
 
 
 def test_camera_colour_has_identity_mean_and_applies_to_the_body_only():
@@ -212,6 +223,7 @@ def test_pose_correction_does_not_drift_on_exact_poses(data_root_64, tmp_path):
         "train.steps=300",
         "train.pose_correction=true",
         "train.pose_start=0",
+        "train.mask_body_iterations=0",  # the photometric correction alone
     )
     size = trainer.pose_correction.magnitude()
     assert size["pose_turn_max_deg"] < 2.0 and size["pose_shift_max_cm"] < 1.0, size

@@ -107,9 +107,11 @@ def part_box_coordinates(
 
 
 def part_directions(dirs: torch.Tensor, pose: PoseBatch) -> torch.Tensor:
-    """d_i = R_i^T d per part: dirs (R, 3) -> (R, P, 3) (as :func:`part_local`)."""
+    """d_i = R_i^T d per part: dirs (R, 3) -> (R, P, 3) (as :func:`part_local`). No gradient reaches the part
+    rotations through d_i: a corrected pose (docs/model.md §6) must answer where the body is, not which colour a
+    turned view direction would give it (as the pose features xi, which are detached too)."""
     with torch.autocast(dirs.device.type, enabled=False):
-        return torch.einsum("rpji,rj->rpi", pose.world_from_part[:, :, :3, :3], dirs)
+        return torch.einsum("rpji,rj->rpi", pose.world_from_part[:, :, :3, :3].detach(), dirs)
 
 
 class RadianceHead(nn.Module):
