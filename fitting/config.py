@@ -101,11 +101,15 @@ class TrainConfig:
     compile: bool = False  #: torch.compile the field's forward pass (dynamic shapes; the eager path is the reference)
     deterministic: bool = True  #: deterministic kernels, so a resumed fit ends where an uninterrupted one would
     pose_correction: bool = False  #: subject fits: correct each training frame's body pose while fitting
-    pose_lr: float = 2e-4  #: Adam learning rate of the pose corrections (radians, metres)
+    pose_lr: float = 5e-4  #: learning rate of the pose corrections' turns (radians; per-knot Adam)
+    pose_shift_lr: float = 2e-4  #: learning rate of the pose corrections' shifts (metres)
     pose_start: int = 1000  #: the step from which the poses are corrected (the field takes shape first)
-    pose_prior: float = 1.0  #: pull of each knot's correction towards the capture's pose
-    pose_smooth: float = 1.0  #: pull of neighbouring knots' corrections towards each other
-    pose_knot_every: int = 4  #: capture frames between pose-correction knots (1: every frame its own)
+    pose_prior: float = 1e-4  #: weight of the robust pull of each knot's correction towards the capture's pose
+    pose_prior_degrees: float = 5.0  #: the prior's scale of a joint's turn (a turn this size costs half of 1)
+    pose_prior_cm: float = 3.0  #: the prior's scale of the body's shift
+    pose_smooth: float = 0.0  #: pull of neighbouring knots' corrections towards each other (in the prior's units)
+    pose_knot_every: int = 1  #: capture frames between pose-correction knots (1: every frame its own)
+    mask_body_iterations: int = 150  #: subject fits (NeRF-type): refine the bodies against the masks first (0: off)
     camera_colour: bool = False  #: subject fits: a colour gain and bias per training camera, in the loss only
     colour_lr: float = 1e-3  #: Adam learning rate of the camera colour transforms
     colour_prior: float = 1e-3  #: pull of each camera's transform towards the identity
@@ -172,7 +176,8 @@ def _apply(target, values: dict, prefix: str = "") -> None:
 def migrate_saved(saved: dict, checkpoint_kind: str | None = None) -> dict:
     """A run folder's saved config in today's keys. Older runs named the kind in ``data.dataset`` (zju, thuman,
     rigid; the autoencoder's checkpoint also said ``kind: autoencoder``) and kept the process count in
-    ``train.world_size``; both are read here, so every run folder written since loads as it was fitted."""
+    ``train.world_size``; both are read here, so every run folder written since loads as it was fitted. A saved
+    config without ``train.mask_body_iterations`` predates the refinement of the bodies against the masks: 0."""
     if not isinstance(saved, dict):
         raise ConfigError(f"saved config: expected a mapping, got {type(saved).__name__}")
     saved = {k: dict(v) if isinstance(v, dict) else v for k, v in saved.items()}
@@ -180,6 +185,8 @@ def migrate_saved(saved: dict, checkpoint_kind: str | None = None) -> dict:
     legacy = data.pop("dataset", None) if isinstance(data, dict) else None
     if isinstance(train, dict):
         train.pop("world_size", None)
+        # runs fitted before the bodies were refined against the masks keep their capture's bodies
+        train.setdefault("mask_body_iterations", 0)
     if "kind" not in saved and (legacy is not None or checkpoint_kind is not None):
         name = checkpoint_kind if checkpoint_kind == "autoencoder" else legacy
         if name not in LEGACY_KINDS and name not in LEGACY_KINDS.values():
@@ -308,8 +315,12 @@ RANGES = {
     "train.pose_lr": (lambda v: v > 0, "> 0"),
     "train.pose_start": (lambda v: v >= 0, ">= 0"),
     "train.pose_prior": (lambda v: v >= 0, ">= 0"),
+    "train.pose_shift_lr": (lambda v: v > 0, "> 0"),
+    "train.pose_prior_degrees": (lambda v: v > 0, "> 0"),
+    "train.pose_prior_cm": (lambda v: v > 0, "> 0"),
     "train.pose_smooth": (lambda v: v >= 0, ">= 0"),
     "train.pose_knot_every": (lambda v: v >= 1, ">= 1"),
+    "train.mask_body_iterations": (lambda v: v >= 0, ">= 0"),
     "train.colour_lr": (lambda v: v > 0, "> 0"),
     "train.colour_prior": (lambda v: v >= 0, ">= 0"),
 }

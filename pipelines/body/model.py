@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import smplx
 import torch
-from smplx.lbs import lbs
+from smplx.lbs import batch_rigid_transform, batch_rodrigues, lbs
 from smplx.utils import Struct
 
 from fitting.corrections import CapturePoses
@@ -136,6 +136,28 @@ class BodyModel:
         world_from_smpl = rigid_from_rotvec_translation(rh, th)
         vertices = vertices_smpl @ world_from_smpl[:, :3, :3].transpose(1, 2) + th[:, None]
         return posed_from_rest_joints(poses, world_from_smpl, self.rest_joints(shapes), vertices)
+
+    def vertices_zju(self, poses, rh, th, shapes, every: int = 1, pose_blendshapes: bool = True) -> torch.Tensor:
+        """Every ``every``-th vertex of :meth:`pose_zju`'s posed body, (B, ceil(6890 / every), 3) world: smplx's
+        ``lbs`` step by step (shape and pose blend shapes, ``batch_rigid_transform``, skinning) on those vertices
+        alone, the joints regressed from the whole shaped mesh. For fits that pose many frames many times and look
+        at a subset of the surface (``pipelines.body.silhouettes``)."""
+        m = self.smpl
+        batch = poses.shape[0]
+        template, weights = m.v_template[::every], m.lbs_weights[::every]
+        shapedirs = m.shapedirs[::every]
+        v_shaped = template + smplx.lbs.blend_shapes(shapes, shapedirs)
+        rotations = batch_rodrigues(poses.reshape(-1, 3)).reshape(batch, N_JOINTS, 3, 3)
+        if pose_blendshapes:
+            eye = torch.eye(3, dtype=poses.dtype, device=poses.device)
+            features = (rotations[:, 1:] - eye).reshape(batch, -1)
+            posedirs = m.posedirs.reshape(m.posedirs.shape[0], -1, 3)[:, ::every].reshape(m.posedirs.shape[0], -1)
+            v_shaped = v_shaped + (features @ posedirs).reshape(batch, -1, 3)
+        _, transforms = batch_rigid_transform(rotations, self.rest_joints(shapes), m.parents)
+        skin = (weights @ transforms.reshape(batch, N_JOINTS, 16)).reshape(batch, -1, 4, 4)
+        local = (skin[..., :3, :3] @ v_shaped[..., None])[..., 0] + skin[..., :3, 3]
+        world_from_smpl = rigid_from_rotvec_translation(rh, th)
+        return local @ world_from_smpl[:, :3, :3].transpose(1, 2) + th[:, None]
 
     def rest_body(self, shapes) -> PosedBody:
         """The rest pose (identity rotations, no global transform) for the given betas."""

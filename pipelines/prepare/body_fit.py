@@ -29,6 +29,7 @@ from smplx.lbs import batch_rodrigues
 
 from narf.kinematics import N_JOINTS, rigid_from_rotvec_translation, world_from_joints
 from pipelines.body.model import BodyModel
+from pipelines.body.silhouettes import adam_stage
 from pipelines.datasets.keypoints import TARGET_JOINTS, TARGETS, mirror_index
 
 #: joints whose rotation moves no target: held near rest by a stronger prior
@@ -197,18 +198,6 @@ class CameraCorrection:
         return ((self.turn / a).pow(2).sum(-1) + (self.shift / b).pow(2).sum(-1)).mean()
 
 
-def _stage(energy, variables: list[torch.Tensor], iterations: int, lr: float, tick) -> None:
-    """``iterations`` Adam steps on ``energy()`` over ``variables``, the rate annealed (cosine) to 5 % of ``lr``."""
-    optimiser = torch.optim.Adam(variables, lr=lr)
-    schedule = torch.optim.lr_scheduler.CosineAnnealingLR(optimiser, iterations, eta_min=lr * 0.05)
-    for _ in range(iterations):
-        optimiser.zero_grad()
-        energy().backward()
-        optimiser.step()
-        schedule.step()
-        tick()
-
-
 def _silhouette_stage(problem, posed, silhouettes, every, mask, cameras, settings, tick):
     """The last stage of :func:`fit_body`: keypoints plus ``settings.silhouette_weight`` times the silhouette term
     built at the keypoint fit's vertices, over ``every`` variable (poses, rh, th, shapes, offsets) and, with
@@ -227,7 +216,7 @@ def _silhouette_stage(problem, posed, silhouettes, every, mask, cameras, setting
         total = total + settings.silhouette_weight * term(posed(), P)
         return total if correction is None else total + correction.penalty()
 
-    _stage(energy, variables, settings.silhouette_iterations, settings.silhouette_lr, tick)
+    adam_stage(energy, variables, settings.silhouette_iterations, settings.silhouette_lr, tick)
     return correction
 
 
@@ -281,8 +270,8 @@ def fit_body(
         if progress is not None:
             progress(done[0], total)
 
-    _stage(keypoint_energy, [rh, th], settings.global_iterations, settings.lr, tick)
-    _stage(keypoint_energy, every, settings.iterations, settings.lr, tick)
+    adam_stage(keypoint_energy, [rh, th], settings.global_iterations, settings.lr, tick)
+    adam_stage(keypoint_energy, every, settings.iterations, settings.lr, tick)
     correction = None
     if silhouettes is not None:
         posed = lambda: body.pose_zju(poses * mask, rh, th, shapes.expand(n_frames, -1)).vertices  # noqa: E731

@@ -23,6 +23,7 @@ from fitting.files import staged_folder
 from fitting.fitted import SavedRun, load_fitted, read_run
 from fitting.trainer import Trainer
 from fitting.trainers import trainer_class
+from narf.fields import model_spec
 from narf.fields.common import PoseBatch
 from pipelines.body.locate import (
     BODY_MODEL_RECORD,
@@ -38,6 +39,7 @@ from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.smpl_files import cache_dir
 from pipelines.datasets.subjects import data_root, find_subject, real_candidates, stand_in_notice, synthetic_path
 from pipelines.datasets.zju_mocap import SmplParams
+from pipelines.runs.subject.body_refine import RefinedCapture, RefineSettings, refine_to_masks
 from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
 
 
@@ -172,13 +174,19 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
     frames = list(protocol.train_frames[:: config.data.frame_stride])
     body_model = fit_body_model(capture, state)
     poses = training_poses(capture, body_model, frames)
-    _, bodies, shapes = poses_for_frames(capture, body_model, box_frames(frames, config.data.box_frames))
-    boxes = fit_boxes(body_model, bodies, shapes, config.model.box_scale_pad, config.model.box_abs_pad)
     items = [(i, f, c) for i, f in enumerate(frames) for _, c in protocol.usable([f], protocol.train_views)]
     views = decoded_views(capture, [(f, c) for _, f, c in items], progress)
     slots = [list(protocol.train_views).index(c) for _, _, c in items]  # each view's training camera, 0..C-1
     store = cache_dir() / "views"
     training = TrainingSet(views, [i for i, _, _ in items], poses, device, store_dir=store, camera_of_view=slots)
+    source, refine = capture, config.train.mask_body_iterations > 0 and model_spec(config.model.name).rays
+    if refine:  # deterministic: a resumed fit redoes it and gets the same bodies
+        settings = RefineSettings(iterations=config.train.mask_body_iterations)
+        source = RefinedCapture(capture, refine_to_masks(training, capture, body_model, frames, settings, progress))
+        poses = training_poses(source, body_model, frames)
+        training.poses = poses.to(device)
+    _, bodies, shapes = poses_for_frames(source, body_model, box_frames(frames, config.data.box_frames))
+    boxes = fit_boxes(body_model, bodies, shapes, config.model.box_scale_pad, config.model.box_abs_pad)
     held_frame = frames[len(frames) // 2]
     held_view = protocol.test_views[0] if protocol.test_views else protocol.train_views[0]
 
@@ -192,7 +200,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         frames,
         validation,
         f"{capture.root}: {len(training)} training images ({len(frames)} frames x {len(protocol.train_views)} views)",
-        capture_poses(capture, body_model, frames) if config.train.pose_correction else None,
+        capture_poses(source, body_model, frames) if config.train.pose_correction or refine else None,
         frames.index(held_frame),
         {"body_model": body_model_record(body_model.path)},
     )
