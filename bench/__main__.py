@@ -1,5 +1,6 @@
 """Run benchmarks and print one Markdown table: ``python -m bench [synth ...]`` (default: all but ``levers``, the
-fit's input corrections, which takes about two hours and runs only when named).
+fit's input corrections, which takes about two hours, and ``poses``, the pose correction's harness, about half an
+hour: both run only when named).
 
 Each benchmark's rows are saved under ``$NARF_CACHE/rows/`` as it finishes, so that an interrupted run loses only the
 benchmark it was in (the time-to-quality benchmark, the longest, also keeps each finished configuration): ``--reuse``
@@ -28,9 +29,10 @@ BENCHMARKS = {
     "views": "bench.bench_views",
     "viewer": "bench.bench_viewer",
     "levers": "bench.bench_levers",
+    "poses": "bench.bench_poses",
 }
 #: Benchmarks that run only when named (hours of fitting: docs/results/real-capture.md).
-ON_REQUEST = ("levers",)
+ON_REQUEST = ("levers", "poses")
 
 
 def _rows(name: str, saved: Path, reuse: bool, machine: str) -> list[dict]:

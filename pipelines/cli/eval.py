@@ -86,6 +86,16 @@ def build_parser() -> argparse.ArgumentParser:
         help="subject runs: evaluate on another prepared recording of the same person (same rig or another): every "
         "frame is a novel pose, every camera is evaluated, as the split 'capture'; instead of --split",
     )
+    parser.add_argument(
+        "--reference-params",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="subject runs: a folder of ZJU-MoCap params of the capture's frames, named as the capture's own (the "
+        "truth that narf-synth --degrade keeps, a marker-based fit, ...): report the mean joint error (cm) of the "
+        "run's training poses and of the capture's own against it (RUN/eval/joints.json); alone, without --split, "
+        "only this",
+    )
     add_smpl_dir(parser)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -104,8 +114,14 @@ def main(argv: list[str] | None = None) -> int:
         raise ValueError("--capture evaluates the other recording as the split 'capture'; leave --split out")
     if args.capture is not None and not args.capture.is_dir():
         raise FileNotFoundError(f"{args.capture}: no such capture folder")
+    if args.reference_params is not None and not args.reference_params.is_dir():
+        raise FileNotFoundError(f"{args.reference_params}: no such params folder")
     use_smpl_dir(args.smpl_dir)
     kind, run = open_run(args.run)
+    if args.reference_params is not None:
+        report_joints(kind, run, args.reference_params)
+        if not args.split and args.capture is None:
+            return 0
     request = EvalRequest(
         splits=("capture",) if args.capture is not None else kind.expand(args.run, args.split),
         limit=args.limit,
@@ -122,6 +138,30 @@ def main(argv: list[str] | None = None) -> int:
     print(kind.markdown(kind.evaluate(run, request)))
     print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
     return 0
+
+
+def report_joints(kind, run, folder: Path) -> None:
+    """``--reference-params``: the joint errors of a subject run's training poses, printed and written to
+    RUN/eval/joints.json."""
+    import json
+
+    from fitting.files import atomic_write_text
+    from pipelines.runs.subject.pose_check import reference_joint_errors
+    from pipelines.runs.subject.session import load_run
+
+    if kind.name != "subject":
+        raise ValueError(f"--reference-params: {run.run_dir} is a {kind.name} run; joint errors are for subject runs")
+    report = reference_joint_errors(load_run(run), folder)
+    which = "corrected" if report["corrected"] else "the capture's (the fit did not correct them)"
+    print(
+        f"joint error against {folder} over {report['frames']} training frames: run's poses ({which}) "
+        f"{report['run_joint_error_cm']:.2f} cm (p95 {report['run_joint_error_p95_cm']:.2f}), capture's own "
+        f"{report['capture_joint_error_cm']:.2f} cm"
+    )
+    path = run.run_dir / "eval" / "joints.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(report, indent=1))
+    print(f"narf-eval: wrote {path}")
 
 
 def entrypoint() -> None:

@@ -1,0 +1,148 @@
+"""The pose correction's controlled check (docs/guides/fitting.md, *Pose correction*): a field fitted on exact poses,
+held fixed, while only the poses of a capture whose bodies were broken (``narf-synth --degrade``) are corrected. The
+joint error against the truth, measured along the way, says whether the photometric signal reaches the poses and
+where the correction goes; with the field fixed the truth is the loss's minimum, so anything short of it is the
+correction's own fault.
+
+``correct_with_field_fixed(field_run, capture, truth, steps)`` returns the path of the joint error over the steps."""
+
+from __future__ import annotations
+
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from fitting.fitted import read_run, run_config
+from pipelines.body.model import BodyModel
+from pipelines.datasets.capture import ZjuCapture
+from pipelines.datasets.zju_mocap import SmplParams
+from pipelines.synthetic.degrade import joint_errors
+
+
+@dataclass
+class CorrectedParams:
+    """Body parameters with ``params(frame)`` (as a capture has them): the corrected ones of ``frames`` (the pose
+    correction's ``zju_params``), the capture's for every other frame."""
+
+    capture: ZjuCapture
+    frames: list[int]
+    poses: np.ndarray
+    rh: np.ndarray
+    th: np.ndarray
+
+    def params(self, frame: int) -> SmplParams:
+        if frame not in self.frames:
+            return self.capture.params(frame)
+        i = self.frames.index(frame)
+        return SmplParams(self.poses[i], self.rh[i], self.th[i], self.capture.params(frame).shapes)
+
+
+def corrected_params(trainer) -> CorrectedParams:
+    """The trainer's training poses as they stand (its ``pose_correction``)."""
+    poses, rh, th = (v.float().cpu().numpy() for v in trainer.pose_correction.zju_params())
+    capture = trainer.fit_data_capture
+    return CorrectedParams(capture, list(trainer.frames), poses, rh, th)
+
+
+@dataclass
+class PoseCheck:
+    """The field-fixed correction's measurements: joint error (cm, mean over the 24 joints and the training frames)
+    of the capture's poses (``before``) and along the correction (``path``: (step, cm) pairs), ending at ``after``."""
+
+    before: float
+    after: float
+    path: list[tuple[int, float]] = field(default_factory=list)
+
+    @property
+    def recovered(self) -> float:
+        """The share of the joint error removed, ``1 - after / before``."""
+        return 1 - self.after / self.before
+
+
+def correct_with_field_fixed(
+    field_run: Path,
+    capture: Path,
+    truth: Path,
+    steps: int,
+    overrides: list[str] | tuple[str, ...] = (),
+    every: int = 50,
+    frame_stride: int = 1,
+    progress: bool = False,
+) -> PoseCheck:
+    """Correct the poses of ``capture``'s training frames for ``steps`` steps with the field of ``field_run`` (fitted
+    on ``truth``'s exact poses) held fixed, measuring the joint error against ``truth`` every ``every`` steps.
+
+    The trainer is the fit's own (same rays, losses, optimiser and correction), started with the field run's config
+    on ``capture`` with ``train.pose_correction`` on from step 0, then ``overrides``; the field's weights (part boxes
+    and occupancy grid included) are the run's and take no gradient."""
+    from pipelines.runs.subject.session import open_capture, start
+
+    saved = read_run(field_run)
+    sets = [
+        f"data.subject={Path(capture).resolve()}",
+        f"data.frame_stride={frame_stride}",
+        "train.pose_correction=true",
+        "train.pose_start=0",
+        "train.validate_every=0",
+        *overrides,
+    ]
+    config = run_config(saved.state, saved.run_dir, sets)
+    with tempfile.TemporaryDirectory(prefix="narf-pose-check-") as scratch:
+        trainer = start(config, Path(scratch), torch.device("cpu"), progress=progress)
+        trainer.field.load_state_dict(saved.state["model"])
+        for parameter in trainer.field.parameters():
+            parameter.requires_grad_(False)
+        trainer.fit_data_capture = open_capture(config, quiet=True)
+        reference, body = ZjuCapture(truth), BodyModel()
+        frames = list(trainer.frames)
+
+        def error() -> float:
+            return 100 * float(joint_errors(reference, corrected_params(trainer), body, frames).mean())
+
+        before = 100 * float(joint_errors(reference, trainer.fit_data_capture, body, frames).mean())
+        check = PoseCheck(before, before, [(0, before)])
+        for step in range(1, steps + 1):
+            trainer.train_step()
+            if step % every == 0 or step == steps:
+                check.path.append((step, error()))
+        check.after = check.path[-1][1]
+    return check
+
+
+@dataclass
+class ReferenceParams:
+    """Body parameters of a capture's frames read from another folder of ZJU-MoCap params (docs/formats.md §1.6),
+    named as the capture names its own params files: ``params(frame)`` as a capture has it."""
+
+    capture: ZjuCapture
+    folder: Path
+
+    def params(self, frame: int) -> SmplParams:
+        from pipelines.datasets.errors import CaptureError
+        from pipelines.datasets.zju_mocap import param_index_from_image, read_params
+
+        path = self.folder / f"{param_index_from_image(self.capture.ims[frame][0])[1]}.npy"
+        if not path.is_file():
+            raise CaptureError(f"{path}: missing (the reference has no params for capture frame {frame})")
+        return read_params(path)
+
+
+def reference_joint_errors(run, folder: Path) -> dict:
+    """Mean joint error (cm, 24 joints, over the run's training frames) against the params in ``folder`` of the run's
+    training poses (corrected where the fit corrected them) and of the capture's own: ``narf-eval
+    --reference-params``. ``run``: a loaded subject run (``pipelines.runs.subject.session.LoadedRun``)."""
+    frames = [int(f) for f in run.protocol.train_frames[:: run.config.data.frame_stride]]
+    reference = ReferenceParams(run.capture, Path(folder))
+    run_error = joint_errors(reference, run, run.body_model, frames)
+    capture_error = joint_errors(reference, run.capture, run.body_model, frames)
+    return {
+        "reference": str(folder),
+        "frames": len(frames),
+        "corrected": bool(run.refined),
+        "run_joint_error_cm": round(100 * float(run_error.mean()), 3),
+        "capture_joint_error_cm": round(100 * float(capture_error.mean()), 3),
+        "run_joint_error_p95_cm": round(100 * float(np.percentile(run_error, 95)), 3),
+    }
