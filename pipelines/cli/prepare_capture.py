@@ -111,8 +111,27 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--masks", type=Path, default=None, help="person mask images, one sub-folder per camera (default: mediapipe)"
     )
+    parser.add_argument(
+        "--sync",
+        type=_sync,
+        default="auto",
+        metavar="auto|off|CAM=FRAMES,...",
+        help="cameras in step: auto estimates each camera's time offset from the keypoints (the other cameras' "
+        "triangulation reprojects best into it; report.json 'sync') and shifts its frames by the whole frames; off "
+        "takes the recordings as they are; CAM=FRAMES,... gives the offsets (a camera's frame t shows the others' "
+        "t + FRAMES, so a camera started 3 frames late is CAM=3)",
+    )
     _choices(parser)
     return parser
+
+
+def _sync(text: str):
+    from pipelines.prepare.sync import parse_sync
+
+    try:
+        return parse_sync(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err).removeprefix("--sync: ")) from None
 
 
 def _choices(parser: argparse.ArgumentParser) -> None:
@@ -210,6 +229,7 @@ def main(argv: list[str] | None = None) -> int:
         floor=args.floor,
         overwrite=args.overwrite,
         progress=not args.quiet,
+        sync=args.sync,
     )
     report = prepare_capture(request)
     summary, frames = report["summary"], report["frames"]
@@ -225,6 +245,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     for notice in report["notices"]:
         print(f"  note: {notice}")
+    _print_sync(report["sync"])
     for name, camera in report["cameras"].items():
         error, share = camera["body_reprojection_px"], camera["body_reprojection_pct_height"]
         flag = f"  FLAGGED: {camera['flag']}" if "flag" in camera else ""
@@ -238,6 +259,18 @@ def main(argv: list[str] | None = None) -> int:
             f"{camera['views_used']}{moved}{flag}"
         )
     return 0
+
+
+def _print_sync(sync: dict) -> None:
+    """One line of the cameras' time offsets (report.json 'sync')."""
+    if sync.get("mode") == "off":
+        print("  cameras taken as in step (--sync off)")
+        return
+    parts = []
+    for name, entry in sync.get("cameras", {}).items():
+        estimate = f"{entry['offset_frames']:+.1f}" if "error_at_offset_pct" in entry else "not estimated"
+        parts.append(f"{name} {estimate} (shifted {entry['applied_frames']:+d})")
+    print(f"  time offsets in frames ({sync.get('mode')}): " + ", ".join(parts))
 
 
 def entrypoint() -> None:

@@ -177,6 +177,7 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
         },
         "splits": {k: v for k, v in split.items() if k != "excluded"} | {"excluded_views": len(excluded)},
         "floor": floor.to_json() | feet_against_floor(vertices, floor),
+        "sync": seen.sync,
         "notices": _notices(seen, split),
     }
     (root / "report.json").write_text(json.dumps(_json_ready(report), indent=1, allow_nan=False))

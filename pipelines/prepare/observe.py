@@ -46,6 +46,7 @@ class Observations:
         recordings: per camera, its recording's file or folder name and how the two were matched.
         unused_recordings: recordings that no calibrated camera took (left out of the capture).
         frame_rates: per camera, its video's frame rate as the container states it (None: images, or not stated).
+        sync: the cameras' time offsets, estimated and applied (``pipelines.prepare.sync``).
     """
 
     cameras: list[Camera]
@@ -56,6 +57,7 @@ class Observations:
     recordings: dict[str, dict] = field(default_factory=dict)
     unused_recordings: list[str] = field(default_factory=list)
     frame_rates: dict[str, float | None] = field(default_factory=dict)
+    sync: dict = field(default_factory=dict)
 
 
 def fit_camera_to_recording(camera: Camera, size: tuple[int, int], source: Source) -> tuple[Camera, str | None]:

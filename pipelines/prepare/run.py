@@ -27,6 +27,7 @@ from pipelines.prepare.observe import observe
 from pipelines.prepare.person_targets import triangulate_people
 from pipelines.prepare.silhouettes import silhouette_stage
 from pipelines.prepare.sources import find_sources, frame_rate, match_cameras
+from pipelines.prepare.sync import synchronise
 
 CALIBRATION_PATTERNS = ("*.qca.txt", "*.toml", "intri.yml", "annots.npy")
 MARKER = "prepared.json"
@@ -57,6 +58,7 @@ class PrepareRequest:
     keep_flagged: bool = False  # write the capture even when every camera is flagged (for inspection)
     smpl_params: Path | None = None  # bodies the user brings (EasyMocap smpl/*.json or ZJU params/), not fitted
     person: int | None = None  # the person's id in smpl_params (None: the only one)
+    sync: str | dict[str, int] = "auto"  # auto, off, or whole-frame offsets by camera (pipelines.prepare.sync)
     progress: bool = True
 
 
@@ -106,6 +108,8 @@ def prepare_capture(request: PrepareRequest) -> dict:
     if len(set(names)) != len(names) or any("/" in n or n.startswith(".") for n in names):
         raise CaptureError(f"{calibration}: camera names must be distinct folder names, got {names}")
     holdout = _holdout(request.holdout_camera, names)
+    if isinstance(request.sync, dict) and set(request.sync) - set(names):  # before any frame is read
+        raise CaptureError(f"--sync: {', '.join(sorted(set(request.sync) - set(names)))} not among the cameras {names}")
     detector = None
     if request.keypoints is None or request.masks is None:
         from pipelines.prepare.detect import BlazePose
@@ -152,6 +156,7 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
     seen.recordings = {c.name: {"recording": s.path.name, "matched_by": how} for c, s, how in matched}
     seen.unused_recordings = unused
     seen.frame_rates = {c.name: frame_rate(s) for c, s, _ in matched}
+    seen = synchronise(seen, staging / ".frames", request.sync, request.stride)
     common = sorted(set.intersection(*(set(f) for f in seen.frames)))
     if not common:
         raise CaptureError(f"{request.recording}: the cameras share no frame in {wanted.start}:{request.stop or ''}")
