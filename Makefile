@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONUNBUFFERED := 1
 
-.PHONY: demo demo-real test test-fast lint format bench venv venv-real clean-venv
+.PHONY: demo demo-real test test-fast lint format bench gpu-check venv venv-real clean-venv
 
 venv: $(STAMP)
 
@@ -77,6 +77,12 @@ test-fast: lint
 
 bench: $(STAMP)
 	$(PY) -m bench
+
+# The project on a GPU in under 8 minutes: the CUDA tests, a 5-minute fit of the paper preset on a synthetic capture,
+# then rays/s, peak GPU memory and novel_pose PSNR (bench/gpu_check.py; on a CPU, give it a small GPU_CHECK budget).
+GPU_CHECK ?=
+gpu-check: $(STAMP)
+	$(PY) -m bench.gpu_check $(GPU_CHECK)
 
 clean-venv:
 	rm -rf $(VENV)
