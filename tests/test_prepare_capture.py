@@ -448,13 +448,16 @@ def test_a_camera_started_late_is_put_in_step(recording, prepared, tmp_path, cap
     (cam 1 at -2.3 here): only cam 2 may be shifted."""
     names = sorted(p.stem for p in (recording / "rec" / "videos").glob("*.mp4"))
     late = _started_late(recording / "rec", tmp_path / "rec", names[2], 3)
-    assert _prepare(late, tmp_path / "out") == 0
+    assert _prepare(late, tmp_path / "out", "--sync", "auto") == 0
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     entry = report["sync"]["cameras"][names[2]]
     assert entry["applied_frames"] == 3 and abs(entry["offset_frames"] - 3) <= 0.5, entry
     assert all(report["sync"]["cameras"][n]["applied_frames"] == 0 for n in names if n != names[2])
     assert "time offsets in frames (auto)" in capsys.readouterr().out
     in_step = json.loads((prepared / "report.json").read_text())
+    # the default estimates and reports, and shifts nothing: the in-step recording is found in step
+    assert in_step["sync"]["mode"] == "report"
+    assert all(abs(e["offset_frames"]) <= 0.5 and e["applied_frames"] == 0 for e in in_step["sync"]["cameras"].values())
     assert report["frames"]["source_frames"] == in_step["frames"]["source_frames"][3:]
     a, b = ZjuCapture(prepared), ZjuCapture(tmp_path / "out")
     for i in range(b.n_frames):
@@ -470,14 +473,14 @@ def test_a_camera_started_late_is_put_in_step(recording, prepared, tmp_path, cap
 
 
 def test_sync_flag_refuses_bad_values(recording, tmp_path, capsys):
-    """``--sync`` takes auto, off or CAM=FRAMES: another word or a fraction is argparse's usage error (exit 2, the
-    error on the last line); a camera the rig does not have is one line, exit 2, before anything is written."""
+    """``--sync`` takes auto, report, off or CAM=FRAMES: another word or a fraction is argparse's usage error (exit 2,
+    the error on the last line); a camera the rig does not have is one line, exit 2, before anything is written."""
     for value in ("sometimes", "cam1=1.5"):
         capsys.readouterr()
         with pytest.raises(SystemExit) as stop:
             _prepare(recording / "rec", tmp_path / "x", "--sync", value)
         err = capsys.readouterr().err.strip().splitlines()
-        assert stop.value.code == 2 and "argument --sync: expected auto, off or CAM=FRAMES" in err[-1], err
+        assert stop.value.code == 2 and "argument --sync: expected auto, report, off or CAM=FRAMES" in err[-1], err
     assert _prepare(recording / "rec", tmp_path / "y", "--sync", "nosuchcam=2") == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nosuchcam not among the cameras" in err[0], err

@@ -114,12 +114,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--sync",
         type=_sync,
-        default="auto",
-        metavar="auto|off|CAM=FRAMES,...",
-        help="cameras in step: auto estimates each camera's time offset from the keypoints (the other cameras' "
-        "triangulation reprojects best into it; report.json 'sync') and shifts its frames by the whole frames; off "
-        "takes the recordings as they are; CAM=FRAMES,... gives the offsets (a camera's frame t shows the others' "
-        "t + FRAMES, so a camera started 3 frames late is CAM=3)",
+        default="report",
+        metavar="report|auto|off|CAM=FRAMES,...",
+        help="cameras in step: report (the default) estimates each camera's time offset from the keypoints (the "
+        "other cameras' triangulation reprojects best into it) and reports it (report.json 'sync', the summary); "
+        "auto also shifts the cameras' frames by the whole frames; off estimates nothing; CAM=FRAMES,... gives the "
+        "offsets (a camera's frame t shows the others' t + FRAMES: a camera started 3 frames late is CAM=3)",
     )
     _choices(parser)
     return parser

@@ -58,7 +58,7 @@ class PrepareRequest:
     keep_flagged: bool = False  # write the capture even when every camera is flagged (for inspection)
     smpl_params: Path | None = None  # bodies the user brings (EasyMocap smpl/*.json or ZJU params/), not fitted
     person: int | None = None  # the person's id in smpl_params (None: the only one)
-    sync: str | dict[str, int] = "auto"  # auto, off, or whole-frame offsets by camera (pipelines.prepare.sync)
+    sync: str | dict[str, int] = "report"  # auto, report, off, or whole-frame offsets by camera (prepare.sync)
     progress: bool = True
 
 

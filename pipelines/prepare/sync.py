@@ -15,13 +15,14 @@ cameras, dominates.
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import replace
 
 import numpy as np
 
 from pipelines.datasets.errors import CaptureError
-from pipelines.datasets.keypoints import TARGETS
-from pipelines.prepare.multiview import projection_matrix, relative_errors, triangulate, undistort_points
+from pipelines.datasets.keypoints import TARGETS, mirror_index
+from pipelines.prepare.multiview import projection_matrix, relative_errors, triangulate_robust, undistort_points
 
 #: frames searched each way
 MAX_OFFSET = 10
@@ -29,6 +30,13 @@ MAX_OFFSET = 10
 MIN_PAIRS = 30
 #: keypoints below this confidence take no part
 MIN_CONFIDENCE = 0.3
+#: a view whose keypoint reprojects further than this (fraction of the height) leaves that joint's triangulation
+TRIANGULATION_ERROR = 0.03
+#: the least share of its error that a shift must take off a camera to be made: below it, the minimum is the noise
+#: of the keypoints (a shift of every camera alike changes nothing, and small ones would wander)
+MIN_GAIN = 0.1
+#: each target's left/right counterpart
+MIRRORED = [mirror_index(t) for t in range(len(TARGETS))]
 
 
 def _keypoints(cameras, frames, people) -> tuple[list[int], np.ndarray]:
@@ -50,9 +58,19 @@ def _keypoints(cameras, frames, people) -> tuple[list[int], np.ndarray]:
 
 def _score(P, heights, points: np.ndarray, target: np.ndarray, v: int) -> tuple[float, int]:
     """Median error (fraction of camera v's height) of ``points`` (N, T, 3) projected into v against ``target``
-    (N, T, 3) with confidence, and the number of pairs scored."""
-    errors = relative_errors(P[v : v + 1], points, target[..., None, :2], heights[v : v + 1])[..., 0]
-    usable = np.isfinite(errors) & (target[..., 2] > 0)
+    (N, T, 3) with confidence, and the number of pairs scored. Each frame's detection is taken as it is or with left
+    and right swapped, whichever lies nearer: detectors swap the sides of a person seen from the back."""
+
+    def errors_of(keypoints: np.ndarray) -> np.ndarray:
+        errors = relative_errors(P[v : v + 1], points, keypoints[..., None, :2], heights[v : v + 1])[..., 0]
+        return np.where((keypoints[..., 2] > 0) & np.isfinite(errors), errors, np.nan)
+
+    plain, swapped = errors_of(target), errors_of(target[:, MIRRORED])
+    with warnings.catch_warnings():  # frames with no scored joint give an all-NaN median
+        warnings.simplefilter("ignore", RuntimeWarning)
+        use_swapped = np.nanmedian(swapped, axis=1) < np.nanmedian(plain, axis=1)
+    errors = np.where(use_swapped[:, None], swapped, plain)
+    usable = np.isfinite(errors)
     return (float(np.median(errors[usable])) if usable.sum() >= MIN_PAIRS else np.inf), int(usable.sum())
 
 
@@ -84,7 +102,7 @@ def estimate_offsets(cameras, frames, people, max_offset: int = MAX_OFFSET) -> d
             result[camera.name] = {"offset_frames": 0.0, "note": "fewer than three cameras: not estimated"}
             continue
         xy = keypoints[others].transpose(1, 2, 0, 3)  # (N, T, V-1, 3)
-        points = triangulate(P[others], xy[..., :2], xy[..., 2])
+        points, _ = triangulate_robust(P[others], xy[..., :2], xy[..., 2], heights[others], TRIANGULATION_ERROR)
         offsets = range(-max_offset, max_offset + 1)
         scores = {d: _score(P, heights, _shifted(points, d), keypoints[v], v) for d in offsets}
         best = min(scores, key=lambda d: scores[d][0])
@@ -103,10 +121,14 @@ def estimate_offsets(cameras, frames, people, max_offset: int = MAX_OFFSET) -> d
     return result
 
 
+#: ``--sync`` words: estimate and apply, estimate and report only, neither
+MODES = ("auto", "report", "off")
+
+
 def parse_sync(text: str) -> str | dict[str, int]:
-    """``--sync``: ``auto``, ``off`` or ``CAM=OFFSET,...`` (whole frames, a camera's frame t showing the others'
-    t + OFFSET); raises ValueError naming what is wrong."""
-    if text in ("auto", "off"):
+    """``--sync``: ``auto``, ``report``, ``off`` or ``CAM=OFFSET,...`` (whole frames, a camera's frame t showing the
+    others' t + OFFSET); raises ValueError naming what is wrong."""
+    if text in MODES:
         return text
     given = {}
     for item in text.split(","):
@@ -114,9 +136,9 @@ def parse_sync(text: str) -> str | dict[str, int]:
         try:
             given[name.strip()] = int(value)
         except ValueError:
-            raise ValueError(f"--sync: expected auto, off or CAM=FRAMES,..., got {item!r}") from None
+            raise ValueError(f"--sync: expected auto, report, off or CAM=FRAMES,..., got {item!r}") from None
         if not name.strip():
-            raise ValueError(f"--sync: expected auto, off or CAM=FRAMES,..., got {item!r}")
+            raise ValueError(f"--sync: expected auto, report, off or CAM=FRAMES,..., got {item!r}")
     return given
 
 
@@ -141,13 +163,14 @@ def shift_camera(seen, folder, v: int, shift: int, stride: int):
 
 def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
     """Estimate every camera's offset (unless ``sync`` is ``off``), apply the whole frames (``auto``: the estimates
-    rounded; a dict: the user's, by camera name), and return ``seen`` renumbered with ``seen.sync`` its record.
+    rounded; a dict: the user's, by camera name; ``report``: none), and return ``seen`` renumbered with
+    ``seen.sync`` its record.
 
-    ``auto`` shifts one camera at a time, the one whose shift lowers its error most, then estimates again: a camera
-    that is out of step spoils the triangulation that every other camera is judged by, so the others' first
-    estimates are not to be trusted until it is put right. The record gives, per camera, ``offset_frames`` (the
-    frames shifted plus what is left, below a frame), ``applied_frames``, the median error as recorded
-    (``error_as_recorded_pct``), in step after the shifts (``error_in_step_pct``) and at the estimate
+    ``auto`` shifts one camera at a time, the one whose shift lowers its error most (by ``MIN_GAIN`` of it at least),
+    then estimates again: a camera that is out of step spoils the triangulation that every other camera is judged
+    by, so the others' first estimates are not to be trusted until it is put right. The record gives, per camera,
+    ``offset_frames`` (the frames shifted plus what is left, below a frame), ``applied_frames``, the median error as
+    recorded (``error_as_recorded_pct``), in step after the shifts (``error_in_step_pct``) and at the estimate
     (``error_at_offset_pct``)."""
     names = [c.name for c in seen.cameras]
     if isinstance(sync, dict):
@@ -162,10 +185,11 @@ def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
     first = estimates = estimate_offsets(seen.cameras, seen.frames, seen.people)
     for _ in range(len(names) if sync == "auto" else 0):
         gains = {
-            n: e["error_in_step_pct"] - e["error_at_offset_pct"]
+            n: 1 - e["error_at_offset_pct"] / e["error_in_step_pct"]
             for n, e in estimates.items()
             if "error_at_offset_pct" in e and round(e["offset_frames"]) != 0
         }
+        gains = {n: gain for n, gain in gains.items() if gain >= MIN_GAIN}
         if not gains:
             break
         name = max(gains, key=gains.get)

@@ -19,6 +19,7 @@ import torch
 from tqdm import tqdm
 
 from fitting.corrections import PoseCorrection
+from narf.kinematics import N_JOINTS
 from pipelines.body.model import BodyModel, capture_poses
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.zju_mocap import SmplParams, param_index_from_image, write_params
@@ -59,16 +60,27 @@ def _turns(generator: torch.Generator, shape: tuple[int, ...], size: float) -> t
     return size * axes / axes.norm(dim=-1, keepdim=True)
 
 
+def pose_noise(n_frames: int, degradation: Degradation) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The noise of ``degradation`` for frames 0..n-1 in ``fitting.corrections.PoseCorrection``'s terms (float64):
+    joint turns (F, 23, 3), body turns (F, 3), shifts (F, 3). Drawn for one frame more than there are, as the
+    corrections had one knot more than they used when this was written: the same seed gives the same noise."""
+    generator = torch.Generator().manual_seed(degradation.seed)
+    count = n_frames + 1
+    joints = _turns(generator, (count, N_JOINTS - 1), np.radians(degradation.pose_degrees))
+    root = _turns(generator, (count,), np.radians(degradation.pose_degrees))
+    shift = _turns(generator, (count,), degradation.shift_m)
+    return joints[:n_frames], root[:n_frames], shift[:n_frames]
+
+
 def perturbed_params(capture: ZjuCapture, body: BodyModel, degradation: Degradation) -> list[SmplParams]:
     """Every frame's parameters with the pose noise of ``degradation`` (as :class:`fitting.corrections.PoseCorrection`
-    applies a correction: joints turned in their parent's frame, the body about its pelvis)."""
+    applies a correction: joints turned in their parent's frame, the body about its pelvis). The correction that
+    undoes it is the negated noise (:func:`pose_noise`) applied to the perturbed parameters."""
     frames = list(range(capture.n_frames))
     noise = PoseCorrection(capture_poses(capture, body, frames), centred=False).double()
-    generator = torch.Generator().manual_seed(degradation.seed)
     with torch.no_grad():
-        noise.joints.copy_(_turns(generator, tuple(noise.joints.shape[:2]), np.radians(degradation.pose_degrees)))
-        noise.root.copy_(_turns(generator, tuple(noise.root.shape[:1]), np.radians(degradation.pose_degrees)))
-        noise.shift.copy_(_turns(generator, tuple(noise.shift.shape[:1]), degradation.shift_m))
+        for parameter, value in zip((noise.joints, noise.root, noise.shift), pose_noise(len(frames), degradation)):
+            parameter.copy_(value)
     poses, rh, th = (v.float().numpy() for v in noise.zju_params())
     return [SmplParams(poses[f], rh[f], th[f], capture.params(f).shapes) for f in frames]
 

@@ -9,6 +9,8 @@ correction's own fault.
 from __future__ import annotations
 
 import tempfile
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -40,10 +42,9 @@ class CorrectedParams:
         return SmplParams(self.poses[i], self.rh[i], self.th[i], self.capture.params(frame).shapes)
 
 
-def corrected_params(trainer) -> CorrectedParams:
-    """The trainer's training poses as they stand (its ``pose_correction``)."""
+def corrected_params(trainer, capture: ZjuCapture) -> CorrectedParams:
+    """The trainer's training poses as they stand (its ``pose_correction``), ``capture``'s elsewhere."""
     poses, rh, th = (v.float().cpu().numpy() for v in trainer.pose_correction.zju_params())
-    capture = trainer.fit_data_capture
     return CorrectedParams(capture, list(trainer.frames), poses, rh, th)
 
 
@@ -62,23 +63,14 @@ class PoseCheck:
         return 1 - self.after / self.before
 
 
-def correct_with_field_fixed(
-    field_run: Path,
-    capture: Path,
-    truth: Path,
-    steps: int,
-    overrides: list[str] | tuple[str, ...] = (),
-    every: int = 50,
-    frame_stride: int = 1,
-    progress: bool = False,
-) -> PoseCheck:
-    """Correct the poses of ``capture``'s training frames for ``steps`` steps with the field of ``field_run`` (fitted
-    on ``truth``'s exact poses) held fixed, measuring the joint error against ``truth`` every ``every`` steps.
-
-    The trainer is the fit's own (same rays, losses, optimiser and correction), started with the field run's config
-    on ``capture`` with ``train.pose_correction`` on from step 0, then ``overrides``; the field's weights (part boxes
-    and occupancy grid included) are the run's and take no gradient."""
-    from pipelines.runs.subject.session import open_capture, start
+@contextmanager
+def field_fixed_trainer(
+    field_run: Path, capture: Path, overrides: list[str] | tuple[str, ...] = (), frame_stride: int = 1
+) -> Iterator:
+    """The fit's own trainer (same rays, losses, optimiser and correction) on ``capture`` with the field of
+    ``field_run`` loaded and frozen (part boxes and occupancy grid included): the run's config with
+    ``train.pose_correction`` on from step 0, then ``overrides``. Its run folder is a temporary one."""
+    from pipelines.runs.subject.session import start
 
     saved = read_run(field_run)
     sets = [
@@ -91,18 +83,36 @@ def correct_with_field_fixed(
     ]
     config = run_config(saved.state, saved.run_dir, sets)
     with tempfile.TemporaryDirectory(prefix="narf-pose-check-") as scratch:
-        trainer = start(config, Path(scratch), torch.device("cpu"), progress=progress)
+        trainer = start(config, Path(scratch), torch.device("cpu"), progress=False)
         trainer.field.load_state_dict(saved.state["model"])
         for parameter in trainer.field.parameters():
             parameter.requires_grad_(False)
-        trainer.fit_data_capture = open_capture(config, quiet=True)
+        yield trainer
+
+
+def correct_with_field_fixed(
+    field_run: Path,
+    capture: Path,
+    truth: Path,
+    steps: int,
+    overrides: list[str] | tuple[str, ...] = (),
+    every: int = 50,
+    frame_stride: int = 1,
+) -> PoseCheck:
+    """Correct the poses of ``capture``'s training frames for ``steps`` steps with the field of ``field_run`` (fitted
+    on ``truth``'s exact poses) held fixed (:func:`field_fixed_trainer`), measuring the joint error against ``truth``
+    every ``every`` steps."""
+    from pipelines.runs.subject.session import open_capture
+
+    with field_fixed_trainer(field_run, capture, overrides, frame_stride) as trainer:
+        given = open_capture(trainer.config, quiet=True)
         reference, body = ZjuCapture(truth), BodyModel()
         frames = list(trainer.frames)
 
         def error() -> float:
-            return 100 * float(joint_errors(reference, corrected_params(trainer), body, frames).mean())
+            return 100 * float(joint_errors(reference, corrected_params(trainer, given), body, frames).mean())
 
-        before = 100 * float(joint_errors(reference, trainer.fit_data_capture, body, frames).mean())
+        before = 100 * float(joint_errors(reference, given, body, frames).mean())
         check = PoseCheck(before, before, [(0, before)])
         for step in range(1, steps + 1):
             trainer.train_step()
