@@ -485,3 +485,16 @@ def test_sync_flag_refuses_bad_values(recording, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nosuchcam not among the cameras" in err[0], err
     assert not (tmp_path / "y").exists()
+
+
+def test_openpose_entries_with_no_keypoints_are_no_person(tmp_path):
+    """OpenPose writes people whose ``pose_keypoints_2d`` is empty (a person found by its face or hands alone): such an
+    entry is skipped, the other people are read as they are, and a file of only such entries has no person."""
+    person = np.column_stack([np.arange(25.0), np.arange(25.0) + 1, np.full(25, 0.9)])
+    path = tmp_path / "cam_000000000000_keypoints.json"
+    people = [{"pose_keypoints_2d": []}, {"pose_keypoints_2d": person.ravel().tolist()}, {"pose_keypoints_2d": []}]
+    path.write_text(json.dumps({"version": 1.3, "people": people}))
+    found = read_openpose(path)
+    assert len(found) == 1 and np.array_equal(found[0], person)
+    path.write_text(json.dumps({"version": 1.3, "people": [{"pose_keypoints_2d": []}]}))
+    assert read_openpose(path) == []

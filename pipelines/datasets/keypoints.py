@@ -130,7 +130,8 @@ def frame_number(path: Path) -> int:
 
 def read_openpose(path: Path) -> list[np.ndarray]:
     """People of one OpenPose-style JSON file: a list of (K, 3) arrays (x, y, confidence), K the same for all and
-    one of :data:`FILE_LAYOUTS`. Confidences must lie in [0, 1]."""
+    one of :data:`FILE_LAYOUTS`. Confidences must lie in [0, 1]. An entry whose ``pose_keypoints_2d`` is empty is no
+    person and is skipped."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -143,6 +144,8 @@ def read_openpose(path: Path) -> list[np.ndarray]:
             flat = np.asarray(person["pose_keypoints_2d"], dtype=np.float64)
         except (TypeError, KeyError, ValueError):
             raise CaptureError(f"{path}: people[{p}] has no numeric pose_keypoints_2d") from None
+        if flat.size == 0:  # OpenPose writes such entries (a person found by other parts only): no person here
+            continue
         if flat.ndim != 1 or flat.size % 3 or flat.size // 3 not in FILE_LAYOUTS:
             sizes = ", ".join(f"{3 * k} ({'/'.join(v)})" for k, v in FILE_LAYOUTS.items())
             raise CaptureError(f"{path}: people[{p}] has {flat.size} values in pose_keypoints_2d; expected {sizes}")
