@@ -9,12 +9,14 @@ import time
 from pathlib import Path
 
 from pipelines.cli.common import HelpFormatter, at_least, run_cli
-from pipelines.datasets.subjects import data_root, synthetic_path
-from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
-from pipelines.synthetic.degrade import Degradation, degrade_capture
-from pipelines.synthetic.rigid import RigidSynthConfig, generate_rigid, is_rigid_complete
-from pipelines.synthetic.surreal import SurrealSynthConfig, generate_surreal, is_surreal_complete
-from pipelines.synthetic.thuman import ThumanSynthConfig, generate_thuman, is_thuman_complete
+from pipelines.synthetic.settings import (
+    SYNTHETIC_SUBJECTS,
+    Degradation,
+    RigidSynthConfig,
+    SurrealSynthConfig,
+    SynthConfig,
+    ThumanSynthConfig,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -136,6 +138,8 @@ def _degrade(args) -> int:
         raise ValueError("--degrade writes a new capture: give --out")
     if not (args.degrade / "annots.npy").is_file():
         raise FileNotFoundError(f"{args.degrade}: no annots.npy (not a ZJU-MoCap capture)")
+    from pipelines.synthetic.degrade import degrade_capture
+
     degradation = Degradation(args.pose_noise, args.shift_noise, args.colour_spread, args.seed)
     degradation.validate()
     out = degrade_capture(args.degrade, args.out, degradation)
@@ -147,6 +151,11 @@ def _degrade(args) -> int:
 
 
 def _other_dataset(args) -> int:
+    from pipelines.datasets.subjects import data_root
+    from pipelines.synthetic.rigid import generate_rigid, is_rigid_complete
+    from pipelines.synthetic.surreal import generate_surreal, is_surreal_complete
+    from pipelines.synthetic.thuman import generate_thuman, is_thuman_complete
+
     root = data_root(args.data_root)
     if args.dataset in ("thuman", "surreal") and args.resolution is not None:
         raise ValueError(f"--resolution: {args.dataset} images have their format's fixed size; leave it out")
@@ -180,6 +189,9 @@ def main(argv: list[str] | None = None) -> int:
         return _degrade(args)
     if args.dataset != "zju":
         return _other_dataset(args)
+    from pipelines.datasets.subjects import data_root, synthetic_path
+    from pipelines.synthetic.capture import generate_capture, is_complete
+
     d = SynthConfig()
     config = SynthConfig(
         subject=args.subject,

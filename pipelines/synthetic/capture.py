@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import multiprocessing as mp
 import shutil
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
@@ -39,53 +39,11 @@ from pipelines.synthetic.scene import (
     taichi_motion,
     vertex_regions,
 )
+from pipelines.synthetic.settings import SYNTHETIC_SUBJECTS, SynthConfig  # noqa: F401 (re-exported)
 
 GENERATOR_VERSION = 4  # 2: tilted, closer ChArUco board poses; 3: supersampled shots, per-camera close-ups;
 # 4: true surfaces of the held-out evaluation frames (surfaces/)
 MARKER = "synthetic.json"
-#: Subjects the synthetic generator can stand in for.
-SYNTHETIC_SUBJECTS = ("taichi",)
-
-
-@dataclass(frozen=True)
-class SynthConfig:
-    """Settings of a synthetic capture.
-
-    Attributes:
-        subject: name written into the marker (the motion is the taichi sequence).
-        resolution: square image size in pixels.
-        frames: number of frames (30 fps).
-        cameras: number of ring cameras.
-        seed: seed of rig, motion and appearance jitter.
-        layout: ``standard`` (``Camera_B1/000000.jpg``) or ``313`` (``Camera (1)/..._0001_<time>.jpg``, 1-based).
-        calib_shots: ChArUco board poses under ``calib/`` seen by the whole rig (0 to skip calib/).
-        calib_close_ups: per-camera close-up board shots under ``calib/<camera>/intrinsics/``.
-        jpeg_quality: JPEG quality of the images.
-        workers: render processes.
-        lbs: also write animatable_nerf's ``lbs/`` folder (per-frame weight grids: several MB a frame).
-    """
-
-    subject: str = "taichi"
-    resolution: int = 512
-    frames: int = 300
-    cameras: int = 21
-    seed: int = 0
-    layout: str = "standard"
-    calib_shots: int = 30
-    calib_close_ups: int = 20
-    jpeg_quality: int = 95
-    workers: int = 2
-    lbs: bool = False
-
-    def validate(self) -> None:
-        if self.resolution < 32 or self.frames < 1 or self.cameras < 1:
-            raise ValueError(f"resolution >= 32, frames >= 1 and cameras >= 1 are required, got {self}")
-        if self.layout not in ("standard", "313"):
-            raise ValueError(f"layout must be 'standard' or '313', got '{self.layout}'")
-        if not 1 <= self.jpeg_quality <= 100:
-            raise ValueError(f"jpeg_quality must be in [1, 100], got {self.jpeg_quality}")
-        if self.calib_shots < 0 or self.calib_close_ups < 0:
-            raise ValueError(f"calib_shots and calib_close_ups must be >= 0, got {self}")
 
 
 def image_relpath(layout: str, cam: int, frame: int) -> str:

@@ -10,7 +10,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
@@ -23,35 +23,13 @@ from narf.kinematics import N_JOINTS
 from pipelines.body.model import BodyModel, capture_poses
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.zju_mocap import SmplParams, param_index_from_image, write_params
+from pipelines.synthetic.settings import Degradation  # noqa: F401 (re-exported)
 from pipelines.synthetic.staging import publish, start_staging
 
 TRUTH = "degraded.json"
 FIELDS = ("poses", "rh", "th", "shapes")
 #: what a degraded capture rewrites; everything else is linked from the source
 REWRITTEN = ("params", "new_params", "vertices", "new_vertices", "synthetic.json")
-
-
-@dataclass(frozen=True)
-class Degradation:
-    """How to break a capture.
-
-    Attributes:
-        pose_degrees: every joint of every frame (and the whole body, about its pelvis) turned by this angle about
-            a random axis, independently per frame and joint.
-        shift_m: every frame's body moved by this distance (metres) in a random direction.
-        colour_spread: camera c's channel gains are ``exp(u)`` with u uniform in [-s, s] and its biases uniform in
-            [-s/4, s/4], both with mean zero over the cameras; 0 leaves the images as they are.
-        seed: seed of the draws.
-    """
-
-    pose_degrees: float = 4.0
-    shift_m: float = 0.02
-    colour_spread: float = 0.0
-    seed: int = 0
-
-    def validate(self) -> None:
-        if not (0 <= self.pose_degrees < 180 and 0 <= self.shift_m < 1 and 0 <= self.colour_spread < 1):
-            raise ValueError(f"pose degrees in [0, 180), shift in [0, 1) m and colour spread in [0, 1), got {self}")
 
 
 def _turns(generator: torch.Generator, shape: tuple[int, ...], size: float) -> torch.Tensor:

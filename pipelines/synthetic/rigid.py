@@ -20,26 +20,13 @@ import trimesh
 from tqdm import tqdm
 
 from pipelines.synthetic.people import pixel_rays
+from pipelines.synthetic.settings import RigidSynthConfig  # noqa: F401 (re-exported)
 from pipelines.synthetic.staging import is_finished, publish, start_staging
 
 RIGID_VERSION = 1
 #: World lights (direction towards the light, intensity): fixed in the world, so shading changes with the object's
 #: pose, which is what RT-NeRF's xi in the colour branch can model (paper Eq. 11).
 LIGHTS = [(np.array([0.3, -0.8, -0.5]), 0.6), (np.array([-0.6, -0.2, -0.7]), 0.3)]
-
-
-@dataclass(frozen=True)
-class RigidSynthConfig:
-    """Size of the rigid-object set: ``train`` / ``test`` images of ``resolution``^2 (supplement: 480 / 20 at 200)."""
-
-    train: int = 480
-    test: int = 20
-    resolution: int = 200
-    seed: int = 0
-
-    def validate(self) -> None:
-        if self.train < 1 or self.test < 1 or self.resolution < 16:
-            raise ValueError(f"train >= 1, test >= 1 and resolution >= 16 are required, got {self}")
 
 
 def _stripes(points: np.ndarray, axis: np.ndarray, period: float, a, b) -> np.ndarray:

@@ -10,7 +10,7 @@ z-up mocap frame, the world orientation is R_x(pi/2) R_z(zrot) R(pose[0:3]) and 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
@@ -22,26 +22,11 @@ from pipelines.body.model import BodyModel
 from pipelines.body.surreal import R_X90, surreal_world_pose
 from pipelines.datasets.surreal import HEIGHT, SURREAL_K, WIDTH, surreal_cam_from_world
 from pipelines.synthetic.people import person_colours, random_person, random_poses, raycast
+from pipelines.synthetic.settings import SurrealSynthConfig  # noqa: F401 (re-exported)
 from pipelines.synthetic.staging import is_finished, publish, start_staging
 from pipelines.synthetic.surreal_files import write_surreal_clip
 
 SURREAL_VERSION = 1
-
-
-@dataclass(frozen=True)
-class SurrealSynthConfig:
-    """Size of the SURREAL-like set: ``clips`` clips of ``frames`` frames (30 fps), one person each, in
-    ``<split>/run0/<seq>/``; betas ~ N(0, beta_std^2) (wider than the THUman-like set)."""
-
-    clips: int = 12
-    frames: int = 40
-    split: str = "test"
-    beta_std: float = 1.5
-    seed: int = 0
-
-    def validate(self) -> None:
-        if self.clips < 1 or self.frames < 2:
-            raise ValueError(f"clips >= 1 and frames >= 2 are required, got {self}")
 
 
 def smooth_motion(n_frames: int, rng: np.random.Generator, n_keys: int = 4) -> np.ndarray:

@@ -10,7 +10,7 @@ of its list). ``synthetic.json`` is written last, into a staging folder that is 
 
 from __future__ import annotations
 
-from dataclasses import asdict, dataclass
+from dataclasses import asdict
 from pathlib import Path
 
 import cv2
@@ -21,31 +21,10 @@ from tqdm import tqdm
 from pipelines.body.model import BodyModel
 from pipelines.synthetic.narf_render import prepare_folders, render_mesh_splits
 from pipelines.synthetic.people import Person, person_colours, random_person, random_poses
+from pipelines.synthetic.settings import ThumanSynthConfig  # noqa: F401 (re-exported)
 from pipelines.synthetic.staging import is_finished, publish, start_staging
 
 THUMAN_VERSION = 2  # 2: a share of the people in swimwear (people.SWIMWEAR_SHARE)
-
-
-@dataclass(frozen=True)
-class ThumanSynthConfig:
-    """Size of the THUman-like set.
-
-    Attributes:
-        people: number of people. train_poses / novel_poses: meshes per person for training / held out.
-        renders_per_mesh: train renders per mesh (NARF's ``all``: 10; same_view and novel_view: 1 each).
-        raw_items: how many meshes also get a raw item folder. seed: everything is deterministic under it.
-    """
-
-    people: int = 40
-    train_poses: int = 4
-    novel_poses: int = 1
-    renders_per_mesh: int = 10
-    raw_items: int = 8
-    seed: int = 0
-
-    def validate(self) -> None:
-        if min(self.people, self.train_poses, self.renders_per_mesh) < 1 or min(self.novel_poses, self.raw_items) < 0:
-            raise ValueError(f"people, train_poses and renders_per_mesh must be >= 1, got {self}")
 
 
 def _mesh_plan(config: ThumanSynthConfig) -> list[tuple[int, int]]:
