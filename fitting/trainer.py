@@ -18,6 +18,7 @@ from fitting.config import FitConfig
 from fitting.corrections import CameraColour, PoseCorrection, PosePrior, RowAdam, corrected_colour_error
 from fitting.data import FitData
 from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
+from fitting.files import atomic_write_text
 from fitting.plots import write_curve, write_validation
 from fitting.run_folder import write_config
 from narf.fields import model_spec
@@ -95,6 +96,24 @@ def ray_loss(
         colour = corrected_colour_error(out, batch, background, camera_colour, backgrounds, colour_count, mask_count)
     mask_term = (batch.mask_weight * (out.mask - batch.mask).pow(2)).sum() / mask_count
     return colour + config.train.mask_weight * mask_term, colour
+
+
+def trim_log(path: Path, step: int) -> None:
+    """Drop the rows of a ``log.jsonl`` past ``step`` and a last row cut short, rewriting it atomically: a fit
+    resumed from its checkpoint at ``step`` logs those steps again, and each step must appear once, in order."""
+    if not path.is_file():
+        return
+    lines = path.read_text().splitlines()
+    kept = []
+    for line in lines:
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:  # a row the killed process was writing
+            continue
+        if isinstance(row, dict) and row.get("step", 0) <= step:
+            kept.append(line)
+    if len(kept) != len(lines):
+        atomic_write_text(path, "".join(f"{line}\n" for line in kept))
 
 
 @dataclass
@@ -177,6 +196,8 @@ class Trainer:
         if state is not None:
             self._restore(state)
             self._saved_step = self.step
+            if processes.is_main:  # the killed process's rows past its checkpoint would repeat steps
+                trim_log(self.run_dir / "log.jsonl", self.step)
         if processes.is_main:  # the config as run (resumed runs: with their overrides), the one place it is written
             write_config(self.run_dir, config)
 

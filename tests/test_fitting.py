@@ -109,10 +109,14 @@ def test_fit_killed_with_sigkill_resumes_to_the_end(data_root_64, tmp_path):
     spawn.finish(process, 30, "narf-fit after SIGKILL")
     killed_at = load_checkpoint(out)["step"]  # the visible checkpoint is always a complete one
     assert 0 < killed_at < 400
+    with open(out / "log.jsonl", "a") as log:  # rows past the checkpoint, the last one cut short, as a kill leaves
+        log.write(json.dumps({"step": killed_at + 5, "loss": 1.0}) + "\n" + '{"step": ' + str(killed_at + 10))
     done = spawn.run(command[:3] + ["--out", str(out), "--resume", "--quiet"], 300, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr
     assert load_checkpoint(out)["step"] == 400
     assert not list(out.glob(".checkpoint.*"))  # a temporary left by the kill is cleaned by the next save
+    steps = [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines()]
+    assert steps == sorted(set(steps)) and steps[-1] == 400, steps  # each step once, in order
 
 
 def test_crop_error_breakdown_by_hand():
