@@ -184,9 +184,8 @@ class PoseCorrection(nn.Module):
         turns = torch.cat([self.joints, self.root[:, None]], dim=1) / math.radians(prior.turn_degrees)
         shifts = self.shift / (prior.shift_cm / 100)
         cost = robust(turns.pow(2).sum(dim=-1)).sum(dim=1) + robust(shifts.pow(2).sum(dim=-1))  # (K,)
-        left = self.knot_left if index is None else self.knot_left[index]
-        weight = self.knot_weight if index is None else self.knot_weight[index]
-        right = _right(left, cost.shape[0])
+        every = slice(None) if index is None else index
+        left, right, weight = self.knot_left[every], self.knot_right[every], self.knot_weight[every]
         chosen = torch.zeros(cost.shape[0], dtype=torch.bool, device=cost.device)
         chosen[left[weight < 1]] = True
         chosen[right[weight > 0]] = True

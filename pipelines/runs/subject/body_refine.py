@@ -54,6 +54,14 @@ class RefinedCapture:
         return self.refined[frame] if frame in self.refined else self.capture.params(frame)
 
 
+def corrected_frames(correction, capture) -> dict[int, SmplParams]:
+    """The training frames' parameters a pose correction (``fitting.corrections.PoseCorrection``) shows, as they
+    stand (capture frame -> SmplParams, the shapes ``capture``'s)."""
+    poses, rh, th = (v.float().cpu().numpy() for v in correction.zju_params())
+    frames = [int(f) for f in correction.frames]
+    return {f: SmplParams(poses[i], rh[i], th[i], capture.params(f).shapes) for i, f in enumerate(frames)}
+
+
 def _view_masks(training: TrainingSet, n_frames: int, height: int):
     """Per training frame and camera: the view's mask reduced to at most ``height`` rows (or None), the views' full
     sizes (SimpleNamespace width / height per camera) and projections P (C, 3, 4) ``K [R | t]``."""
@@ -98,9 +106,11 @@ def refine_to_masks(
     d_th = torch.zeros(len(frames), 3, requires_grad=True)
     scale2 = math.radians(settings.prior_degrees) ** 2
 
+    def refined_poses() -> torch.Tensor:  # (F, 72): the global turn stays in Rh
+        return torch.cat([poses0[:, :3], poses0[:, 3:] + d_poses.reshape(len(frames), -1)], dim=1)
+
     def posed(every: int) -> torch.Tensor:
-        poses = torch.cat([poses0[:, :3], poses0[:, 3:] + d_poses.reshape(len(frames), -1)], dim=1)
-        return body.vertices_zju(poses, rh0 + d_rh, th0 + d_th, shapes, every)
+        return body.vertices_zju(refined_poses(), rh0 + d_rh, th0 + d_th, shapes, every)
 
     def energy() -> torch.Tensor:
         turns = torch.cat([d_poses, d_rh[:, None]], dim=1).pow(2).sum(-1) / scale2
@@ -111,6 +121,6 @@ def refine_to_masks(
     with bar:
         adam_stage(energy, [d_poses, d_rh, d_th], settings.iterations, settings.lr, bar.update)
     with torch.no_grad():
-        poses = torch.cat([poses0[:, :3], poses0[:, 3:] + d_poses.reshape(len(frames), -1)], dim=1).numpy()
+        poses = refined_poses().numpy()
         rh, th = (rh0 + d_rh).numpy(), (th0 + d_th).numpy()
     return {f: SmplParams(poses[i], rh[i], th[i], params[i].shapes) for i, f in enumerate(frames)}

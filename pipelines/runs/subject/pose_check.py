@@ -21,31 +21,8 @@ from fitting.fitted import read_run, run_config
 from pipelines.body.model import BodyModel
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.zju_mocap import SmplParams
+from pipelines.runs.subject.body_refine import RefinedCapture, corrected_frames
 from pipelines.synthetic.degrade import joint_errors
-
-
-@dataclass
-class CorrectedParams:
-    """Body parameters with ``params(frame)`` (as a capture has them): the corrected ones of ``frames`` (the pose
-    correction's ``zju_params``), the capture's for every other frame."""
-
-    capture: ZjuCapture
-    frames: list[int]
-    poses: np.ndarray
-    rh: np.ndarray
-    th: np.ndarray
-
-    def params(self, frame: int) -> SmplParams:
-        if frame not in self.frames:
-            return self.capture.params(frame)
-        i = self.frames.index(frame)
-        return SmplParams(self.poses[i], self.rh[i], self.th[i], self.capture.params(frame).shapes)
-
-
-def corrected_params(trainer, capture: ZjuCapture) -> CorrectedParams:
-    """The trainer's training poses as they stand (its ``pose_correction``), ``capture``'s elsewhere."""
-    poses, rh, th = (v.float().cpu().numpy() for v in trainer.pose_correction.zju_params())
-    return CorrectedParams(capture, list(trainer.frames), poses, rh, th)
 
 
 @dataclass
@@ -110,7 +87,8 @@ def correct_with_field_fixed(
         frames = list(trainer.frames)
 
         def error() -> float:
-            return 100 * float(joint_errors(reference, corrected_params(trainer, given), body, frames).mean())
+            corrected = RefinedCapture(given, corrected_frames(trainer.pose_correction, given))
+            return 100 * float(joint_errors(reference, corrected, body, frames).mean())
 
         before = 100 * float(joint_errors(reference, given, body, frames).mean())
         check = PoseCheck(before, before, [(0, before)])

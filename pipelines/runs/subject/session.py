@@ -39,7 +39,7 @@ from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.smpl_files import cache_dir
 from pipelines.datasets.subjects import data_root, find_subject, real_candidates, stand_in_notice, synthetic_path
 from pipelines.datasets.zju_mocap import SmplParams
-from pipelines.runs.subject.body_refine import RefinedCapture, RefineSettings, refine_to_masks
+from pipelines.runs.subject.body_refine import RefinedCapture, RefineSettings, corrected_frames, refine_to_masks
 from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
 
 
@@ -248,11 +248,7 @@ def refined_params(state: dict, capture: ZjuCapture, path: Path) -> dict[int, Sm
         correction = pose_correction_from_state(state)
     except (KeyError, RuntimeError, TypeError, ValueError) as err:
         raise CheckpointError(f"{path}: its pose correction is unreadable ({err})") from None
-    if correction is None:
-        return {}
-    poses, rh, th = (v.float().numpy() for v in correction.zju_params())
-    frames = [int(f) for f in correction.frames]
-    return {f: SmplParams(poses[i], rh[i], th[i], capture.params(f).shapes) for i, f in enumerate(frames)}
+    return {} if correction is None else corrected_frames(correction, capture)
 
 
 def load_run(run: Path | SavedRun, device="cpu") -> LoadedRun:
