@@ -2,6 +2,7 @@
 against the body model (smplx) and hand-computed values; and the degraded synthetic capture they are measured on."""
 
 import json
+import os
 import shutil
 
 import numpy as np
@@ -304,9 +305,10 @@ def test_corrected_poses_travel_with_the_run(data_root_64, tmp_path, body_model)
 @pytest.mark.slow
 def test_a_run_keeps_its_body_model(data_root_64, tmp_path, monkeypatch):
     """A run fitted with another SMPL file (the stand-in's template scaled 1.25x) is loaded with that file in a new
-    shell (no NARF_SMPL_DIR), refused in one line once the file is gone, and found again through --smpl-dir (the
-    variable it sets) by its hash; a capture that records another body model refuses the fit."""
-    from pipelines.body.locate import ensure_standin
+    shell (the request's choice ends with the fit), refused in one line once the file is gone, and found again by
+    its hash through --smpl-dir (``chosen_smpl_dir``) or $NARF_SMPL_DIR; a capture that records another body model
+    refuses the fit."""
+    from pipelines.body.locate import chosen_smpl_dir, default_smpl_dir, ensure_standin
     from pipelines.datasets.errors import CaptureError
     from pipelines.datasets.smpl_files import SmplFileError, load_smpl_dict, write_smpl_pickle
     from pipelines.runs.fit import fit
@@ -320,18 +322,24 @@ def test_a_run_keeps_its_body_model(data_root_64, tmp_path, monkeypatch):
     shutil.copytree(data_root_64 / "synthetic" / "taichi", capture)
     (capture / "body_model.json").unlink()
     request = FitRequest(
-        out=tmp_path / "run", preset="tiny", subject=str(capture), overrides=("train.steps=2",), progress=False
+        out=tmp_path / "run",
+        preset="tiny",
+        subject=str(capture),
+        overrides=("train.steps=2",),
+        progress=False,
+        smpl_dir=str(big.parent),
     )
-    monkeypatch.setenv("NARF_SMPL_DIR", str(big.parent))
     fit(request)
-    monkeypatch.delenv("NARF_SMPL_DIR")
+    assert "NARF_SMPL_DIR" not in os.environ and default_smpl_dir() is None  # the choice ended with the fit
     assert load_run(tmp_path / "run").body_model.path == big.resolve()
     moved = tmp_path / "moved" / "SMPL_NEUTRAL.pkl"
     moved.parent.mkdir()
     big.rename(moved)
     with pytest.raises(SmplFileError, match=r"run: was made with the body model .*big/SMPL_NEUTRAL.pkl .*--smpl-dir"):
         load_run(tmp_path / "run")
-    monkeypatch.setenv("NARF_SMPL_DIR", str(moved))
+    with chosen_smpl_dir(moved):
+        assert load_run(tmp_path / "run").body_model.path == moved
+    monkeypatch.setenv("NARF_SMPL_DIR", str(moved))  # still read as the default
     assert load_run(tmp_path / "run").body_model.path == moved
     copy = capture
     (copy / "body_model.json").write_text(json.dumps({"file": str(moved), "sha256": "0" * 64, "standin": False}))

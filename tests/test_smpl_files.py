@@ -1,3 +1,4 @@
+import os
 import pickle
 
 import numpy as np
@@ -130,3 +131,30 @@ def test_bad_smpl_files_give_clear_errors(tmp_path, standin):
         resolve_smpl_file(
             tmp_path / "empty_dir_that_exists" if (tmp_path / "empty_dir_that_exists").mkdir() is None else None
         )
+
+
+def test_a_commands_smpl_choice_ends_with_it(standin, tmp_path, monkeypatch):
+    """``--smpl-dir`` is the default model of the command's own calls only: a CLI main run through ``run_cli``
+    resolves it, and neither the environment nor a later call in the same process sees it; ``chosen_smpl_dir``
+    scopes a library call the same way, and ``$NARF_SMPL_DIR`` is still read as the default."""
+    from pipelines.body.locate import chosen_smpl_dir, default_smpl_dir
+    from pipelines.cli.common import run_cli, use_smpl_dir
+
+    monkeypatch.delenv("NARF_SMPL_DIR", raising=False)
+    other = tmp_path / "other" / "SMPL_NEUTRAL.pkl"
+    other.parent.mkdir()
+    other.write_bytes(b"")  # resolving only looks at the name
+    seen = []
+
+    def main(argv):
+        use_smpl_dir(str(other.parent))
+        seen.append(resolve_smpl_file())
+
+    assert run_cli("narf-test", main, []) == 0
+    assert seen == [other]
+    assert default_smpl_dir() is None and "NARF_SMPL_DIR" not in os.environ
+    with chosen_smpl_dir(other.parent):
+        assert resolve_smpl_file() == other
+    assert resolve_smpl_file() != other
+    monkeypatch.setenv("NARF_SMPL_DIR", str(other))
+    assert resolve_smpl_file() == other

@@ -1,4 +1,5 @@
-"""Which SMPL model file a run uses: an explicit ``--smpl-dir`` / file, then ``$NARF_SMPL_DIR``, then the generated
+"""Which SMPL model file a run uses: an explicit file or folder, then the command's ``--smpl-dir``, then
+``$NARF_SMPL_DIR``, then the generated
 stand-in in the cache (``$NARF_CACHE`` or ``~/.cache/narf-avatar``), generated once on first use.
 """
 
@@ -7,6 +8,9 @@ from __future__ import annotations
 import functools
 import hashlib
 import os
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 
 from pipelines.body.standin import build_standin_model
@@ -28,9 +32,40 @@ def ensure_standin(path: Path | None = None) -> Path:
     return path
 
 
+#: The SMPL model file or folder a command or request was given (``--smpl-dir``), for the calls it makes: set inside
+#: :func:`chosen_smpl_dir`'s scope (or a CLI's own context, ``pipelines.cli.common.run_cli``), never in the
+#: environment, so that nothing outlives the command that chose it.
+_CHOSEN_SMPL: ContextVar[str | None] = ContextVar("narf_smpl_dir", default=None)
+
+
+def default_smpl_dir() -> str | None:
+    """The SMPL model of calls that name none: the command's ``--smpl-dir`` (:func:`chosen_smpl_dir`), else
+    ``$NARF_SMPL_DIR``, else None (the stand-in)."""
+    return _CHOSEN_SMPL.get() or os.environ.get("NARF_SMPL_DIR") or None
+
+
+def choose_smpl_dir(path: str | Path | None) -> None:
+    """Make ``path`` (when given) the default SMPL model of the current context: a CLI's ``--smpl-dir``, whose
+    ``main`` runs in a context of its own. Library code uses :func:`chosen_smpl_dir` instead."""
+    if path:
+        _CHOSEN_SMPL.set(str(path))
+
+
+@contextmanager
+def chosen_smpl_dir(path: str | Path | None) -> Iterator[None]:
+    """``path`` (when given) is the default SMPL model of the calls inside the block, and no longer after it."""
+    token = _CHOSEN_SMPL.set(str(path)) if path else None
+    try:
+        yield
+    finally:
+        if token is not None:
+            _CHOSEN_SMPL.reset(token)
+
+
 def resolve_smpl_file(smpl_dir: str | Path | None = None, gender: str = "neutral") -> Path:
-    """Find the SMPL model: explicit path/dir, then ``$NARF_SMPL_DIR``, then the generated stand-in."""
-    for candidate in (smpl_dir, os.environ.get("NARF_SMPL_DIR")):
+    """Find the SMPL model: explicit path/dir, then the command's choice or ``$NARF_SMPL_DIR``
+    (:func:`default_smpl_dir`), then the generated stand-in."""
+    for candidate in (smpl_dir, default_smpl_dir()):
         if not candidate:
             continue
         candidate = Path(candidate)
@@ -103,16 +138,17 @@ def recorded_body_file(state: dict, source: str, owner: str) -> Path | None:
 
 
 def find_recorded(record: dict, owner: str) -> Path:
-    """The body model file with the recorded hash: the recorded file, then ``$NARF_SMPL_DIR`` (which ``--smpl-dir``
-    sets), then the stand-in when the record names the stand-in. ``owner`` names the run or capture in the error.
+    """The body model file with the recorded hash: the recorded file, then the command's ``--smpl-dir`` or
+    ``$NARF_SMPL_DIR`` (:func:`default_smpl_dir`), then the stand-in when the record names the stand-in. ``owner``
+    names the run or capture in the error.
 
     Raises:
         SmplFileError: no candidate has the recorded hash.
     """
     candidates = [Path(record["file"])]
-    if os.environ.get("NARF_SMPL_DIR"):
+    if default_smpl_dir():
         try:
-            candidates.append(resolve_smpl_file(os.environ["NARF_SMPL_DIR"]))
+            candidates.append(resolve_smpl_file(default_smpl_dir()))
         except SmplFileError:
             pass
     if record["standin"]:

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import argparse
+import contextvars
 import ctypes
 import math
 import os
@@ -56,12 +57,15 @@ def add_smpl_dir(parser: argparse.ArgumentParser) -> None:
 
 
 def use_smpl_dir(path: str | None) -> None:
-    """A command's ``--smpl-dir``: ``$NARF_SMPL_DIR`` for this process, where a run's recorded body model is also
-    looked for (the run's recorded hash decides whether it is the same file: docs/guides/fitting.md)."""
+    """A command's ``--smpl-dir``: the default SMPL model of this command's calls (``run_cli`` runs ``main`` in a
+    context of its own, so nothing outlives it), where a run's recorded body model is also looked for (the run's
+    recorded hash decides whether it is the same file: docs/guides/fitting.md)."""
+    from pipelines.body.locate import choose_smpl_dir
+
     if path:
         if not os.path.exists(path):
             raise FileNotFoundError(f"{path}: no such SMPL model file or folder (--smpl-dir)")
-        os.environ["NARF_SMPL_DIR"] = str(path)
+        choose_smpl_dir(path)
 
 
 def at_least(minimum: int, at_most: int | None = None) -> Callable[[str], int]:
@@ -157,7 +161,8 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int | None], argv: lis
     if not {"-h", "--help"} & set(sys.argv[1:] if argv is None else argv):
         flush_subnormals()
     try:
-        return int(main(argv) or 0)
+        # a context of its own: the command's choices (--smpl-dir) end with it, also for an in-process caller
+        return int(contextvars.copy_context().run(main, argv) or 0)
     except KeyboardInterrupt:
         print(f"{prog}: interrupted", file=sys.stderr)
         return 130

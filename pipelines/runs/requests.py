@@ -14,7 +14,7 @@ class FitRequest:
     ``preset``: a preset name or YAML file; None takes the kind's default for the device and model
     (``pipelines.runs.kinds.RunKind.preset``). ``kind``, ``model``, ``subject`` and ``data_root`` override the
     preset, then ``overrides`` (``section.key=value``). ``out`` None: ``runs/<subject or kind>-<model>``.
-    ``smpl_dir``: the SMPL model folder or file (sets ``NARF_SMPL_DIR`` for the process).
+    ``smpl_dir``: the SMPL model folder or file of this fit (default: ``$NARF_SMPL_DIR``, else the stand-in).
     """
 
     out: Path | None = None

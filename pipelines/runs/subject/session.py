@@ -4,7 +4,6 @@ stand-in), pose its frames, fit the part boxes, load the training views, and sta
 from __future__ import annotations
 
 import json
-import os
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -29,6 +28,7 @@ from pipelines.body.locate import (
     BODY_MODEL_RECORD,
     body_model_record,
     check_record,
+    default_smpl_dir,
     file_sha256,
     find_recorded,
     recorded_body_file,
@@ -155,7 +155,7 @@ def fit_body_model(capture: ZjuCapture, state: dict | None) -> BodyModel:
     record = capture_body_record(capture)
     if record is None:
         return BodyModel()
-    if not os.environ.get("NARF_SMPL_DIR"):
+    if not default_smpl_dir():
         return BodyModel(find_recorded(record, str(capture.root)))
     body = BodyModel()
     if file_sha256(body.path) != record["sha256"]:
