@@ -15,7 +15,7 @@ import torch
 from skimage.metrics import structural_similarity
 
 from fitting.config import FitConfig
-from fitting.files import atomic_write_text
+from fitting.files import atomic_write_text, folder_lock
 from narf.cnn_render import render_cnn_image
 from narf.fields import CnnBaseline, model_spec
 from narf.metrics import mask_l2, psnr, psnr_of
@@ -272,13 +272,15 @@ def evaluate_splits(
 ) -> dict:
     """The evaluation skeleton every run kind shares: ``out_dir/metrics.json`` is read (the results of splits not
     evaluated now are kept), ``score(split)`` fills each split, ``header()`` adds what the run is (then the library
-    versions), and ``metrics.json`` and ``metrics.md`` (``markdown(report)``) are written atomically."""
-    metrics_path = Path(out_dir) / "metrics.json"
-    report = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {"splits": {}}
-    for split in splits:
-        report["splits"][split] = score(split)
-    report.update({**header(), "versions": library_versions()})
-    write_report(out_dir, report, markdown(report))
+    versions), and ``metrics.json`` and ``metrics.md`` (``markdown(report)``) are written atomically. One evaluation
+    of a run at a time (``fitting.files.folder_lock`` on ``out_dir``)."""
+    with folder_lock(Path(out_dir)):
+        metrics_path = Path(out_dir) / "metrics.json"
+        report = json.loads(metrics_path.read_text()) if metrics_path.is_file() else {"splits": {}}
+        for split in splits:
+            report["splits"][split] = score(split)
+        report.update({**header(), "versions": library_versions()})
+        write_report(out_dir, report, markdown(report))
     return report
 
 

@@ -4,13 +4,18 @@
   name (``os.replace`` is atomic on POSIX and Windows): :func:`atomic_write_bytes`, or :func:`atomic_output` for
   writers that want a file name (videos, ``.mat`` files).
 * A folder of many files is built in a hidden ``.<name>.partial`` folder beside it and moved into place when it is
-  complete (:func:`staged_folder`), so an interrupted run never leaves output that looks finished.
+  complete (:func:`staged_folder`), so an interrupted run never leaves output that looks finished. An older folder
+  of that name is moved aside first and deleted last (:func:`publish_folder`).
+* A write that fails (a full disk) names the file it was writing (:func:`named_errors`), and leaves no temporary file.
+* One process writes a run or capture folder at a time (:func:`folder_lock`).
 
 This is the only module that renames output into place (docs/design.md, "Files")."""
 
 from __future__ import annotations
 
 import contextlib
+import functools
+import inspect
 import os
 import shutil
 import tempfile
@@ -34,19 +39,32 @@ def atomic_write_bytes(path: Path, data: bytes, sync: bool = False) -> None:
     umask), not the 0600 of the temporary file. A kill mid-write leaves the old file and a hidden
     ``.<name>.*.tmp`` (:func:`remove_stale`)."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    with named_errors(path):
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+        try:
+            os.fchmod(fd, 0o666 & ~_UMASK)
+            with os.fdopen(fd, "wb") as handle:
+                handle.write(data)
+                if sync:
+                    handle.flush()
+                    os.fsync(handle.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+
+
+@contextlib.contextmanager
+def named_errors(path: Path) -> Iterator[None]:
+    """An OSError raised in the block without a file name (a write to an open file that finds the disk full:
+    ``[Errno 28] No space left on device``) gets ``path``'s, so the one-line error says which file it was."""
     try:
-        os.fchmod(fd, 0o666 & ~_UMASK)
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-            if sync:
-                handle.flush()
-                os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+        yield
+    except OSError as err:
+        if err.filename is not None or err.errno is None:
+            raise
+        raise OSError(err.errno, err.strerror, str(path)) from err
 
 
 def remove_stale(path: Path) -> None:
@@ -74,6 +92,7 @@ def fresh_partial(out: Path) -> Path:
     """The hidden staging folder of ``out``, ``.<name>.partial`` beside it, created empty (what an interrupted run
     left there is cleared)."""
     out = Path(out)
+    restore_replaced(out)
     partial = out.parent / f".{out.name}.partial"
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
@@ -97,15 +116,36 @@ def staged_folder(out: Path, replace: bool = True) -> Iterator[Path]:
 
 def publish_folder(partial: Path, out: Path, replace: bool = True) -> Path:
     """Move the finished staging folder ``partial`` onto ``out``, replacing an older ``out`` (``replace=False``: only
-    an empty one)."""
+    an empty one). The older one is moved aside (``.<name>.old``) first and deleted only once the new one is in
+    place, so a kill at any moment leaves the old folder or the new one: a kill between the two renames leaves the old
+    one aside, and the next writer of ``out`` puts it back (:func:`restore_replaced`)."""
     out = Path(out)
+    restore_replaced(out)
+    old = _aside(out)
     if out.exists():
         if replace:
-            shutil.rmtree(out)
+            out.rename(old)
         else:
             out.rmdir()
     Path(partial).rename(out)
+    shutil.rmtree(old, ignore_errors=True)
     return out
+
+
+def _aside(out: Path) -> Path:
+    return out.parent / f".{out.name}.old"
+
+
+def restore_replaced(out: Path) -> None:
+    """Undo a :func:`publish_folder` killed halfway: an old folder moved aside with no new one in its place goes back
+    to ``out``; one left beside a complete ``out`` (killed while deleting it) is deleted."""
+    out, old = Path(out), _aside(Path(out))
+    if not old.exists():
+        return
+    if out.exists():
+        shutil.rmtree(old, ignore_errors=True)
+    else:
+        old.rename(out)
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -124,3 +164,76 @@ def merge_folder(partial: Path, out: Path) -> Path:
         path.replace(out / path.name)
     Path(partial).rmdir()
     return out
+
+
+class FolderBusy(OSError):
+    """Another process writes the folder (:func:`folder_lock`)."""
+
+
+@contextlib.contextmanager
+def folder_lock(folder: Path) -> Iterator[None]:
+    """Hold the write lock of ``folder`` for the block: one writer per run or capture folder.
+
+    The lock is an advisory ``flock`` on a hidden ``.<name>.lock`` file beside the folder (beside, so that it
+    outlives the folder being replaced), which holds the owner's process id. The kernel drops it when its process
+    ends, however it ends, so a lock left by a killed process blocks nobody. The file is removed on release; a
+    process that locked a file which was removed meanwhile tries again on the new one. Where ``flock`` does not
+    exist (Windows) the block runs unlocked.
+
+    Raises:
+        FolderBusy: another live process holds the lock (the message names the folder and its process id).
+    """
+    try:
+        import fcntl
+    except ImportError:  # no flock on this system
+        yield
+        return
+    folder = Path(folder)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    lock = folder.parent / f".{folder.name}.lock"
+    while True:
+        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_UMASK)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "unknown"
+            os.close(fd)
+            raise FolderBusy(
+                f"{folder}: another command is writing it (process {holder}); wait for it to end"
+            ) from None
+        if _same_file(fd, lock):
+            break
+        os.close(fd)  # the holder removed the file as we opened it: lock the one there now
+    try:
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        yield
+    finally:
+        Path(lock).unlink(missing_ok=True)
+        os.close(fd)
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    """Whether the open file ``fd`` is still the file at ``path``."""
+    try:
+        return os.path.samestat(os.fstat(fd), os.stat(path))
+    except FileNotFoundError:
+        return False
+
+
+def writes_folder(argument: str = "out"):
+    """Decorator: the function holds :func:`folder_lock` on the folder its argument ``argument`` names while it
+    runs."""
+
+    def wrap(function):
+        signature = inspect.signature(function)
+
+        @functools.wraps(function)
+        def locked(*args, **kwargs):
+            folder = signature.bind(*args, **kwargs).arguments[argument]
+            with folder_lock(Path(folder)):
+                return function(*args, **kwargs)
+
+        return locked
+
+    return wrap

@@ -18,7 +18,7 @@ from fitting.config import FitConfig
 from fitting.corrections import CameraColour, PoseCorrection, PosePrior, RowAdam, corrected_colour_error
 from fitting.data import FitData
 from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
-from fitting.files import atomic_write_text
+from fitting.files import atomic_write_text, named_errors
 from fitting.plots import write_curve, write_validation
 from fitting.run_folder import write_config
 from narf.fields import model_spec
@@ -441,7 +441,7 @@ class Trainer:
                     rate = window_rays / max(time.perf_counter() - window_start, 1e-9)
                     window_start, window_rays = time.perf_counter(), 0
                     bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{score:.2f}", rays_s=f"{rate:,.0f}")
-                    with open(log_path, "a") as handle:
+                    with named_errors(log_path), open(log_path, "a") as handle:
                         handle.write(
                             json.dumps(
                                 {

@@ -8,12 +8,15 @@ two bits (``POOL_BODY``, ``POOL_BORDER``, ``POOL_BACKGROUND``; 0 outside every p
 
 from __future__ import annotations
 
+import errno
 import os
 import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
+
+from fitting.files import named_errors
 
 BORDER_PX = 11  # side of the square dilation kernel: the border pool is the 5-px ring around the silhouette
 BOX_PAD = 0.1  # the sampling box: the dilated silhouette's bounding box grown by 10 % of its size on each side
@@ -62,7 +65,9 @@ class ViewStore:
     def __init__(self, directory: str | Path | None = None):
         if directory is not None:
             Path(directory).mkdir(parents=True, exist_ok=True)
-        self._file = tempfile.TemporaryFile(prefix="narf-views-", dir=directory)
+        self._where = Path(directory if directory is not None else tempfile.gettempdir())
+        with named_errors(self._where):
+            self._file = tempfile.TemporaryFile(prefix="narf-views-", dir=directory)
         self._end = 0
         self._records: list[tuple[int, int, int, int, int, int, int]] = []  # offset, y0, x0, h, w, H, W
         self._fill: list[np.ndarray] = []
@@ -82,10 +87,21 @@ class ViewStore:
             y0, y1, x0, x1 = 0, height, 0, width  # not one colour outside the box: keep the whole view
         crop = np.ascontiguousarray(image[y0:y1, x0:x1])
         record = crop.tobytes() + np.ascontiguousarray(labels[y0:y1, x0:x1]).tobytes()
-        os.pwrite(self._file.fileno(), record, self._end)
+        self._write(record)
         self._records.append((self._end, y0, x0, y1 - y0, x1 - x0, height, width))
         self._fill.append(fill.copy())
         self._end += len(record)
+
+    def _write(self, record: bytes) -> None:
+        """Append ``record`` at the end of the store; a full disk (an error, or a write that stops short) ends in an
+        OSError naming the store's folder."""
+        done = 0
+        with named_errors(self._where / "(the training views' store)"):
+            while done < len(record):
+                written = os.pwrite(self._file.fileno(), record[done:], self._end + done)
+                if written == 0:
+                    raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+                done += written
 
     def box(self, index: int) -> tuple[int, int, int, int]:
         """(y0, x0, h, w) of view ``index``'s stored crop."""

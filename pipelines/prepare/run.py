@@ -16,7 +16,7 @@ import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
 
-from fitting.files import fresh_partial, publish_folder
+from fitting.files import folder_lock, fresh_partial, publish_folder, restore_replaced
 from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.floor import Floor, camera_up, floor_from_feet, write_floor
@@ -95,10 +95,17 @@ def _refuse_all_flagged(report: dict, request: PrepareRequest) -> None:
 
 
 def prepare_capture(request: PrepareRequest) -> dict:
-    """Run every step (module docstring); returns the report. On any error or Ctrl-C the partial folder is removed."""
+    """Run every step (module docstring); returns the report. On any error or Ctrl-C the partial folder is removed.
+    One writer per ``out`` (``fitting.files.folder_lock``)."""
+    with folder_lock(Path(request.out)):
+        return _prepare_locked(request)
+
+
+def _prepare_locked(request: PrepareRequest) -> dict:
     from pipelines.body.model import BodyModel
 
     out = Path(request.out)
+    restore_replaced(out)  # a replacement killed halfway: the old capture first
     _check_out(out, request.overwrite)
     sources = find_sources(request.recording)  # a missing recording is named before its calibration is looked for
     calibration = request.calibration or find_calibration(Path(request.recording))

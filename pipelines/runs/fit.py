@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-import os
+import contextlib
 import shutil
 from collections.abc import Callable
 from pathlib import Path
@@ -11,9 +11,11 @@ from pathlib import Path
 from fitting.checkpoint import load_checkpoint
 from fitting.config import FitConfig, load_config
 from fitting.distributed import SINGLE, Processes, barrier, from_environment, shutdown
+from fitting.files import folder_lock
 from fitting.fitted import run_config
 from fitting.run_folder import auto_device, prepare_run_dir
 from narf.fields import model_spec
+from pipelines.body.locate import chosen_smpl_dir
 from pipelines.runs.kinds import RUN_KINDS
 from pipelines.runs.requests import FitInterrupted, FitOutcome, FitRequest
 
@@ -84,17 +86,28 @@ def default_out(config: FitConfig) -> Path:
 def fit(request: FitRequest, announce: Callable[[str], None] | None = None) -> FitOutcome:
     """Start (or resume) the requested fit and train until its steps or ``max_minutes`` are spent; ``announce``
     receives one line describing the fit before it trains. A Ctrl-C reaches the caller as KeyboardInterrupt after
-    the trainer has saved its checkpoint. Under torchrun every process calls it."""
+    the trainer has saved its checkpoint. Under torchrun every process calls it. The request's ``smpl_dir`` is the
+    body model of this fit only (``pipelines.body.locate.chosen_smpl_dir``)."""
+    with chosen_smpl_dir(request.smpl_dir):
+        return _fit(request, announce)
+
+
+def _fit(request: FitRequest, announce: Callable[[str], None] | None) -> FitOutcome:
     import torch
 
-    if request.smpl_dir:
-        os.environ["NARF_SMPL_DIR"] = request.smpl_dir
     device = auto_device(request.device)
     processes = from_environment(device)
     if processes.distributed and device.type == "cuda":
         device = torch.device("cuda", processes.local_rank)
     config = request_config(request, device.type == "cuda")
     out = request.out or default_out(config)
+    with folder_lock(out) if processes.is_main else contextlib.nullcontext():  # one writer per run folder
+        return _fit_into(Path(out), request, config, device, processes, announce)
+
+
+def _fit_into(out: Path, request: FitRequest, config: FitConfig, device, processes: Processes, announce) -> FitOutcome:
+    import torch
+
     if request.resume and not (Path(out) / "checkpoint.pt").exists():
         raise FileNotFoundError(f"{out}: no checkpoint to resume")
     fresh = not request.resume and not Path(out).exists()

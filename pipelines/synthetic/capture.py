@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
-import shutil
 from dataclasses import asdict
 from pathlib import Path
 
@@ -21,7 +20,7 @@ import torch
 import trimesh
 from tqdm import tqdm
 
-from fitting.files import fresh_partial, publish_folder
+from fitting.files import fresh_partial, publish_folder, writes_folder
 from fitting.mesh import vertex_normals
 from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.body.model import BodyModel
@@ -223,6 +222,7 @@ def _write_cameras(root: Path, config: SynthConfig, cameras: list[Camera]) -> No
     write_easymocap_cameras(root, cameras)
 
 
+@writes_folder()
 def generate_capture(
     out: str | Path, config: SynthConfig = SynthConfig(), smpl_path: str | Path | None = None, progress: bool = True
 ) -> Path:
@@ -237,8 +237,7 @@ def generate_capture(
         if not is_complete(out):
             raise FileExistsError(
                 f"{out}: folder is not empty and holds no finished synthetic capture; choose another --out or remove it"
-            )
-        shutil.rmtree(out)  # a finished capture with other settings: regenerate
+            )  # a finished capture with other settings: regenerated, and replaced once the new one is complete
     partial = fresh_partial(out)
     body = BodyModel(smpl_path)
     params, old, new = pose_sequence(body, taichi_motion(config.frames, config.seed))
@@ -282,4 +281,4 @@ def generate_capture(
     (partial / MARKER).write_text(
         json.dumps({"version": GENERATOR_VERSION, "config": asdict(config), "smpl": str(body.path)}, indent=2)
     )
-    return publish_folder(partial, out, replace=False)
+    return publish_folder(partial, out)

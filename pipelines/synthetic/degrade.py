@@ -19,6 +19,7 @@ import torch
 from tqdm import tqdm
 
 from fitting.corrections import PoseCorrection
+from fitting.files import writes_folder
 from narf.kinematics import N_JOINTS
 from pipelines.body.model import BodyModel, capture_poses
 from pipelines.datasets.capture import ZjuCapture
@@ -104,6 +105,7 @@ def _recolour(capture: ZjuCapture, partial: Path, gains: np.ndarray, biases: np.
         cv2.imwrite(str(target), (out * 255 + 0.5).astype(np.uint8), options)
 
 
+@writes_folder("out")
 def degrade_capture(src: Path, out: Path, degradation: Degradation, progress: bool = True) -> Path:
     """Write ``out``: the capture ``src`` with its poses and camera colours broken (module docstring)."""
     degradation.validate()

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from fitting.files import fresh_partial, publish_folder
+from fitting.files import fresh_partial, publish_folder, writes_folder
 from pipelines.body.model import BodyModel
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.thuman import RENDER_SIZE, THUMAN_K, item_gender, read_colored_obj, read_smpl_params_txt
@@ -130,6 +130,7 @@ def raw_items(raw_dir: Path) -> list[str]:
     return items
 
 
+@writes_folder()
 def prepare_thuman(
     raw_dir: Path,
     out: Path,

@@ -19,6 +19,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
+from fitting.files import writes_folder
 from pipelines.synthetic.people import pixel_rays
 from pipelines.synthetic.settings import RigidSynthConfig  # noqa: F401 (re-exported)
 from pipelines.synthetic.staging import is_finished, publish, start_staging
@@ -157,6 +158,7 @@ def is_rigid_complete(out: Path, config: RigidSynthConfig | None = None) -> bool
     return is_finished(out, "rigid", config, RIGID_VERSION)
 
 
+@writes_folder()
 def generate_rigid(out: str | Path, config: RigidSynthConfig = RigidSynthConfig(), progress: bool = True) -> Path:
     """Generate (or reuse) the rigid-object set at ``out`` (module docstring)."""
     config.validate()

@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from fitting.files import writes_folder
 from pipelines.body.model import BodyModel
 from pipelines.body.surreal import R_X90, surreal_world_pose
 from pipelines.datasets.surreal import HEIGHT, SURREAL_K, WIDTH, surreal_cam_from_world
@@ -109,6 +110,7 @@ def is_surreal_complete(out: Path, config: SurrealSynthConfig | None = None) -> 
     return is_finished(out, "surreal", config, SURREAL_VERSION)
 
 
+@writes_folder()
 def generate_surreal(
     out: str | Path, config: SurrealSynthConfig = SurrealSynthConfig(), smpl_path=None, progress: bool = True
 ) -> Path:

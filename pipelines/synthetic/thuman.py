@@ -18,6 +18,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from fitting.files import writes_folder
 from pipelines.body.model import BodyModel
 from pipelines.synthetic.narf_render import prepare_folders, render_mesh_splits
 from pipelines.synthetic.people import Person, person_colours, random_person, random_poses
@@ -80,6 +81,7 @@ def _write_mesh(root: Path, state: dict, m: int, person: Person, pose: np.ndarra
         state["data_list"].append(f"{item}/{state['pose_slot']:04d}")
 
 
+@writes_folder()
 def generate_thuman(
     out: str | Path, config: ThumanSynthConfig = ThumanSynthConfig(), smpl_path=None, progress: bool = True
 ) -> Path:
