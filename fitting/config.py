@@ -101,14 +101,15 @@ class TrainConfig:
     compile: bool = False  #: torch.compile the field's forward pass (dynamic shapes; the eager path is the reference)
     deterministic: bool = True  #: deterministic kernels, so a resumed fit ends where an uninterrupted one would
     pose_correction: bool = False  #: subject fits: correct each training frame's body pose while fitting
-    pose_lr: float = 5e-4  #: learning rate of the pose corrections' turns (radians; per-knot Adam)
-    pose_shift_lr: float = 2e-4  #: learning rate of the pose corrections' shifts (metres)
+    pose_lr: float = 2e-3  #: learning rate of the pose corrections' turns (radians; per-knot Adam)
+    pose_shift_lr: float = 1e-3  #: learning rate of the pose corrections' shifts (metres)
     pose_start: int = 1000  #: the step from which the poses are corrected (the field takes shape first)
-    pose_prior: float = 1e-4  #: weight of the robust pull of each knot's correction towards the capture's pose
+    pose_prior: float = 1e-5  #: weight of the robust pull of each knot's correction towards the capture's pose
     pose_prior_degrees: float = 5.0  #: the prior's scale of a joint's turn (a turn this size costs half of 1)
     pose_prior_cm: float = 3.0  #: the prior's scale of the body's shift
     pose_smooth: float = 0.0  #: pull of neighbouring knots' corrections towards each other (in the prior's units)
     pose_knot_every: int = 1  #: capture frames between pose-correction knots (1: every frame its own)
+    pose_gradient_freqs: int = 4  #: point-encoding frequencies that pass the pose's gradient (10: all; model.md §6)
     mask_body_iterations: int = 150  #: subject fits (NeRF-type): refine the bodies against the masks first (0: off)
     camera_colour: bool = False  #: subject fits: a colour gain and bias per training camera, in the loss only
     colour_lr: float = 1e-3  #: Adam learning rate of the camera colour transforms
@@ -177,7 +178,8 @@ def migrate_saved(saved: dict, checkpoint_kind: str | None = None) -> dict:
     """A run folder's saved config in today's keys. Older runs named the kind in ``data.dataset`` (zju, thuman,
     rigid; the autoencoder's checkpoint also said ``kind: autoencoder``) and kept the process count in
     ``train.world_size``; both are read here, so every run folder written since loads as it was fitted. A saved
-    config without ``train.mask_body_iterations`` predates the refinement of the bodies against the masks: 0."""
+    config without ``train.mask_body_iterations`` predates the refinement of the bodies against the masks: 0; one
+    without ``train.pose_gradient_freqs`` corrected its poses through every frequency: 10."""
     if not isinstance(saved, dict):
         raise ConfigError(f"saved config: expected a mapping, got {type(saved).__name__}")
     saved = {k: dict(v) if isinstance(v, dict) else v for k, v in saved.items()}
@@ -187,6 +189,8 @@ def migrate_saved(saved: dict, checkpoint_kind: str | None = None) -> dict:
         train.pop("world_size", None)
         # runs fitted before the bodies were refined against the masks keep their capture's bodies
         train.setdefault("mask_body_iterations", 0)
+        # ... and those fitted before the pose's gradient was band-limited passed it through every frequency
+        train.setdefault("pose_gradient_freqs", 10)
     if "kind" not in saved and (legacy is not None or checkpoint_kind is not None):
         name = checkpoint_kind if checkpoint_kind == "autoencoder" else legacy
         if name not in LEGACY_KINDS and name not in LEGACY_KINDS.values():
@@ -320,6 +324,7 @@ RANGES = {
     "train.pose_prior_cm": (lambda v: v > 0, "> 0"),
     "train.pose_smooth": (lambda v: v >= 0, ">= 0"),
     "train.pose_knot_every": (lambda v: v >= 1, ">= 1"),
+    "train.pose_gradient_freqs": (lambda v: 1 <= v <= 10, "in [1, 10]"),
     "train.mask_body_iterations": (lambda v: v >= 0, ">= 0"),
     "train.colour_lr": (lambda v: v > 0, "> 0"),
     "train.colour_prior": (lambda v: v >= 0, ">= 0"),

@@ -213,6 +213,8 @@ class Trainer:
             raise ValueError("train.pose_correction: this data has no body parameters to correct")
         if data.capture_poses is not None:  # corrected while fitting, or refined against the masks: the run keeps them
             self.pose_correction = PoseCorrection(data.capture_poses, t.pose_knot_every).to(self.device)
+        if t.pose_correction:  # the pose's gradient through the smooth bands only (docs/model.md §6)
+            self.field.pose_gradient_freqs = t.pose_gradient_freqs
         if t.camera_colour:
             self.camera_colour = CameraColour(data.training.n_cameras).to(self.device)
 

@@ -40,3 +40,26 @@ XI_WIDTH = encoding_dim(6, POSE_FREQS)
 def zeta_width(n_parts: int) -> int:
     """Width of gamma_4(zeta), one bone length per part: 152 for NARF's 19 parts."""
     return encoding_dim(n_parts, POSE_FREQS)
+
+
+def point_encoding(values: torch.Tensor, gradient_freqs: int | None = None) -> torch.Tensor:
+    """gamma_10(values), the point and box-coordinate encoding, whose gradient w.r.t. ``values`` passes through its
+    ``gradient_freqs`` lowest frequencies only (None: all). The value is :func:`positional_encoding`'s, bit for bit,
+    and so is every gradient that does not go through ``values``; only the pose correction's path, from the colour
+    back to the part-local points and the pose, is band-limited. Its top frequencies (periods of 4 mm and less over
+    a box) make the loss over the pose rough at the scale of a tenth of a millimetre, so that their gradient says
+    little about a turn of degrees (docs/model.md §6).
+
+    Args:
+        values: (..., D) part-local coordinates.
+        gradient_freqs: frequencies k < gradient_freqs pass gradient; None or >= POINT_FREQS: all.
+
+    Returns:
+        (..., D * 2 POINT_FREQS), laid out as :func:`positional_encoding`'s.
+    """
+    if gradient_freqs is None or gradient_freqs >= POINT_FREQS or not values.requires_grad:
+        return positional_encoding(values, POINT_FREQS)
+    freqs = (2.0 ** torch.arange(POINT_FREQS, dtype=values.dtype, device=values.device)) * math.pi
+    passing = torch.arange(POINT_FREQS, device=values.device) < gradient_freqs
+    angles = torch.where(passing, values[..., None] * freqs, values.detach()[..., None] * freqs)  # (..., D, L)
+    return torch.cat([torch.sin(angles), torch.cos(angles)], dim=-1).flatten(-2)

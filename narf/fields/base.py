@@ -63,6 +63,10 @@ class Field(nn.Module):
 
     #: whether ``_forward`` reads x_local (R, S, P, 3); the others get None and skip computing it
     uses_part_points = False
+    #: the point encodings' frequencies through which gradient reaches the part-local points, and so the pose
+    #: (``narf.encodings.point_encoding``); None: all. Set while poses are corrected; no effect on the field's own
+    #: gradients or on any value.
+    pose_gradient_freqs: int | None = None
 
     def __init__(self, n_parts: int, latent_dim: int = 0):
         super().__init__()

@@ -8,10 +8,10 @@ import torch
 
 from narf.encodings import (
     DIRECTION_WIDTH,
-    POINT_FREQS,
     POINT_WIDTH,
     POSE_FREQS,
     XI_WIDTH,
+    point_encoding,
     positional_encoding,
     zeta_width,
 )
@@ -58,11 +58,13 @@ class DNarf(Field):
         if self.fast:
             return self._forward_in_box(inputs)
         encoded_zeta = self.zeta_encoding(pose)
-        probs = masked_softmax(self.selector(positional_encoding(u, POINT_FREQS), encoded_zeta), in_box)  # (R, S, P)
+        probs = masked_softmax(
+            self.selector(point_encoding(u, self.pose_gradient_freqs), encoded_zeta), in_box
+        )  # (R, S, P)
         canonical = torch.einsum("rsp,rspc->rsc", probs, x_local + pose.rest_offsets[:, None])
         blended_dirs = torch.einsum("rsp,rpc->rsc", probs, d_local)
         blended_xi = torch.einsum("rsp,rpc->rsc", probs, pose.pose_features)
-        density = {"x": positional_encoding(canonical / 1.25, POINT_FREQS)[None], "zeta": encoded_zeta[None]}
+        density = {"x": point_encoding(canonical / 1.25, self.pose_gradient_freqs)[None], "zeta": encoded_zeta[None]}
         colour = {
             "dirs": positional_encoding(blended_dirs, POSE_FREQS)[None],
             "pose": positional_encoding(blended_xi / math.pi, POSE_FREQS)[None],
@@ -75,7 +77,7 @@ class DNarf(Field):
         r_count, s_count, p_count = in_box.shape
         ray, sample, part = in_box_pairs(in_box)
         flat = ray * s_count + sample
-        encoded = positional_encoding(u[ray, sample, part], POINT_FREQS)  # (M, 60)
+        encoded = point_encoding(u[ray, sample, part], self.pose_gradient_freqs)  # (M, 60)
         chunks = torch.split(encoded, torch.bincount(part, minlength=p_count).tolist())
         logit = selector_logits(self.selector, chunks, ray, part, self.zeta_encoding(pose))
         probs = segment_softmax(logit, flat, r_count * s_count)  # (M,)
@@ -89,7 +91,7 @@ class DNarf(Field):
         live = in_box.reshape(-1, p_count).any(dim=-1).nonzero()[:, 0]  # samples inside some box
         live_rays = live // s_count
         density = {
-            "x": positional_encoding(canonical[live] / 1.25, POINT_FREQS)[None, None],
+            "x": point_encoding(canonical[live] / 1.25, self.pose_gradient_freqs)[None, None],
             "zeta": self.zeta_encoding(pose)[live_rays, 0][None, None],
         }
         colour = {

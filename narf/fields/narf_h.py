@@ -6,10 +6,10 @@ import math
 
 from narf.encodings import (
     DIRECTION_WIDTH,
-    POINT_FREQS,
     POINT_WIDTH,
     POSE_FREQS,
     XI_WIDTH,
+    point_encoding,
     positional_encoding,
     zeta_width,
 )
@@ -69,7 +69,7 @@ class NarfH(Field):
             sigma, rgb = self.head.forward_embedded(density, colour, {"zeta": encoded_zeta[None]}, z_s, z_a)
             return FieldOutput(sigma[0], rgb[0], probs)
         r, s, p, _ = u.shape
-        encoded_u = positional_encoding(u, POINT_FREQS)  # (R, S, P, 60)
+        encoded_u = point_encoding(u, self.pose_gradient_freqs)  # (R, S, P, 60)
         encoded_zeta = self.zeta_encoding(pose)
         weights, probs = self.part_weights(encoded_u, in_box, encoded_zeta)
         masked_u = (weights[..., None] * encoded_u).reshape(1, r, s, p * POINT_WIDTH)

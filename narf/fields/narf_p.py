@@ -8,10 +8,10 @@ import torch
 
 from narf.encodings import (
     DIRECTION_WIDTH,
-    POINT_FREQS,
     POINT_WIDTH,
     POSE_FREQS,
     XI_WIDTH,
+    point_encoding,
     positional_encoding,
     zeta_width,
 )
@@ -78,7 +78,7 @@ class NarfP(Field):
         """Every part's network on every sample (the reference): sigma_i (R, S, P), c_i (R, S, P, 3)."""
         p = self.n_parts
         density = {
-            "u": positional_encoding(u, POINT_FREQS).permute(2, 0, 1, 3),
+            "u": point_encoding(u, self.pose_gradient_freqs).permute(2, 0, 1, 3),
             "zeta": self.zeta_encoding(pose)[None].expand(p, -1, -1, -1),
         }
         colour = {
@@ -111,7 +111,7 @@ class NarfP(Field):
             return out.index_put((block_id, position), values)[:, None]
 
         density = {
-            "u": packed(positional_encoding(u[ray, sample, part], POINT_FREQS)),
+            "u": packed(point_encoding(u[ray, sample, part], self.pose_gradient_freqs)),
             "zeta": packed(self.zeta_encoding(pose)[ray, 0]),
         }
         colour = {

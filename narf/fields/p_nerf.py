@@ -6,10 +6,10 @@ import math
 
 from narf.encodings import (
     DIRECTION_WIDTH,
-    POINT_FREQS,
     POINT_WIDTH,
     POSE_FREQS,
     XI_WIDTH,
+    point_encoding,
     positional_encoding,
     zeta_width,
 )
@@ -44,7 +44,7 @@ class PNerf(Field):
         x_hat = (points - pelvis[:, None]) / (1.25 * pose.reach[:, None, None])
         encoded_pose = positional_encoding(pose.pose_features / math.pi, POSE_FREQS).flatten(1)[None, :, None]
         density = {
-            "x": positional_encoding(x_hat, POINT_FREQS)[None],
+            "x": point_encoding(x_hat, self.pose_gradient_freqs)[None],
             "pose": encoded_pose,
             "zeta": self.zeta_encoding(pose)[None],
         }

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import math
 
-from narf.encodings import DIRECTION_WIDTH, POINT_FREQS, POINT_WIDTH, POSE_FREQS, XI_WIDTH, positional_encoding
+from narf.encodings import (
+    DIRECTION_WIDTH,
+    POINT_WIDTH,
+    POSE_FREQS,
+    XI_WIDTH,
+    point_encoding,
+    positional_encoding,
+)
 from narf.fields.base import Field, FieldInputs, FieldOutput
 from narf.fields.common import RadianceHead
 
@@ -29,7 +36,7 @@ class RtNerf(Field):
         colour = {"dirs": positional_encoding(d_local[:, 0], POSE_FREQS)[None, :, None]}
         if self.use_pose:
             colour["pose"] = positional_encoding(pose.pose_features[:, 0] / math.pi, POSE_FREQS)[None, :, None]
-        sigma, rgb = self.head({"u": positional_encoding(u[:, :, 0], POINT_FREQS)[None]}, colour, z_s, z_a)
+        sigma, rgb = self.head({"u": point_encoding(u[:, :, 0], self.pose_gradient_freqs)[None]}, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], None)
 
 
@@ -51,7 +58,7 @@ class RpNerf(Field):
         points, dirs, pose, _, _, _, _, z_s, z_a = inputs
         x_hat = points / (1.25 * pose.reach[:, None, None])
         encoded_pose = positional_encoding(pose.pose_features[:, 0] / math.pi, POSE_FREQS)[None, :, None]
-        density = {"x": positional_encoding(x_hat, POINT_FREQS)[None], "pose": encoded_pose}
+        density = {"x": point_encoding(x_hat, self.pose_gradient_freqs)[None], "pose": encoded_pose}
         colour = {"pose": encoded_pose, "dirs": positional_encoding(dirs, POSE_FREQS)[None, :, None]}
         sigma, rgb = self.head(density, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], None)

@@ -14,7 +14,7 @@ import math
 
 import torch
 
-from narf.encodings import POINT_FREQS, POINT_WIDTH, POSE_FREQS, positional_encoding
+from narf.encodings import POINT_WIDTH, POSE_FREQS, point_encoding, positional_encoding
 
 
 def segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: int) -> torch.Tensor:
@@ -102,7 +102,7 @@ def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: 
     n_samples = r_count * s_count
     ray, in_ray, part = in_box_pairs(in_box)
     sample = ray * s_count + in_ray
-    encoded = positional_encoding(u[ray, in_ray, part], POINT_FREQS)  # (M, 60)
+    encoded = point_encoding(u[ray, in_ray, part], model.pose_gradient_freqs)  # (M, 60)
     counts = torch.bincount(part, minlength=p_count).tolist()
     chunks = torch.split(encoded, counts)
     w_density = head.density_embed["parts"].effective_weight()

@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from fitting.config import TrainConfig
 from fitting.fitted import read_run, run_config
 from pipelines.body.model import BodyModel
 from pipelines.datasets.capture import ZjuCapture
@@ -45,14 +46,17 @@ def field_fixed_trainer(
     field_run: Path, capture: Path, overrides: list[str] | tuple[str, ...] = (), frame_stride: int = 1
 ) -> Iterator:
     """The fit's own trainer (same rays, losses, optimiser and correction) on ``capture`` with the field of
-    ``field_run`` loaded and frozen (part boxes and occupancy grid included): the run's config with
-    ``train.pose_correction`` on from step 0, then ``overrides``. Its run folder is a temporary one."""
+    ``field_run`` loaded and frozen (part boxes and occupancy grid included): the run's config with today's pose
+    correction settings (``train.pose_*``, whatever the field's run had), on from step 0, then ``overrides``. Its
+    run folder is a temporary one."""
     from pipelines.runs.subject.session import start
 
     saved = read_run(field_run)
+    today = {f"train.{k}={v}" for k, v in vars(TrainConfig()).items() if k.startswith("pose_")}
     sets = [
         f"data.subject={Path(capture).resolve()}",
         f"data.frame_stride={frame_stride}",
+        *sorted(today),
         "train.pose_correction=true",
         "train.pose_start=0",
         "train.validate_every=0",
