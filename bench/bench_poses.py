@@ -25,12 +25,14 @@ STEPS = 400
 ON = ["train.pose_correction=true"]
 #: (label, overrides of the field-fixed correction, frame stride)
 FIXED = [
+    ("field fixed, photometric only, every 10th frame", ["train.mask_body_iterations=0"], 10),
     (
-        "field fixed, photometric only, every 10th frame",
-        ["train.mask_body_iterations=0", "train.views_per_frame=4"],
+        "field fixed, photometric only, every 10th frame, every frequency",
+        ["train.mask_body_iterations=0", "train.pose_gradient_freqs=10"],
         10,
     ),
-    ("field fixed, masks then photometric", ["train.views_per_frame=4"], 1),
+    ("field fixed, photometric only, every frame", ["train.mask_body_iterations=0"], 1),
+    ("field fixed, masks then photometric", [], 1),
 ]
 #: (label, capture, ``--set`` overrides, minutes)
 JOINT = [
