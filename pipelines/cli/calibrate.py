@@ -44,7 +44,7 @@ def checkerboard_intrinsics(args) -> int:
     return 0
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="narf-calibrate",
         description="Calibrate every camera of a rig from ChArUco shots in CAPTURE_DIR/calib/<camera>/ (shots with "
@@ -90,7 +90,11 @@ def main(argv: list[str] | None = None) -> int:
         help="with --checkerboard: a calibration file to compare the intrinsics with",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     if not args.capture.is_dir():
         raise CaptureError(f"{args.capture}: no such capture folder")
     if args.checkerboard:

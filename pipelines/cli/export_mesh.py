@@ -32,7 +32,7 @@ def _print_level(record: dict) -> None:
         print(f"narf-export-mesh: level {record['level']:.3g} (silhouette IoU {iou:.3f} on {views} training views)")
 
 
-def main(argv: list[str] | None = None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="narf-export-mesh",
         description="Extract the surface of a fitted avatar's density field (scikit-image marching cubes over the "
@@ -77,7 +77,11 @@ def main(argv: list[str] | None = None) -> int:
     add_smpl_dir(parser)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
-    args = parser.parse_args(attach_dash_values(argv, ("--frames",)))
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(attach_dash_values(argv, ("--frames",)))
     from fitting.run_folder import auto_device
     from pipelines.runs.kinds import open_run
     from pipelines.runs.requests import ExportRequest, a_run

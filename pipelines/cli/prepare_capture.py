@@ -231,12 +231,17 @@ def main(argv: list[str] | None = None) -> int:
         progress=not args.quiet,
         sync=args.sync,
     )
-    report = prepare_capture(request)
+    _print_summary(prepare_capture(request), args.out)
+    return 0
+
+
+def _print_summary(report: dict, out) -> None:
+    """The report's summary: frames, reprojection, IoU, floor, notices, time offsets and one line per camera."""
     summary, frames = report["summary"], report["frames"]
     print(
         f"narf-prepare-capture: {frames['kept']} of {frames['common']} frames kept, {len(report['cameras'])} cameras; "
         f"median reprojection {summary['median_reprojection_pct_height']:.2f} % of the image height, lowest camera "
-        f"IoU {summary['min_camera_iou']:.2f}; wrote {args.out}"
+        f"IoU {summary['min_camera_iou']:.2f}; wrote {out}"
     )
     floor = report["floor"]
     print(
@@ -258,7 +263,6 @@ def main(argv: list[str] | None = None) -> int:
             f"  {name}{source}: reprojection {error:.1f} px ({share:.2f} %), IoU {camera['iou_mean']:.2f}, views used "
             f"{camera['views_used']}{moved}{flag}"
         )
-    return 0
 
 
 def _print_sync(sync: dict) -> None:
