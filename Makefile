@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONUNBUFFERED := 1
 
-.PHONY: demo demo-real test test-fast lint format bench gpu-check venv venv-real clean-venv
+.PHONY: demo demo-real test test-fast lint format bench gpu-check reference venv venv-real clean-venv
 
 venv: $(STAMP)
 
@@ -77,6 +77,13 @@ test-fast: lint
 
 bench: $(STAMP)
 	$(PY) -m bench
+
+# The behaviour-unchanged reference: the same fixed-seed tiny fits of every subject model, evaluations, videos and
+# meshes with the working tree's code and with revision REV's, compared exactly (bench/reference.py); exit 1 on any
+# difference. `make reference REV=main` before merging a refactor.
+REV ?= HEAD
+reference: $(STAMP)
+	$(PY) -m bench.reference --rev $(REV)
 
 # The project on a GPU in under 8 minutes: the CUDA tests, a 5-minute fit of the paper preset on a synthetic capture,
 # then rays/s, peak GPU memory and novel_pose PSNR (bench/gpu_check.py; on a CPU, give it a small GPU_CHECK budget).

@@ -10,6 +10,7 @@ NCCL on CUDA; rank 0 alone writes the checkpoint, logs and validation images.
 from __future__ import annotations
 
 import os
+import time
 from dataclasses import dataclass
 
 import torch
@@ -88,10 +89,23 @@ def barrier(processes: Processes) -> None:
         dist.barrier()
 
 
-def shutdown(processes: Processes) -> None:
+def shutdown(processes: Processes, timeout_s: float = 60.0) -> None:
     """Leave the process group together: each process waits until every other has finished (rank 0 may still be
-    writing the last checkpoint and the curve) before the group is destroyed. A process that fails instead never
-    reaches this point, and torchrun stops the others."""
-    if processes.distributed and dist.is_initialized():
-        dist.barrier()
-        dist.destroy_process_group()
+    writing the last checkpoint and the curve) before the group is destroyed, and exits only once every process has
+    destroyed its own. Without the second wait, a process that finishes first closes its gloo connections while a
+    peer is still tearing down the same group, whose worker threads can then abort it at exit ("terminate called
+    without an active exception"). The rendezvous store, which outlives the group, counts the processes out (for at
+    most ``timeout_s``). A process that fails instead never reaches this point, and torchrun stops the others."""
+    if not (processes.distributed and dist.is_initialized()):
+        return
+    store = dist.distributed_c10d._get_default_store()
+    dist.barrier()
+    dist.destroy_process_group()
+    store.add(_LEFT, 1)
+    deadline = time.monotonic() + timeout_s
+    while store.add(_LEFT, 0) < processes.world_size and time.monotonic() < deadline:
+        time.sleep(0.01)
+
+
+#: the store key that counts the processes whose group is destroyed (:func:`shutdown`)
+_LEFT = "narf/processes_left"

@@ -250,6 +250,9 @@ def _print_summary(report: dict, out) -> None:
     )
     for notice in report["notices"]:
         print(f"  note: {notice}")
+    if "detections" in report:
+        d = report["detections"]
+        print(f"  detections: {d['reused']} views reused, {d['detected']} detected (kept in {d['cache']})")
     _print_sync(report["sync"])
     for name, camera in report["cameras"].items():
         error, share = camera["body_reprojection_px"], camera["body_reprojection_pct_height"]

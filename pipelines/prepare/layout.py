@@ -180,8 +180,13 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
         "sync": seen.sync,
         "notices": _notices(seen, split),
     }
-    (root / "report.json").write_text(json.dumps(_json_ready(report), indent=1, allow_nan=False))
+    write_report(root, report)
     return report
+
+
+def write_report(root: Path, report: dict) -> None:
+    """``report.json`` of the capture being written in ``root`` (numbers as JSON numbers, no NaN)."""
+    (root / "report.json").write_text(json.dumps(_json_ready(report), indent=1, allow_nan=False))
 
 
 def _notices(seen, split: dict) -> list[str]:

@@ -99,16 +99,17 @@ class _Keypoints:
     """Keypoint targets of one camera, from OpenPose-style files of the recording's ``layout`` (:func:`file_layout`)
     or the detector; with files, the detector's person mask still, when ``need_mask`` (no ``--masks``)."""
 
-    def __init__(self, folder: Path | None, camera: str, detector, layout: str = "blazepose", need_mask=False):
-        self.detector, self.files, self.layout, self.need_mask = detector, None, layout, need_mask
+    def __init__(self, folder: Path | None, camera: str, detect, layout: str = "blazepose", need_mask=False):
+        """``detect(frame, rgb) -> (keypoints or None, mask or None)``: the detector on one view."""
+        self.detect, self.files, self.layout, self.need_mask = detect, None, layout, need_mask
         if folder is not None:
             self.files = keypoint_files(folder, camera)
 
     def __call__(self, frame: int, rgb: np.ndarray, scale: float) -> tuple[list[np.ndarray], np.ndarray | None]:
         if self.files is None:
-            keypoints, mask = self.detector(rgb)
+            keypoints, mask = self.detect(frame, rgb)
             return ([] if keypoints is None else [to_targets(keypoints, "blazepose")]), mask
-        mask = self.detector(rgb)[1] if self.need_mask else None  # keypoints from files, masks from the segmenter
+        mask = self.detect(frame, rgb)[1] if self.need_mask else None  # keypoints from files, masks from the segmenter
         path = self.files.get(frame)
         if path is None:
             return [], mask
@@ -198,7 +199,7 @@ def observe(
         if scale < 1:
             camera = camera.scaled(scale)
             notes[camera.name].append(f"frames resized by {scale:.4g} to {camera.width}x{camera.height}")
-        found = _Keypoints(keypoints, source.name, detector, layout, need_mask=masks is None)
+        found = _Keypoints(keypoints, source.name, _view_detector(detector, source), layout, need_mask=masks is None)
         if found.files is not None:
             notes[camera.name].append(f"keypoints read as {LAYOUT_NAMES[found.layout]}")
         mask_files = _numbered_files(camera_folder(masks, source.name), IMAGE_SUFFIXES) if masks else None
@@ -222,6 +223,14 @@ def observe(
         frames.append(seen)
         people.append(by_frame)
     return Observations(cameras, frames, people, notes)
+
+
+def _view_detector(detector, source: Source):
+    """``detect(frame, rgb)`` for one recording: through the detection cache when ``detector`` is one
+    (``pipelines.prepare.detections.CachedDetector``), else the plain detector."""
+    if hasattr(detector, "for_source"):
+        return detector.for_source(source)
+    return lambda frame, rgb: detector(rgb)
 
 
 def _given_mask(files: dict[int, Path], index: int, camera: Camera, recorded: tuple[int, int]) -> np.ndarray:

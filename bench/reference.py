@@ -1,0 +1,136 @@
+"""``make reference REV=<revision>``: show that a change leaves behaviour unchanged.
+
+The same fixed-seed tiny work runs twice, on one input: once with the working tree's code and once with the code
+of a chosen git revision, checked out in a worktree under ``--work``. The work, for every subject model (NeRF-type
+and the CNN): a 4-step ``narf-fit`` on a 64^2 synthetic capture, ``narf-eval`` of one novel_pose view, a 2-frame
+orbit video and, for the NeRF-type models, a 32^3 mesh. The input capture is generated once by the working tree,
+so a difference comes from fitting, evaluation, rendering or export, never from the data.
+
+Compared, artefact by artefact:
+
+* checkpoint tensors with ``torch.equal`` (weights, optimiser state);
+* ``eval/metrics.json`` numbers for exact equality (paths, versions and times left out);
+* videos, meshes and ``log.jsonl`` rows (times left out) byte for byte.
+
+Prints one table and exits 1 when anything differs. Both trees run with the same virtualenv and one thread, so the
+only difference is the code. The revision must have the same command-line flags (any revision since they exist).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+MODELS = ("narf_d", "narf_d_sigmoid", "narf_h", "narf_p", "p_nerf", "d_narf", "rt_nerf", "rt_nerf_no_pose", "cnn")
+#: keys whose values name places, machines or times, not behaviour
+VOLATILE = {"run", "subject", "versions", "elapsed_s", "rays_per_s", "seconds", "time_s", "device", "capture"}
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m bench.reference", description=__doc__.split("\n\n")[0])
+    parser.add_argument("--rev", default="HEAD", help="git revision to compare the working tree with")
+    parser.add_argument("--work", type=Path, default=None, help="scratch folder (default: a temporary one)")
+    parser.add_argument("--models", nargs="+", default=list(MODELS), choices=MODELS, help="models to run")
+    return parser
+
+
+def _run(tree: Path, argv: list[str], env: dict) -> None:
+    module = argv[0]
+    command = [sys.executable, "-c", f"from pipelines.cli.{module} import entrypoint; entrypoint()", *argv[1:]]
+    done = subprocess.run(command, cwd=tree, env={**env, "PYTHONPATH": str(tree)}, capture_output=True, text=True)
+    if done.returncode != 0:
+        raise RuntimeError(f"{tree}: {' '.join(argv[:2])} failed: {done.stderr.strip().splitlines()[-1:]}")
+
+
+def _work(tree: Path, data: Path, out: Path, model: str, env: dict) -> None:
+    """The fixed-seed work of one model with the code of ``tree`` into ``out``."""
+    run = out / model
+    sets = ["data.ratio=1.0", "train.steps=4", "train.validate_every=0", "train.log_every=1"]
+    flags = [x for s in sets for x in ("--set", s)]
+    _run(tree, ["fit", "--config", "tiny", "--model", model, "--data-root", str(data), "--out", str(run), *flags], env)
+    _run(tree, ["eval", "--run", str(run), "--split", "novel_pose", "--limit", "1", "--grids", "0", "--quiet"], env)
+    video = ["render_video", "--run", str(run), "--kind", "orbit", "--frames", "2", "--quiet"]
+    _run(tree, [*video, "--out", str(run / "orbit.mp4")], env)
+    if model != "cnn":
+        mesh = ["export_mesh", "--run", str(run), "--frame", "0", "--resolution", "32", "--quiet"]
+        _run(tree, [*mesh, "--out", str(run / "mesh.ply")], env)
+
+
+def _stable(value):
+    """A JSON value without its volatile keys."""
+    if isinstance(value, dict):
+        return {k: _stable(v) for k, v in value.items() if k not in VOLATILE}
+    if isinstance(value, list):
+        return [_stable(v) for v in value]
+    return value
+
+
+def _compare(a: Path, b: Path) -> list[tuple[str, str]]:
+    """(artefact, 'same' or what differs) for one model's two output folders."""
+    import torch
+
+    rows = []
+    first = torch.load(a / "checkpoint.pt", map_location="cpu", weights_only=True)
+    second = torch.load(b / "checkpoint.pt", map_location="cpu", weights_only=True)
+    differ = [k for k in ("model", "optimizer") if not _equal(first.get(k), second.get(k))]
+    rows.append(("checkpoint", "same" if not differ else "differs: " + ", ".join(differ)))
+    metrics = [_stable(json.loads((p / "eval" / "metrics.json").read_text())) for p in (a, b)]
+    rows.append(("eval/metrics.json", "same" if metrics[0] == metrics[1] else "differs"))
+    logs = [[_stable(json.loads(line)) for line in (p / "log.jsonl").read_text().splitlines()] for p in (a, b)]
+    rows.append(("log.jsonl", "same" if logs[0] == logs[1] else "differs"))
+    for name in ("orbit.mp4", "mesh.ply"):
+        if (a / name).exists() or (b / name).exists():
+            same = (a / name).is_file() and (b / name).is_file() and (a / name).read_bytes() == (b / name).read_bytes()
+            rows.append((name, "same" if same else "differs"))
+    return rows
+
+
+def _equal(x, y) -> bool:
+    """Nested dicts / lists of tensors and numbers, compared with ``torch.equal``."""
+    import torch
+
+    if isinstance(x, torch.Tensor) and isinstance(y, torch.Tensor):
+        return x.dtype == y.dtype and x.shape == y.shape and torch.equal(x, y)
+    if isinstance(x, dict) and isinstance(y, dict):
+        return x.keys() == y.keys() and all(_equal(x[k], y[k]) for k in x)
+    if isinstance(x, (list, tuple)) and isinstance(y, (list, tuple)):
+        return len(x) == len(y) and all(_equal(u, v) for u, v in zip(x, y))
+    return x == y
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    with tempfile.TemporaryDirectory(prefix="narf-reference-") as scratch:
+        work = args.work or Path(scratch)
+        rev = subprocess.run(["git", "rev-parse", args.rev], cwd=ROOT, capture_output=True, text=True, check=True)
+        sha = rev.stdout.strip()
+        old = work / f"rev-{sha[:12]}"
+        if not old.exists():
+            subprocess.run(["git", "worktree", "add", "--detach", str(old), sha], cwd=ROOT, check=True)
+        env = {**os.environ, "OMP_NUM_THREADS": "1", "NARF_CACHE": str(work / "cache")}
+        data = work / "data"
+        synth = ["synth", "--data-root", str(data), "--resolution", "64", "--frames", "6", "--cameras", "4"]
+        _run(ROOT, [*synth, "--calib-shots", "0", "--calib-close-ups", "0", "--workers", "1"], env)
+        failed = False
+        print(f"| model | artefact | working tree against {args.rev} ({sha[:12]}) |\n|---|---|---|")
+        try:
+            for model in args.models:
+                for tree, out in ((ROOT, work / "new"), (old, work / "old")):
+                    _work(tree, data, out, model, env)
+                for artefact, verdict in _compare(work / "new" / model, work / "old" / model):
+                    failed |= verdict != "same"
+                    print(f"| {model} | {artefact} | {verdict} |", flush=True)
+        finally:
+            if args.work is None:
+                subprocess.run(["git", "worktree", "remove", "--force", str(old)], cwd=ROOT, check=False)
+    return 1 if failed else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,108 @@
+"""The detector's results kept on disk, so that a rerun of ``narf-prepare-capture`` (after a kill, or with
+``--overwrite`` and other fitting settings) detects each view once (docs/guides/real-captures.md, *Long takes*).
+
+Each view's keypoints and person mask go in one small file under ``.<capture>.detections/`` beside the capture,
+named by a hash of what decides them: the recording (its path, size and modification time), the frame, the size of
+the image given to the detector and the detector (its name and settings). A changed video, another ``--resolution``
+or another detector finds no file and detects again. Files are written atomically; one that cannot be read is
+detected again and replaced."""
+
+from __future__ import annotations
+
+import hashlib
+import io
+import shutil
+from pathlib import Path
+
+import numpy as np
+
+from fitting.files import atomic_write_bytes
+from pipelines.prepare.sources import Source
+
+
+def detections_folder(out: Path) -> Path:
+    """The cache of the capture ``out``: ``.<name>.detections`` beside it."""
+    out = Path(out)
+    return out.parent / f".{out.name}.detections"
+
+
+class CachedDetector:
+    """``detector`` (``rgb -> (keypoints or None, mask or None)``) with its results kept in ``folder``.
+
+    ``cache(source, frame, rgb)``, or ``cache.for_source(source)(frame, rgb)``; ``reused`` and ``detected`` count
+    the views of this run."""
+
+    def __init__(self, detector, folder: Path, detector_id: str):
+        self.detector, self.folder, self.detector_id = detector, Path(folder), detector_id
+        self.reused = self.detected = 0
+        self._recordings: dict[Path, str] = {}
+
+    def _recording_id(self, source: Source) -> str:
+        path = Path(source.path).resolve()
+        if path not in self._recordings:
+            stat = path.stat()
+            if path.is_dir():  # a folder of images: its files' names, sizes and times
+                stats = [(p.name, p.stat().st_size, p.stat().st_mtime_ns) for p in sorted(path.iterdir())]
+                self._recordings[path] = f"{path}|{stats}"
+            else:
+                self._recordings[path] = f"{path}|{stat.st_size}|{stat.st_mtime_ns}"
+        return self._recordings[path]
+
+    def path(self, source: Source, frame: int, shape: tuple[int, ...]) -> Path:
+        """The file of one view's detection."""
+        key = f"{self._recording_id(source)}|{frame}|{tuple(shape)}|{self.detector_id}"
+        digest = hashlib.sha256(key.encode()).hexdigest()[:32]
+        return self.folder / digest[:2] / f"{digest}.npz"
+
+    def __call__(self, source: Source, frame: int, rgb: np.ndarray) -> tuple[np.ndarray | None, np.ndarray | None]:
+        """The detection of ``source``'s ``frame`` (``rgb`` (H, W, 3)): read back when kept, else detected and
+        kept."""
+        path = self.path(source, frame, rgb.shape)
+        kept = _read(path, rgb.shape[:2])
+        if kept is not None:
+            self.reused += 1
+            return kept
+        keypoints, mask = self.detector(rgb)
+        atomic_write_bytes(path, _encode(keypoints, mask))
+        self.detected += 1
+        return keypoints, mask
+
+    def for_source(self, source: Source):
+        """``detect(frame, rgb)`` of one recording."""
+        return lambda frame, rgb: self(source, frame, rgb)
+
+    def clear(self) -> None:
+        """Remove the cache (all of it)."""
+        shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def _encode(keypoints: np.ndarray | None, mask: np.ndarray | None) -> bytes:
+    buffer = io.BytesIO()
+    arrays = {}
+    if keypoints is not None:
+        arrays["keypoints"] = np.asarray(keypoints, np.float64)
+    if mask is not None:
+        arrays["mask"] = np.packbits(np.asarray(mask, bool), axis=None)
+        arrays["mask_shape"] = np.asarray(mask.shape, np.int64)
+    np.savez_compressed(buffer, **arrays)
+    return buffer.getvalue()
+
+
+def _read(path: Path, shape: tuple[int, int]) -> tuple[np.ndarray | None, np.ndarray | None] | None:
+    """A kept detection, or None when there is none or it cannot be read (no pickles: ``allow_pickle`` off)."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            keypoints = data["keypoints"] if "keypoints" in data else None
+            mask = None
+            if "mask" in data:
+                mask_shape = tuple(int(v) for v in data["mask_shape"])
+                if mask_shape != tuple(shape):
+                    return None
+                mask = np.unpackbits(data["mask"], count=int(np.prod(mask_shape))).reshape(mask_shape).astype(bool)
+    except (OSError, ValueError, KeyError, EOFError):
+        return None
+    if keypoints is not None and keypoints.ndim != 2:
+        return None
+    return keypoints, mask

@@ -1,0 +1,98 @@
+"""The detection cache of narf-prepare-capture (pipelines/prepare/detections.py): each view detected once, across a
+killed run, a rerun and a replacement, with the same capture written."""
+
+import hashlib
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from pipelines.prepare.detections import CachedDetector, detections_folder
+from pipelines.prepare.sources import Source, find_sources, read_frames
+
+
+class Counting:
+    """A detector that answers from a table (image hash -> (keypoints, mask)) and counts its calls; ``fail_after``
+    calls, it raises KeyboardInterrupt, as a kill in the middle of the detection stage would end the run."""
+
+    def __init__(self, table: dict, fail_after: int | None = None):
+        self.table, self.calls, self.fail_after = table, 0, fail_after
+
+    def __call__(self, rgb: np.ndarray):
+        if self.fail_after is not None and self.calls >= self.fail_after:
+            raise KeyboardInterrupt
+        self.calls += 1
+        return self.table[hashlib.sha256(rgb.tobytes()).hexdigest()]
+
+
+def test_a_view_is_detected_once_and_read_back_exactly(tmp_path):
+    """A second look at the same view reads the kept keypoints and mask back bit for bit; another image size or
+    another detector misses; a damaged file is detected again."""
+    rng = np.random.default_rng(0)
+    rgb = rng.integers(0, 255, (40, 30, 3), dtype=np.uint8)
+    keypoints, mask = rng.normal(size=(33, 3)), rng.random((40, 30)) > 0.5
+    video = tmp_path / "cam.mp4"
+    video.write_bytes(b"not read")
+    source = Source("cam", video, True)
+    detector = Counting({hashlib.sha256(rgb.tobytes()).hexdigest(): (keypoints, mask)})
+    cache = CachedDetector(detector, tmp_path / "cache", "fake|1")
+    for _ in range(2):
+        found = cache(source, 7, rgb)
+        assert np.array_equal(found[0], keypoints) and np.array_equal(found[1], mask)
+    assert (cache.detected, cache.reused, detector.calls) == (1, 1, 1)
+    assert cache.path(source, 7, rgb.shape) != cache.path(source, 7, (20, 15, 3))
+    other = CachedDetector(detector, tmp_path / "cache", "fake|2")
+    assert other.path(source, 7, rgb.shape) != cache.path(source, 7, rgb.shape)
+    cache.path(source, 7, rgb.shape).write_bytes(b"cut short")
+    assert np.array_equal(cache(source, 7, rgb)[1], mask) and detector.calls == 2
+    nobody = Counting({hashlib.sha256(rgb.tobytes()).hexdigest(): (None, None)})
+    empty = CachedDetector(nobody, tmp_path / "cache2", "fake|1")
+    assert empty(source, 1, rgb) == (None, None) and empty(source, 1, rgb) == (None, None) and nobody.calls == 1
+
+
+@pytest.fixture()
+def segmenter(recording):
+    """The recording's true masks, keyed by the decoded image each view gives the detector."""
+    rec = recording / "rec"
+    table = {}
+    for source in find_sources(rec):
+        files = sorted((rec / "masks" / source.name).iterdir())
+        for (_, bgr), path in zip(read_frames(source, range(10**9)), files):
+            rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+            table[hashlib.sha256(rgb.tobytes()).hexdigest()] = (None, cv2.imread(str(path), 0) > 0)
+    return table
+
+
+@pytest.mark.slow
+def test_a_killed_prepare_reuses_its_detections_and_writes_the_same_capture(
+    recording, segmenter, tmp_path, monkeypatch
+):
+    """The segmenter killed after 15 of the 40 views: nothing is published, the 15 are kept; the rerun detects the
+    other 25 only, and a replacement (--overwrite) detects none; both write the same capture."""
+    import pipelines.prepare.detect as detect
+    from pipelines.cli import prepare_capture
+    from pipelines.cli.common import run_cli
+
+    rec, out = recording / "rec", tmp_path / "out"
+    detectors = []
+
+    def make(*_):
+        detectors.append(Counting(segmenter, fail_after=15 if not detectors else None))
+        return detectors[-1]
+
+    monkeypatch.setattr(detect, "BlazePose", make)
+    monkeypatch.setattr(detect, "detector_id", lambda *_: "the true masks")
+    argv = [str(rec), "--out", str(out), "--keypoints", str(rec / "keypoints"), "--quiet"]
+    assert run_cli("narf-prepare-capture", prepare_capture.main, argv) == 130
+    assert not out.exists() and detectors[0].calls == 15
+    assert run_cli("narf-prepare-capture", prepare_capture.main, argv) == 0
+    first = json.loads((out / "report.json").read_text())
+    assert first["detections"]["reused"] == 15 and first["detections"]["detected"] == 25 == detectors[1].calls
+    assert run_cli("narf-prepare-capture", prepare_capture.main, [*argv, "--overwrite"]) == 0
+    second = json.loads((out / "report.json").read_text())
+    assert second["detections"]["reused"] == 40 and detectors[2].calls == 0
+    assert {k: v for k, v in first.items() if k != "detections"} == {
+        k: v for k, v in second.items() if k != "detections"
+    }
+    assert detections_folder(out).is_dir()
