@@ -34,3 +34,22 @@ def test_unknown_benchmark_is_a_usage_error(monkeypatch, capsys):
         bench_main.main()
     assert stop.value.code == 2
     assert "unknown benchmark 'fast'" in capsys.readouterr().err
+
+
+def test_reference_comparison_sees_any_difference():
+    """``make reference``'s comparison: nested tensors compared exactly (one ulp, a dtype or a shape differ), JSON
+    compared without the keys that name places, machines and times."""
+    import torch
+
+    from bench.reference import _equal, _stable
+
+    state = {"model": {"w": torch.ones(3)}, "optimizer": {"state": {0: {"step": torch.tensor(2.0)}}}}
+    same = {"model": {"w": torch.ones(3)}, "optimizer": {"state": {0: {"step": torch.tensor(2.0)}}}}
+    assert _equal(state, same)
+    nudged = torch.nextafter(torch.ones(3), torch.full((3,), 2.0))
+    assert not _equal(state, {**same, "model": {"w": nudged}})
+    assert not _equal(state, {**same, "model": {"w": torch.ones(3, dtype=torch.float64)}})
+    assert not _equal(state, {**same, "model": {"w": torch.ones(1, 3)}})
+    a = {"run": "/a", "versions": {"torch": "1"}, "splits": {"x": {"psnr": 20.0, "elapsed_s": 1.0}}}
+    b = {"run": "/b", "versions": {"torch": "2"}, "splits": {"x": {"psnr": 20.0, "elapsed_s": 9.0}}}
+    assert _stable(a) == _stable(b) and _stable(a) != _stable({**b, "splits": {"x": {"psnr": 20.5}}})

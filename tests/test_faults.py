@@ -261,3 +261,31 @@ def test_an_eval_killed_at_random_moments_leaves_no_report_that_looks_finished(t
             assert not metrics.exists() or json.loads(metrics.read_text())["splits"]
     assert spawn.run(argv, 300).returncode == 0
     assert json.loads((run / "eval" / "metrics.json").read_text())["splits"]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("command", ["synth", "render_video", "export_mesh"])
+def test_other_writers_killed_at_random_moments_leave_nothing_half_written(command, tiny_run, tmp_path):
+    """narf-synth (a staged folder), narf-render-video and narf-export-mesh (a file written under a hidden name)
+    killed at seeded random moments: their output is absent or whole and nothing else visible is left beside it; the
+    same command then finishes and leaves no hidden staging, temporary or lock file."""
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    out = {"synth": tmp_path / "capture", "render_video": tmp_path / "orbit.mp4", "export_mesh": tmp_path / "mesh.ply"}
+    argv = {
+        "synth": ["--out", out["synth"], "--resolution", "64", "--frames", "6", "--cameras", "4", "--calib-shots", "0"],
+        "render_video": ["--run", run, "--kind", "orbit", "--frames", "8", "--out", out["render_video"], "--quiet"],
+        "export_mesh": ["--run", run, "--frame", "0", "--resolution", "48", "--out", out["export_mesh"], "--quiet"],
+    }[command]
+    rng = random.Random(3)
+    for _ in range(2):
+        if _kill_after(_command(command, *argv), rng.uniform(1.0, 4.0)) is None:
+            target = out[command]
+            assert (
+                not target.exists()
+                or (target.is_dir() and (target / "synthetic.json").exists())
+                or target.stat().st_size
+            )
+            assert {p.name for p in tmp_path.iterdir() if not p.name.startswith(".")} <= {"run", target.name}
+    assert spawn.run(_command(command, *argv), 300).returncode == 0
+    assert out[command].exists() and not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
