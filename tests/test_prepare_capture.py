@@ -391,11 +391,12 @@ def test_keypoint_files_without_masks_take_the_segmenters_mask(tmp_path):
         calls.append(rgb.shape)
         return None, mask
 
-    found = _Keypoints(tmp_path, "cam01", segmenter, "body25", need_mask=True)
+    found = _Keypoints(tmp_path, "cam01", lambda frame, rgb: segmenter(rgb), "body25", need_mask=True)
     targets, got = found(0, np.zeros((4, 6, 3), np.uint8), 1.0)
     assert len(targets) == 1 and got is mask
     assert found(1, np.zeros((4, 6, 3), np.uint8), 1.0) == ([], mask) and len(calls) == 2
-    assert _Keypoints(tmp_path, "cam01", segmenter, "body25")(0, np.zeros((4, 6, 3), np.uint8), 1.0)[1] is None
+    plain = _Keypoints(tmp_path, "cam01", lambda frame, rgb: segmenter(rgb), "body25")
+    assert plain(0, np.zeros((4, 6, 3), np.uint8), 1.0)[1] is None
 
 
 def test_two_preparations_are_compared_frame_by_frame(prepared, tmp_path):
