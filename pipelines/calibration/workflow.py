@@ -12,7 +12,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
-from fitting.files import atomic_write_bytes, fresh_partial, merge_folder
+from fitting.files import atomic_write_bytes, fresh_partial, merge_folder, writes_folder
 from pipelines.calibration.board import BoardSpec
 from pipelines.calibration.charuco import CalibrationError, calibrate_intrinsics, detect_folder
 from pipelines.calibration.report import compare_cameras, draw_residuals, draw_rig
@@ -98,8 +98,10 @@ def calibrate_capture(
     return cameras, ims, report, figures
 
 
+@writes_folder()
 def write_outputs(out: Path, cameras: list[Camera], ims: list[list[str]] | None, report: dict, figures: dict) -> None:
-    """Write into a hidden temporary folder, then move the files into ``out`` (nothing partial on failure)."""
+    """Write into a hidden temporary folder, then move the files into ``out`` (nothing partial on failure; one
+    writer at a time)."""
     staging = fresh_partial(out)
     write_annots(staging / "annots.npy", cameras, ims or [])
     write_easymocap_cameras(staging, cameras)

@@ -18,7 +18,7 @@ import numpy as np
 
 from fitting.checkpoint import load_checkpoint
 from fitting.config import load_config
-from fitting.files import atomic_write_text
+from fitting.files import atomic_write_text, folder_lock
 from fitting.fitted import SavedRun, read_run
 from fitting.run_folder import auto_device
 from fitting.trainer import make_field
@@ -163,8 +163,13 @@ def check_settings(out_dir: Path, settings: Settings) -> None:
 
 
 def run_table(table: Table, out: Path, settings: Settings, rows: list[str] | None = None, progress=print, **kw) -> dict:
-    """Run (or resume) the rows of a table, then write ``table.json`` and ``table.md`` under ``out/<table>``."""
-    out_dir = Path(out) / table.name
+    """Run (or resume) the rows of a table, then write ``table.json`` and ``table.md`` under ``out/<table>``. One
+    process runs a table's folder at a time (``fitting.files.folder_lock``)."""
+    with folder_lock(Path(out) / table.name):
+        return _run_table(table, Path(out) / table.name, settings, rows, progress, **kw)
+
+
+def _run_table(table: Table, out_dir: Path, settings: Settings, rows, progress, **kw) -> dict:
     check_settings(out_dir, settings)
     chosen = [r for r in table.rows if rows is None or r.name in rows]
     results = {}
