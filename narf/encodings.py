@@ -46,7 +46,7 @@ def point_encoding(values: torch.Tensor, gradient_freqs: int | None = None) -> t
     """gamma_10(values), the point and box-coordinate encoding, whose gradient w.r.t. ``values`` passes through its
     ``gradient_freqs`` lowest frequencies only (None: all). The value is :func:`positional_encoding`'s, bit for bit,
     and so is every gradient that does not go through ``values``; only the pose correction's path, from the colour
-    back to the part-local points and the pose, is band-limited. Its top frequencies (periods of 4 mm and less over
+    back to the part-local points and the pose, is band-limited. Its top frequencies (periods of about a millimetre over
     a box) make the loss over the pose rough at the scale of a tenth of a millimetre, so that their gradient says
     little about a turn of degrees (docs/model.md §6).
 
