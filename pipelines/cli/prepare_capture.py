@@ -106,7 +106,14 @@ def build_parser() -> argparse.ArgumentParser:
         "(--silhouette-iterations 0 keeps them as given)",
     )
     parser.add_argument(
-        "--person", type=int, default=None, help="--smpl-params: the person's id (default: the only person)"
+        "--person",
+        type=_person,
+        default="best-seen",
+        metavar="best-seen|largest|near:X,Y,Z|pixel:CAM:U,V|ID",
+        help="whom to follow when several people are in view: best-seen (the default: most views agreeing on them "
+        "over the recording), largest (in the images), near:X,Y,Z (nearest that point, metres in the calibration's "
+        "world) or pixel:CAM:U,V (nearest that pixel of camera CAM when first seen); with --smpl-params, the "
+        "person's id in those files (default: the only person)",
     )
     parser.add_argument(
         "--masks", type=Path, default=None, help="person mask images, one sub-folder per camera (default: mediapipe)"
@@ -198,8 +205,8 @@ def main(argv: list[str] | None = None) -> int:
     from pipelines.prepare.body_fit import FitSettings
     from pipelines.prepare.run import PrepareRequest, prepare_capture
 
-    if args.person is not None and args.smpl_params is None:
-        raise ValueError("--person picks a person of --smpl-params; give --smpl-params too")
+    if isinstance(args.person, int) and args.smpl_params is None:
+        raise ValueError("--person ID picks a person of --smpl-params; give --smpl-params too")
     if args.keypoint_layout is not None and args.keypoints is None:
         raise ValueError("--keypoint-layout describes --keypoints files; give --keypoints too")
     request = PrepareRequest(
@@ -214,7 +221,8 @@ def main(argv: list[str] | None = None) -> int:
         keypoint_layout=args.keypoint_layout,
         keep_flagged=args.keep_flagged,
         smpl_params=args.smpl_params,
-        person=args.person,
+        person=args.person if isinstance(args.person, int) else None,
+        follow=args.person if not isinstance(args.person, int) else "best-seen",
         masks=args.masks,
         camera_map=args.camera_map,
         holdout_camera=args.holdout_camera,
@@ -250,6 +258,12 @@ def _print_summary(report: dict, out) -> None:
     )
     for notice in report["notices"]:
         print(f"  note: {notice}")
+    if "person" in report:
+        p = report["person"]
+        others = p["people_seen"] - 1
+        seen_too = f"; {others} other(s) seen, left out" if others else ""
+        again = f"; {p['views_detected_again']} views detected again around them" if p["views_detected_again"] else ""
+        print(f"  following {p['followed']}{seen_too}{again}")
     if "detections" in report:
         d = report["detections"]
         print(f"  detections: {d['reused']} views reused, {d['detected']} detected (kept in {d['cache']})")
@@ -266,6 +280,18 @@ def _print_summary(report: dict, out) -> None:
             f"  {name}{source}: reprojection {error:.1f} px ({share:.2f} %), IoU {camera['iou_mean']:.2f}, views used "
             f"{camera['views_used']}{moved}{flag}"
         )
+
+
+def _person(text: str):
+    """``--person``: a person's id (an integer, for --smpl-params) or whom to follow (``prepare.people``)."""
+    from pipelines.prepare.people import parse_person
+
+    if text.lstrip("-").isdigit():
+        return int(text)
+    try:
+        return parse_person(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
 
 
 def _print_sync(sync: dict) -> None:

@@ -49,3 +49,17 @@ def project_distorted(camera: Camera, points: np.ndarray) -> np.ndarray:
         np.ascontiguousarray(points, np.float64), rvec, camera.cam_from_world[:3, 3], camera.K, camera.dist
     )
     return pixels[:, 0]
+
+
+def silhouette(camera: Camera, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(H, W) bool: pixels covered by the mesh's projected triangles (triangles behind the camera skipped)."""
+    depth = vertices @ camera.cam_from_world[2, :3] + camera.cam_from_world[2, 3]
+    pixels = project_distorted(camera, vertices)
+    front = faces[(depth[faces] > 1e-3).all(axis=1)]
+    image = np.zeros((camera.height, camera.width), np.uint8)
+    inside = np.isfinite(pixels).all(-1) & (np.abs(pixels) < 1e5).all(-1)
+    front = front[inside[front].all(axis=1)]
+    polygons = np.round(pixels[front] * 4).astype(np.int32)  # 2 bits of sub-pixel precision
+    for polygon in polygons:  # one call per triangle: fillPoly's even-odd rule would cancel overlaps
+        cv2.fillConvexPoly(image, polygon, 1, lineType=cv2.LINE_8, shift=2)
+    return image > 0

@@ -7,8 +7,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pipelines.datasets.camera import Camera, project_distorted
-
 #: a camera is flagged when its median reprojection error exceeds this fraction of the image height ...
 FLAG_ERROR = 0.015
 #: ... or this many times the median of the other cameras
@@ -19,20 +17,6 @@ FLAG_IOU = 0.6
 FLAG_DISAGREED = 0.2
 #: or when the body fit had to turn it by more than this many degrees or move it by more than this many cm
 FLAG_TURN, FLAG_SHIFT = 2.0, 3.0
-
-
-def silhouette(camera: Camera, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(H, W) bool: pixels covered by the mesh's projected triangles (triangles behind the camera skipped)."""
-    depth = vertices @ camera.cam_from_world[2, :3] + camera.cam_from_world[2, 3]
-    pixels = project_distorted(camera, vertices)
-    front = faces[(depth[faces] > 1e-3).all(axis=1)]
-    image = np.zeros((camera.height, camera.width), np.uint8)
-    inside = np.isfinite(pixels).all(-1) & (np.abs(pixels) < 1e5).all(-1)
-    front = front[inside[front].all(axis=1)]
-    polygons = np.round(pixels[front] * 4).astype(np.int32)  # 2 bits of sub-pixel precision
-    for polygon in polygons:  # one call per triangle: fillPoly's even-odd rule would cancel overlaps
-        cv2.fillConvexPoly(image, polygon, 1, lineType=cv2.LINE_8, shift=2)
-    return image > 0
 
 
 def mask_near_body(mask: np.ndarray, body: np.ndarray, margin_fraction: float = 0.04) -> np.ndarray:

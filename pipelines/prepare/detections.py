@@ -67,6 +67,31 @@ class CachedDetector:
         self.detected += 1
         return keypoints, mask
 
+    def crop(self, image: Path, rgb: np.ndarray, box: tuple[int, int, int, int]):
+        """The detection inside ``box`` (x0, y0, x1, y1) of the view written at ``image`` (``rgb``: its pixels):
+        keypoints in the whole image's pixels and the mask pasted into an empty image. Kept under the hash of the
+        file's bytes, the box and the detector (a crop is asked for after the frames are written and shifted into
+        step, so the file, not the recording, names it)."""
+        x0, y0, x1, y1 = box
+        key = f"{hashlib.sha256(Path(image).read_bytes()).hexdigest()}|{tuple(box)}|{self.detector_id}"
+        digest = hashlib.sha256(key.encode()).hexdigest()[:32]
+        path = self.folder / "crops" / digest[:2] / f"{digest}.npz"
+        kept = _read(path, (y1 - y0, x1 - x0))
+        if kept is not None:
+            self.reused += 1
+            keypoints, mask = kept
+        else:
+            keypoints, mask = self.detector(np.ascontiguousarray(rgb[y0:y1, x0:x1]))
+            atomic_write_bytes(path, _encode(keypoints, mask))
+            self.detected += 1
+        if keypoints is not None:
+            keypoints = keypoints + np.array([x0, y0, 0.0])
+        if mask is not None:
+            whole = np.zeros(rgb.shape[:2], bool)
+            whole[y0:y1, x0:x1] = mask
+            mask = whole
+        return keypoints, mask
+
     def for_source(self, source: Source):
         """``detect(frame, rgb)`` of one recording."""
         return lambda frame, rgb: self(source, frame, rgb)

@@ -15,12 +15,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from pipelines.datasets.camera import project_distorted
+from pipelines.datasets.camera import project_distorted, silhouette
 from pipelines.datasets.easymocap import write_easymocap_cameras
 from pipelines.datasets.floor import feet_against_floor
 from pipelines.datasets.keypoints import TARGET_NAMES
 from pipelines.datasets.zju_mocap import SmplParams, write_annots, write_params
-from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, mask_near_body, silhouette
+from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, mask_near_body
 from pipelines.prepare.multiview import projection_matrix, relative_errors
 
 OVERLAY_HEIGHT = 480  # rows of each camera's tile in overlay.mp4
@@ -117,6 +117,7 @@ def _camera_report(seen, found, triangulated, body, ious) -> dict:
             "notes": seen.notes.get(cam.name, []),
             "views_used": int(found.used[:, v].sum()),
             "views_without_person": found.view_notes[v]["no_person"],
+            "views_showing_others": found.view_notes[v]["other_person"],
             "views_disagreeing": found.view_notes[v]["disagreed"],
             "triangulation_reprojection_px": _median(triangulated[..., v]) * height,
             "body_reprojection_px": _median(body[..., v]) * height,
@@ -182,6 +183,8 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
     }
     if seen.detections:
         report["detections"] = seen.detections
+    if seen.person:
+        report["person"] = seen.person
     (root / "report.json").write_text(json.dumps(_json_ready(report), indent=1, allow_nan=False))
     return report
 

@@ -49,6 +49,7 @@ class Observations:
         sync: the cameras' time offsets, estimated and applied (``pipelines.prepare.sync``).
         detections: views detected and reused from the detection cache (``pipelines.prepare.detections``); empty
             when no detector ran.
+        person: whom the capture follows and how many people were seen (``pipelines.prepare.run.follow_person``).
     """
 
     cameras: list[Camera]
@@ -61,6 +62,7 @@ class Observations:
     frame_rates: dict[str, float | None] = field(default_factory=dict)
     sync: dict = field(default_factory=dict)
     detections: dict = field(default_factory=dict)
+    person: dict = field(default_factory=dict)
 
 
 def fit_camera_to_recording(camera: Camera, size: tuple[int, int], source: Source) -> tuple[Camera, str | None]:

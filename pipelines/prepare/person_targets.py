@@ -10,13 +10,12 @@ import numpy as np
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.keypoints import TARGETS, mirror_index
 from pipelines.prepare.multiview import consensus, project, projection_matrix, triangulate_robust, undistort_points
+from pipelines.prepare.people import TRACK_RADIUS, Track, link_tracks, matches, people_in_frame, reach
 
 #: least detector confidence of a keypoint that is used
 MIN_CONFIDENCE = 0.3
 #: fewest targets a kept frame has triangulated
 MIN_TARGETS = 8
-#: metres a followed person may move per frame (a sprinter at 60 fps moves 0.2 m); beyond it, it is somebody else
-TRACK_RADIUS = 0.5
 
 
 @dataclass
@@ -32,7 +31,8 @@ class Triangulated:
         detected: (F, V, T, 3) undistorted, with the detector's confidence: the chosen person, or in a view that
             disagreed the detection nearest to the triangulated one (the report measures every camera on it).
         dropped: source frame -> reason.
-        view_notes: per view, counts of views with nobody seen and views that disagreed.
+        view_notes: per view, counts of views with nobody seen, views showing somebody else (another person the
+            views agree on) and views that disagreed.
     """
 
     frames: list[int]
@@ -79,27 +79,53 @@ def _nearest(P, undistorted, person, chosen, xyz) -> np.ndarray:
     return out
 
 
-def triangulate_people(cameras: list[Camera], people, frames: list[int], threshold: float) -> Triangulated:
+def find_tracks(cameras: list[Camera], people, frames: list[int], threshold: float) -> list[Track]:
+    """Every person the views agree on in ``frames``, linked into tracks (``pipelines.prepare.people``); ``people``
+    and ``threshold`` as :func:`triangulate_people`'s."""
+    P = np.stack([projection_matrix(c) for c in cameras])
+    heights = np.array([c.height for c in cameras], np.float64)
+    per_frame = {}
+    for frame in frames:
+        undistorted = _undistorted_people(cameras, [_with_mirrored(people[v].get(frame, [])) for v in range(len(P))])
+        found = people_in_frame(P, undistorted, heights, threshold)
+        per_frame[frame] = [(xyz, sum(p >= 0 for p in person)) for xyz, person in found]
+    return link_tracks(per_frame)
+
+
+def triangulate_people(
+    cameras: list[Camera], people, frames: list[int], threshold: float, route=None, others=None
+) -> Triangulated:
     """Consensus and triangulation of every frame (module docstring).
 
     Args:
         people: ``people[v][frame]`` lists of (T, 3) targets (distorted pixels). frames: source frames to use.
         threshold: reprojection error (fraction of the image height) beyond which a view disagrees.
+        route: the followed person's targets by frame (``pipelines.prepare.people.guide``): each frame keeps the
+            person within ``TRACK_RADIUS`` of them, and a frame without them is dropped. None: the person is followed
+            from the first frame two views agree on, within ``pipelines.prepare.people.reach``.
+        others: the other people's targets by frame (lists of (T, 3)): a view that shows one of them is counted as
+            showing somebody else, not as disagreeing.
     """
     P = np.stack([projection_matrix(c) for c in cameras])
     heights = np.array([c.height for c in cameras], np.float64)
     n_views, n_targets = len(cameras), len(TARGETS)
     kept, points, keypoints, used, distorted, detected, dropped = [], [], [], [], [], [], {}
-    notes = [{"no_person": 0, "disagreed": 0} for _ in cameras]
+    notes = [{"no_person": 0, "other_person": 0, "disagreed": 0} for _ in cameras]
     previous, previous_frame = None, 0
     for frame in frames:
         raw = [_with_mirrored(people[v].get(frame, [])) for v in range(n_views)]
         undistorted = _undistorted_people(cameras, raw)
-        radius = TRACK_RADIUS * (frame - previous_frame) if previous is not None else np.inf
+        if route is not None and frame not in route:
+            dropped[frame] = "the person followed is not seen by two agreeing views near this frame"
+            continue
+        if route is not None:
+            previous, radius = route[frame], TRACK_RADIUS
+        else:
+            radius = reach(frame - previous_frame) if previous is not None else np.inf
         choice = consensus(P, undistorted, heights, threshold, previous, radius)
         for v in range(n_views):
             if choice.person[v] < 0:
-                notes[v]["no_person" if not raw[v] else "disagreed"] += 1
+                notes[v][_why_not(P[v], undistorted[v], (others or {}).get(frame, []), heights[v], threshold)] += 1
         frame_xy = np.zeros((n_views, n_targets, 3))
         frame_raw = np.zeros((n_views, n_targets, 3))
         for v, p in enumerate(choice.person):
@@ -134,3 +160,13 @@ def triangulate_people(cameras: list[Camera], people, frames: list[int], thresho
         dropped,
         notes,
     )
+
+
+def _why_not(P_v, detections, others, height, threshold) -> str:
+    """Why a view kept no detection of the followed person: nobody seen, somebody else (a detection that shows one
+    of ``others``), or a disagreement."""
+    if not detections:
+        return "no_person"
+    if any(matches(P_v, d, o, height, threshold) for d in detections for o in others):
+        return "other_person"
+    return "disagreed"

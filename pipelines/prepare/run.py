@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation
+from tqdm import tqdm
 
 from fitting.files import folder_lock, fresh_partial, publish_folder, restore_replaced
 from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
@@ -24,7 +25,8 @@ from pipelines.datasets.rig_files import read_rig
 from pipelines.prepare.body_fit import FitSettings, fit_body
 from pipelines.prepare.layout import finish_capture, write_sequence
 from pipelines.prepare.observe import observe
-from pipelines.prepare.person_targets import triangulate_people
+from pipelines.prepare.people import choose_track
+from pipelines.prepare.person_targets import find_tracks, triangulate_people
 from pipelines.prepare.silhouettes import silhouette_stage
 from pipelines.prepare.sources import find_sources, frame_rate, match_cameras
 from pipelines.prepare.sync import synchronise
@@ -58,6 +60,7 @@ class PrepareRequest:
     keep_flagged: bool = False  # write the capture even when every camera is flagged (for inspection)
     smpl_params: Path | None = None  # bodies the user brings (EasyMocap smpl/*.json or ZJU params/), not fitted
     person: int | None = None  # the person's id in smpl_params (None: the only one)
+    follow: str | tuple = "best-seen"  # whom to follow among several people (prepare.people.parse_person)
     sync: str | dict[str, int] = "report"  # auto, report, off, or whole-frame offsets by camera (prepare.sync)
     progress: bool = True
 
@@ -143,8 +146,6 @@ def _prepare_locked(request: PrepareRequest) -> dict:
 def _build(staging: Path, sources, detector, body, holdout, calibration, request: PrepareRequest) -> dict:
     """Everything between the matched recordings (``sources``: the (camera, source, how) pairs and the names of the
     recordings no camera took) and the finished capture in ``staging``; returns the report."""
-    from tqdm import tqdm
-
     matched, unused = sources
     pairs = [(camera, source) for camera, source, _ in matched]
     wanted = range(request.start, request.stop if request.stop is not None else 10**9, request.stride)
@@ -161,8 +162,6 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
             bar.update,
             request.keypoint_layout,
         )
-    if detector is not None:  # the cache stays for the next run with this --out (docs/guides/real-captures.md)
-        seen.detections = {"reused": detector.reused, "detected": detector.detected, "cache": str(detector.folder)}
     seen.recordings = {c.name: {"recording": s.path.name, "matched_by": how} for c, s, how in matched}
     seen.unused_recordings = unused
     seen.frame_rates = {c.name: frame_rate(s) for c, s, _ in matched}
@@ -170,11 +169,9 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
     common = sorted(set.intersection(*(set(f) for f in seen.frames)))
     if not common:
         raise CaptureError(f"{request.recording}: the cameras share no frame in {wanted.start}:{request.stop or ''}")
-    found = triangulate_people(seen.cameras, seen.people, common, request.threshold)
-    if not found.frames:
-        raise CaptureError(
-            f"{request.recording}: no person is seen by two agreeing views in any of the {len(common)} frames read"
-        )
+    found = follow_person(staging / ".frames", seen, common, detector if request.keypoints is None else None, request)
+    if detector is not None:  # the cache stays for the next run with this --out (docs/guides/real-captures.md)
+        seen.detections = {"reused": detector.reused, "detected": detector.detected, "cache": str(detector.folder)}
     settings, start = request.fit, None
     if request.smpl_params is not None:  # the user's bodies, polished by the silhouette stage only
         start = brought_bodies(request.smpl_params, found.frames, request.person)
@@ -196,6 +193,58 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
     floor = request.floor or floor_from_feet(vertices, camera_up(seen.cameras))
     write_floor(staging, floor)
     return finish_capture(staging, seen, found, fitted, vertices, body.faces, holdout, request, calibration, floor)
+
+
+#: with several people and ``--person best-seen``, each is looked for in every view of one frame in this many
+#: before the choice (docs/guides/real-captures.md, *Other people in view*)
+CHOICE_STRIDE = 5
+
+
+def follow_person(folder: Path, seen, frames: list[int], detector, request: PrepareRequest):
+    """The person ``request.follow`` picks, triangulated in ``frames`` (``pipelines.prepare.people``). With a
+    ``detector`` (keypoints from the detector), views that missed a person are detected again around them
+    (``pipelines.prepare.crops``): for ``best-seen`` every person in one frame of ``CHOICE_STRIDE`` before the
+    choice, then the chosen one in every frame. Every kept view's mask is the person's (its crop's, cut to them).
+    ``seen.people`` gains the crops' detections and ``seen.person`` says whom."""
+    from pipelines.prepare.crops import crop_masks, cut_masks, redetect
+    from pipelines.prepare.people import guide, nearest_track
+
+    tracks = find_tracks(seen.cameras, seen.people, frames, request.threshold)
+    if not tracks:
+        raise CaptureError(
+            f"{request.recording}: no person is seen by two agreeing views in any of the {len(frames)} frames read"
+        )
+    crops, looked, counted = {}, 0, None
+    detector = detector if len(seen.cameras) > 2 else None  # two views: a crop can add no third opinion
+    with tqdm(desc="detecting around each person", unit="view", disable=not request.progress) as bar:
+        if detector is not None and len(tracks) > 1 and request.follow == "best-seen":
+            counted = frames[::CHOICE_STRIDE]
+            for track in tracks:
+                looked += redetect(folder, seen, guide(track, counted), crops, detector, request.threshold, bar.update)
+            tracks = find_tracks(seen.cameras, seen.people, frames, request.threshold)
+        chosen, whom = choose_track(tracks, request.follow, seen.cameras, counted)
+        if detector is not None:
+            route = guide(tracks[chosen], frames)
+            added = redetect(folder, seen, route, crops, detector, request.threshold, bar.update)
+            if added:
+                looked += added
+                tracks = find_tracks(seen.cameras, seen.people, frames, request.threshold)
+                chosen = nearest_track(tracks, route)
+    others = {f: [t.points[f] for k, t in enumerate(tracks) if k != chosen and f in t.points] for f in frames}
+    route = guide(tracks[chosen], frames)
+    found = triangulate_people(seen.cameras, seen.people, frames, request.threshold, route, others)
+    if not found.frames:
+        raise CaptureError(f"{request.recording}: the person followed is never seen by two agreeing views")
+    crop_masks(folder, seen, found, crops, detector, request.threshold)
+    cut_masks(folder, seen.cameras, found)
+    seen.person = {
+        "choice": request.follow if isinstance(request.follow, str) else ":".join(map(str, request.follow)),
+        "followed": whom,
+        "people_seen": len(tracks),
+        "frames_per_person": sorted((len(t.points) for t in tracks), reverse=True),
+        "views_detected_again": looked,
+    }
+    return found
 
 
 def brought_bodies(folder: Path, frames: list[int], person: int | None):

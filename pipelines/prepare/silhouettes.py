@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 
 from pipelines.body.silhouettes import SilhouetteSettings, SilhouetteTerm, silhouette_targets
-from pipelines.datasets.camera import Camera
-from pipelines.prepare.checks import mask_near_body, silhouette
+from pipelines.datasets.camera import Camera, silhouette
+from pipelines.prepare.checks import mask_near_body
 
 
 def reduced_mask(camera: Camera, raw: np.ndarray, vertices: np.ndarray, faces: np.ndarray, height: int) -> np.ndarray:

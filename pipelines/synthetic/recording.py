@@ -14,9 +14,9 @@ import torch
 
 from fitting.video import write_mp4
 from pipelines.body.model import BodyModel
-from pipelines.datasets.camera import project_distorted
+from pipelines.datasets.camera import project_distorted, silhouette
 from pipelines.datasets.capture import ZjuCapture
-from pipelines.datasets.keypoints import keypoints_from_joints, write_openpose
+from pipelines.datasets.keypoints import keypoints_from_joints, read_openpose, write_openpose
 from pipelines.datasets.rig_files import write_qualisys
 
 
@@ -53,3 +53,39 @@ def write_recording(
             write_openpose(path, [keypoints_from_joints(pixels, layout)])
         write_mp4(out / "videos" / f"{camera.name}.mp4", frames, fps=fps)
     return out
+
+
+def add_passer_by(
+    capture_root: Path, recording: Path, offset: np.ndarray, step: np.ndarray, frame_shift: int = 5, seed: int = 1
+) -> np.ndarray:
+    """Put a second person into a recording written by :func:`write_recording` (BODY_25 keypoints): the stand-in body
+    again, in the pose of frame ``f + frame_shift`` (modulo the frames), moved so that its pelvis stands at the first
+    person's pelvis of frame 0 + ``offset + f * step`` (metres, world) in frame ``f``. The person is added to the
+    keypoint files of the cameras that see six or more of its joints (first in the file, so that file order cannot
+    decide whom the capture follows) and to those cameras' masks; the videos' pixels are left as they are. Returns
+    its (F, 24, 3) world joints."""
+    capture = ZjuCapture(capture_root, ratio=1.0, mask_source="mask")
+    body, rng = BodyModel(), np.random.default_rng(seed)
+    n = capture.n_frames
+    params = [capture.params((f + frame_shift) % n) for f in range(n)]
+    stack = [np.stack([getattr(p, k) for p in params]) for k in ("poses", "rh", "th", "shapes")]
+    with torch.no_grad():
+        posed = body.pose_zju(*stack)
+    pelvis = posed.world_from_joint[:, 0, :3, 3].numpy()
+    first = true_joints(capture, body)[0, 0]
+    moved = first + np.asarray(offset) + np.arange(n)[:, None] * np.asarray(step) - pelvis  # (F, 3)
+    joints = posed.world_from_joint[..., :3, 3].numpy() + moved[:, None]
+    vertices = posed.vertices.numpy() + moved[:, None]
+    for camera in capture.cameras:
+        files = sorted((recording / "keypoints" / f"{camera.name}_json").glob("*.json"))
+        for f, path in enumerate(files):
+            pixels = project_distorted(camera, joints[f]) + rng.normal(0.0, 1.0, (len(joints[f]), 2))
+            inside = (pixels >= 0).all(-1) & (pixels < [camera.width, camera.height]).all(-1)
+            if inside.sum() < 6:
+                continue
+            write_openpose(path, [keypoints_from_joints(pixels, "body25"), *read_openpose(path)])
+            mask_path = recording / "masks" / camera.name / f"{f:06d}.png"
+            mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE) > 0
+            mask |= silhouette(camera, vertices[f], body.faces)
+            cv2.imwrite(str(mask_path), mask.astype(np.uint8) * 255)
+    return joints

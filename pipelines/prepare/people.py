@@ -1,0 +1,260 @@
+"""Whom a capture follows when several people are in view (docs/guides/real-captures.md, *Other people in view*).
+
+Every person that at least two views agree on is triangulated in every frame (``consensus`` again and again on the
+detections left over), and the people are linked from frame to frame into tracks: a track goes on while its person
+moves at most ``TRACK_RADIUS`` a frame (at most ``JOIN_RADIUS`` over any gap), over gaps of at most ``MAX_GAP``
+frames; tracks that follow one another in time, the second starting within that reach of where the first ended, are
+one person, and so are tracks whose centres agree in every frame both have. ``--person`` then picks one track: the one
+seen best (most agreeing views over the recording), the largest in the images, or the one nearest a point of the
+world or a pixel of a camera.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipelines.datasets.camera import Camera, project_distorted
+from pipelines.datasets.errors import CaptureError
+from pipelines.prepare.multiview import consensus, project, triangulate_robust
+
+#: metres a followed person may move per frame (a sprinter at 60 fps moves 0.2 m); beyond it, it is somebody else
+TRACK_RADIUS = 0.5
+#: frames a track may miss and still go on; past them, tracks are joined only by ``JOIN_RADIUS``
+MAX_GAP = 10
+#: the most metres a person may move between two frames in which they are seen (however many frames apart)
+JOIN_RADIUS = 1.0
+#: two people found in one frame whose centres (the median of their targets) are nearer than this (metres) are one
+#: person that the views saw in two inconsistent ways, mirrored for instance (bodies cannot be nearer)
+SAME_PERSON = 0.3
+#: the choices of ``--person`` besides a point or a pixel
+CHOICES = ("best-seen", "largest")
+
+
+@dataclass
+class Track:
+    """One person over the frames: ``points[frame]`` (T, 3) triangulated targets, ``views[frame]`` agreeing views."""
+
+    points: dict[int, np.ndarray] = field(default_factory=dict)
+    views: dict[int, int] = field(default_factory=dict)
+
+    @property
+    def first(self) -> int:
+        return min(self.points)
+
+    @property
+    def last(self) -> int:
+        return max(self.points)
+
+    def centre(self, frame: int) -> np.ndarray:
+        """(3,) the median of the frame's triangulated targets."""
+        return np.nanmedian(self.points[frame], axis=0)
+
+
+def parse_person(text: str):
+    """``--person``'s value: ``best-seen``, ``largest``, ``near:X,Y,Z`` (metres, the calibration's world) or
+    ``pixel:CAM:U,V`` (a pixel of camera CAM's frames); raises ValueError with what is accepted."""
+    if text in CHOICES:
+        return text
+    kind, _, rest = text.partition(":")
+    try:
+        if kind == "near":
+            point = tuple(float(v) for v in rest.split(","))
+            if len(point) == 3 and np.isfinite(point).all():
+                return ("near", point)
+        if kind == "pixel":
+            camera, _, uv = rest.rpartition(":")
+            pixel = tuple(float(v) for v in uv.split(","))
+            if camera and len(pixel) == 2 and np.isfinite(pixel).all():
+                return ("pixel", camera, pixel)
+    except ValueError:
+        pass
+    raise ValueError(f"{text!r}: expected best-seen, largest, near:X,Y,Z (metres) or pixel:CAM:U,V")
+
+
+def people_in_frame(P, undistorted, heights, threshold) -> list[tuple[np.ndarray, list[int]]]:
+    """Every person two or more views agree on in one frame: (targets (T, 3), the detection each view gave it).
+
+    Args:
+        P: (V, 3, 4). undistorted: per view, its detections and then their mirrors (``_with_mirrored``); a view's
+            detection and its mirror are taken together. heights: (V,). threshold: as ``consensus``'s.
+    """
+    left = [list(range(len(found))) for found in undistorted]  # indices still free in each view
+    blank = next((np.zeros_like(d) for found in undistorted for d in found), None)
+    found_people = []
+    while True:
+        pool = [[undistorted[v][i] for i in left[v]] for v in range(len(undistorted))]
+        choice = consensus(P, pool, heights, threshold)
+        person = [left[v][p] if p >= 0 else -1 for v, p in enumerate(choice.person)]
+        if sum(p >= 0 for p in person) < 2:
+            return found_people
+        xy = np.stack([undistorted[v][p] if p >= 0 else blank for v, p in enumerate(person)])
+        xyz, _ = triangulate_robust(P, xy[..., :2].transpose(1, 0, 2), xy[..., 2].T, heights, threshold)
+        if np.isfinite(xyz).all(-1).sum() < 3:
+            return found_people  # a consensus that cannot be triangulated: no further person either
+        if all(_centre_distance(xyz, other) > SAME_PERSON for other, _ in found_people):
+            found_people.append((xyz, person))
+        for v, p in enumerate(person):
+            if p >= 0:
+                half = len(undistorted[v]) // 2
+                left[v] = [i for i in left[v] if i % half != p % half]
+
+
+def _distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Median over the targets both have of the distance between two (T, 3) people (inf: none shared)."""
+    d = np.linalg.norm(a - b, axis=-1)
+    d = d[np.isfinite(d)]
+    return float(np.median(d)) if d.size else np.inf
+
+
+def reach(gap: int) -> float:
+    """Metres a person's centre may move in ``gap`` frames: ``TRACK_RADIUS`` a frame, at most ``JOIN_RADIUS``."""
+    return min(TRACK_RADIUS * gap, JOIN_RADIUS)
+
+
+def _centre_distance(a: np.ndarray, b: np.ndarray) -> float:
+    """Distance between the centres (median of the targets) of two (T, 3) people: a left/right mirror has the same."""
+    return float(np.linalg.norm(np.nanmedian(a, axis=0) - np.nanmedian(b, axis=0)))
+
+
+def link_tracks(per_frame: dict[int, list[tuple[np.ndarray, int]]]) -> list[Track]:
+    """Tracks from each frame's people (``per_frame[frame]``: (targets, agreeing views)), frames in order: each
+    person joins the open track whose centre is nearest, within :func:`reach` of the frames since it was last seen
+    (nearest pairs first), else starts one; then tracks that follow one another are joined (module docstring)."""
+    tracks: list[Track] = []
+    for frame in sorted(per_frame):
+        people = per_frame[frame]
+        open_tracks = [t for t in tracks if 0 < frame - t.last <= MAX_GAP]
+        pairs = sorted(
+            (_centre_distance(points, t.points[t.last]), i, k)
+            for i, (points, _) in enumerate(people)
+            for k, t in enumerate(open_tracks)
+        )
+        taken_people, taken_tracks = set(), set()
+        for distance, i, k in pairs:
+            track = open_tracks[k]
+            if i in taken_people or k in taken_tracks or distance > reach(frame - track.last):
+                continue
+            track.points[frame], track.views[frame] = people[i]
+            taken_people.add(i)
+            taken_tracks.add(k)
+        for i, (points, views) in enumerate(people):
+            if i not in taken_people:
+                tracks.append(Track({frame: points}, {frame: views}))
+    return _joined(tracks)
+
+
+def _joined(tracks: list[Track]) -> list[Track]:
+    """Tracks merged: a later one that starts within :func:`reach` of where an earlier one ended (the nearest such),
+    or whose frames shared with an earlier one all have their centres within ``SAME_PERSON``."""
+    out: list[Track] = []
+    for track in sorted(tracks, key=lambda t: t.first):
+        same = [t for t in out if _shares_person(t, track)]
+        if same:
+            for frame, points in track.points.items():
+                if frame not in same[0].points:
+                    same[0].points[frame], same[0].views[frame] = points, track.views[frame]
+            continue
+        ended = [t for t in out if t.last < track.first]
+        distances = [_centre_distance(t.points[t.last], track.points[track.first]) for t in ended]
+        reaches = [reach(track.first - t.last) for t in ended]
+        if distances and min(d - r for d, r in zip(distances, reaches)) <= 0:
+            earlier = ended[int(np.argmin(distances))]
+            earlier.points.update(track.points)
+            earlier.views.update(track.views)
+        else:
+            out.append(track)
+    return out
+
+
+def _shares_person(a: Track, b: Track) -> bool:
+    """Whether two tracks that overlap in time follow one person: their centres within ``SAME_PERSON`` in every
+    shared frame."""
+    shared = set(a.points) & set(b.points)
+    return bool(shared) and all(_centre_distance(a.points[f], b.points[f]) <= SAME_PERSON for f in shared)
+
+
+def choose_track(tracks: list[Track], how, cameras: list[Camera], frames=None) -> tuple[int, str]:
+    """The index of the track ``how`` (:func:`parse_person`) picks, and a line saying whom (for the report);
+    ``best-seen`` counts the agreeing views in ``frames`` (None: all)."""
+    if not tracks:
+        raise ValueError("no tracks")
+    if how == "best-seen" or len(tracks) == 1:
+        counted = set(frames) if frames is not None else None
+        scores = [sum(n for f, n in t.views.items() if counted is None or f in counted) for t in tracks]
+        best = int(np.argmax(scores))
+        among = f" in {len(counted)} frames looked at in every view" if counted is not None else ""
+        return best, f"the person seen best ({scores[best]} agreeing views{among})"
+    if how == "largest":
+        sizes = [_image_height(t, cameras) for t in tracks]
+        best = int(np.argmax(sizes))
+        return best, f"the largest person (median {100 * sizes[best]:.0f} % of the image height)"
+    if how[0] == "near":
+        point = np.array(how[1])
+        distances = [float(np.median([np.linalg.norm(t.centre(f) - point) for f in t.points])) for t in tracks]
+        best = int(np.argmin(distances))
+        return best, f"the person nearest {tuple(how[1])} (median {distances[best]:.2f} m)"
+    names = [c.name for c in cameras]
+    if how[1] not in names:
+        raise CaptureError(f"--person pixel:{how[1]}:...: {how[1]} is not one of the cameras {names}")
+    camera = cameras[names.index(how[1])]
+    distances = [_pixel_distance(t, camera, np.array(how[2])) for t in tracks]
+    best = int(np.argmin(distances))
+    return best, f"the person nearest pixel {tuple(how[2])} of {how[1]} when first seen ({distances[best]:.0f} px)"
+
+
+def _image_height(track: Track, cameras: list[Camera]) -> float:
+    """Median over frames and cameras of the track's projected extent (rows), as a fraction of the image height."""
+    sizes = []
+    for points in track.points.values():
+        finite = points[np.isfinite(points).all(-1)]
+        for camera in cameras:
+            rows = project_distorted(camera, finite)[:, 1]
+            sizes.append((rows.max() - rows.min()) / camera.height)
+    return float(np.median(sizes))
+
+
+def _pixel_distance(track: Track, camera: Camera, pixel: np.ndarray, frames: int = 5) -> float:
+    """Median distance (pixels) between ``pixel`` and the track's projected centre over its first ``frames``."""
+    first = sorted(track.points)[:frames]
+    centres = np.stack([track.centre(f) for f in first])
+    return float(np.median(np.linalg.norm(project_distorted(camera, centres) - pixel, axis=-1)))
+
+
+def guide(track: Track, frames: list[int]) -> dict[int, np.ndarray]:
+    """The track's targets at each of ``frames``: its own where it has them, else interpolated linearly between
+    its frames on either side when both are within ``MAX_GAP``; frames farther from the track have none."""
+    known = sorted(track.points)
+    out = {}
+    for frame in frames:
+        if frame in track.points:
+            out[frame] = track.points[frame]
+            continue
+        at = np.searchsorted(known, frame)
+        if 0 < at < len(known) and known[at] - known[at - 1] <= MAX_GAP:
+            before, after = known[at - 1], known[at]
+            w = (frame - before) / (after - before)
+            out[frame] = (1 - w) * track.points[before] + w * track.points[after]
+    return out
+
+
+def matches(P_v: np.ndarray, detection: np.ndarray, points: np.ndarray, height: float, threshold: float) -> bool:
+    """Whether one view's detection (T, 3 undistorted) shows the person ``points`` (T, 3): the median reprojection
+    error over the targets both have is within ``threshold`` of the height."""
+    seen = (detection[:, 2] > 0) & np.isfinite(points).all(-1)
+    if seen.sum() < 3:
+        return False
+    error = np.linalg.norm(project(P_v[None], points[seen])[:, 0] - detection[seen, :2], axis=-1)
+    return bool(np.median(error) / height <= threshold)
+
+
+def nearest_track(tracks: list[Track], route: dict[int, np.ndarray]) -> int:
+    """The track that stays nearest ``route`` (targets by frame): the most frames within ``TRACK_RADIUS`` of it, then
+    the smallest median distance (the followed person found again after more views were detected)."""
+    keys = []
+    for track in tracks:
+        distances = [_distance(track.points[f], route[f]) for f in track.points if f in route]
+        near = sum(d <= TRACK_RADIUS for d in distances)
+        keys.append((-near, float(np.median(distances)) if distances else np.inf))
+    return min(range(len(tracks)), key=keys.__getitem__)
