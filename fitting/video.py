@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from pathlib import Path
 
 import imageio.v2 as imageio
@@ -19,9 +20,14 @@ def video_frame(render: dict) -> np.ndarray:
     return (np.clip(np.concatenate(tiles, axis=1), 0, 1) * 255 + 0.5).astype(np.uint8)
 
 
-def write_mp4(out: Path, frames: list[np.ndarray], fps: int) -> Path:
-    """H.264 mp4 through imageio-ffmpeg, written to a temporary file and renamed when complete."""
+def write_mp4(out: Path, frames: Iterable[np.ndarray], fps: int) -> Path:
+    """H.264 mp4 through imageio-ffmpeg, written to a temporary file and renamed when complete. ``frames`` may be a
+    generator: each frame is encoded as it comes (nothing is held for the whole video)."""
     out = Path(out)
+    frames = iter(frames)
+    first = next(frames, None)
+    if first is None:
+        raise ValueError(f"{out}: no frames to write")
     if out.exists() and out.is_dir():
         raise IsADirectoryError(f"{out}: is a folder; give a .mp4 file name")
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -32,8 +38,9 @@ def write_mp4(out: Path, frames: list[np.ndarray], fps: int) -> Path:
             codec="libx264",
             quality=8,
             macro_block_size=1,
-            pixelformat="yuv420p" if all(s % 2 == 0 for s in frames[0].shape[:2]) else None,
+            pixelformat="yuv420p" if all(s % 2 == 0 for s in first.shape[:2]) else None,
         ) as w:
+            w.append_data(first)
             for frame in frames:
                 w.append_data(frame)
     return out

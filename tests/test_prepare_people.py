@@ -79,3 +79,70 @@ def test_person_picks_the_other_one(recording, crowded, tmp_path):
     # seen by two or three of the four cameras, where the first person is seen by four: each joint's triangulation
     # rests on fewer views than the 2 cm of the first person's (measured 2.3 cm)
     assert len(kept) >= 3 and np.median(error_cm) < 3.0, (kept, np.median(error_cm))
+
+
+RED, GREEN = np.array([220, 30, 30]), np.array([30, 220, 30])
+
+
+def test_a_view_that_shows_somebody_else_is_detected_again_around_the_person(recording, tmp_path):
+    """One view where a second person stands nearer the camera, beside the first: a detector that finds the most
+    prominent person (here: the largest blob of one colour) finds the second one in the whole image, and in a box
+    around the first with the second painted out, the first; without the painting, the second again."""
+    from types import SimpleNamespace
+
+    from pipelines.datasets.camera import project_distorted, silhouette
+    from pipelines.datasets.keypoints import keypoints_from_joints, to_targets
+    from pipelines.prepare.crops import crop_box, painted_crop, redetect
+    from pipelines.prepare.detections import CachedDetector
+
+    truth, body = ZjuCapture(recording / "truth"), BodyModel()
+    camera, joints = truth.cameras[0], true_joints(truth, body)[0]
+    toward = camera.centre - joints[0]
+    toward[2] = 0  # horizontal (world z is up or down in the synthetic rig)
+    shift = 0.35 * toward + 0.5 * np.cross(toward / np.linalg.norm(toward), [0, 0, 1])
+    people = {"first": (joints, truth.vertices(0)), "second": (joints + shift, truth.vertices(0) + shift)}
+    image = np.full((camera.height, camera.width, 3), 90, np.uint8)
+    for (_, vertices), colour in zip(people.values(), (RED, GREEN)):
+        image[silhouette(camera, vertices, body.faces)] = colour
+    pixels = {name: project_distorted(camera, j) for name, (j, _) in people.items()}
+    corner = {}
+
+    def blob(rgb, colour):
+        return np.abs(rgb.astype(int) - colour).sum(-1) < 60  # the colours, through JPEG
+
+    def most_prominent(rgb):
+        sizes = {name: blob(rgb, c).sum() for name, c in zip(people, (RED, GREEN))}
+        name = max(sizes, key=sizes.get)
+        offset = np.argwhere(blob(rgb, (RED, GREEN)[list(people).index(name)])).min(0)[::-1] - corner[name]
+        return keypoints_from_joints(pixels[name] + offset, "blazepose"), None
+
+    folder = tmp_path / "frames"
+    (folder / camera.name).mkdir(parents=True)
+    cv2.imwrite(str(folder / camera.name / "000000.jpg"), image[..., ::-1], [cv2.IMWRITE_JPEG_QUALITY, 100])
+    decoded = cv2.imread(str(folder / camera.name / "000000.jpg"))[..., ::-1]
+    for name, colour in zip(people, (RED, GREEN)):
+        corner[name] = np.argwhere(blob(decoded, colour)).min(0)[::-1]  # (x, y) of the blob's top-left, whole image
+    seen_targets = to_targets(keypoints_from_joints(pixels["first"], "blazepose"), "blazepose")[:, 2] > 0
+    whole = to_targets(most_prominent(decoded)[0], "blazepose")
+    expected = {
+        n: to_targets(keypoints_from_joints(p, "blazepose"), "blazepose")[seen_targets, :2] for n, p in pixels.items()
+    }
+    np.testing.assert_allclose(whole[seen_targets, :2], expected["second"], atol=1e-6)  # the whole image: the second
+    box = crop_box(camera, joints[list(TARGET_JOINTS)])
+    crop = decoded[box[1] : box[3], box[0] : box[2]]
+    assert blob(crop, GREEN).sum() > blob(crop, RED).sum()  # the box alone still shows the second one larger
+    seen = SimpleNamespace(cameras=[camera], people=[{0: [whole]}])
+    route = {0: _world_targets(joints)}
+    crops = {}
+    cache = CachedDetector(most_prominent, tmp_path / "cache", "fake")
+    others = {0: [_world_targets(joints + shift)]}
+    assert redetect(folder, seen, route, crops, cache, 0.03, others) == 1
+    # the first person, placed through the box's corner exactly (the blob's edge is the same pixels in both)
+    np.testing.assert_allclose(seen.people[0][0][0][seen_targets, :2], expected["first"], atol=1e-6)
+    assert list(crops) == [(0, 0)] and crops[(0, 0)][0][0] == box
+    painted = painted_crop(decoded, box, camera, route[0], others[0])
+    assert blob(painted, GREEN).sum() < blob(painted, RED).sum()
+
+
+def _world_targets(joints: np.ndarray) -> np.ndarray:
+    return joints[list(TARGET_JOINTS)]

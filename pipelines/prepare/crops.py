@@ -48,16 +48,19 @@ def crop_box(camera: Camera, points: np.ndarray) -> tuple[int, int, int, int] | 
     return clipped
 
 
-def redetect(folder: Path, seen, route: dict, crops: dict, detector, threshold: float, progress=None) -> int:
+def redetect(folder: Path, seen, route: dict, crops: dict, detector, threshold: float, others=None, progress=None):
     """Detect again, inside :func:`crop_box`, every view of a ``route`` frame (``pipelines.prepare.people.guide``)
-    whose detections all miss that person; a crop that finds somebody adds that detection to the view (the
-    consensus picks) and its box to ``crops[(view, frame)]`` (:func:`crop_masks` writes its mask if the person is
-    kept). ``detector``: a ``pipelines.prepare.detections.CachedDetector``. Returns the number of views detected
-    again."""
+    whose detections all miss that person, with the other people of the frame (``others[frame]``: (T, 3) targets)
+    painted grey where they do not overlap the person (:func:`painted_crop`). A crop that finds somebody adds that
+    detection to the view (the consensus picks) and (box, cache key) to ``crops[(view, frame)]`` (:func:`crop_masks`
+    writes its mask if the person is kept). ``detector``: a ``pipelines.prepare.detections.CachedDetector``;
+    ``progress()`` is called once per view looked at. Returns the number of views detected again."""
     count = 0
     for v, camera in enumerate(seen.cameras):
         P_v = projection_matrix(camera)
         for frame, points in route.items():
+            if progress is not None:
+                progress()
             if frame not in seen.people[v]:
                 continue
             people = seen.people[v][frame]
@@ -67,35 +70,69 @@ def redetect(folder: Path, seen, route: dict, crops: dict, detector, threshold: 
             box = crop_box(camera, points)
             if box is None:
                 continue
-            image = folder / camera.name / f"{frame:06d}.jpg"
-            rgb = cv2.cvtColor(cv2.imread(str(image)), cv2.COLOR_BGR2RGB)
-            keypoints, mask = detector.crop(image, rgb, box)
+            rgb = cv2.cvtColor(cv2.imread(str(folder / camera.name / f"{frame:06d}.jpg")), cv2.COLOR_BGR2RGB)
+            crop = painted_crop(rgb, box, camera, points, (others or {}).get(frame, []))
+            keypoints, _, key = detector.crop(crop, box)
             count += 1
-            if progress is not None:
-                progress()
-            if keypoints is None:
-                continue
-            seen.people[v][frame] = [to_targets(keypoints, "blazepose"), *people]
-            crops.setdefault((v, frame), []).append(box)
+            if keypoints is not None:
+                seen.people[v][frame] = [to_targets(keypoints, "blazepose"), *people]
+                crops.setdefault((v, frame), []).append((box, key))
     return count
+
+
+def painted_crop(rgb: np.ndarray, box, camera: Camera, points: np.ndarray, others: list[np.ndarray]) -> np.ndarray:
+    """``rgb[box]`` with each of ``others`` (people's (T, 3) targets) painted mid-grey over the hull of its
+    projected targets grown by ``CUT_RADIUS`` of the height, except where that comes near the followed person's
+    (``points``): the detector, which finds the most prominent person, is left with the followed one."""
+    x0, y0, x1, y1 = box
+    crop = rgb[y0:y1, x0:x1].copy()
+    if not others:
+        return crop
+    offset = np.array([x0, y0])
+    keep = _near(crop.shape[:2], _pixels(camera, points) - offset, 2 * CUT_RADIUS * camera.height)
+    for other in others:
+        pixels = _pixels(camera, other)
+        if len(pixels) >= 3:
+            crop[_near(crop.shape[:2], pixels - offset, CUT_RADIUS * camera.height) & ~keep] = 127
+    return crop
+
+
+def _pixels(camera: Camera, points: np.ndarray) -> np.ndarray:
+    """(N, 2) distorted pixels of the finite ``points`` in front of ``camera`` (empty when any is behind)."""
+    finite = points[np.isfinite(points).all(-1)]
+    depth = finite @ camera.cam_from_world[2, :3] + camera.cam_from_world[2, 3]
+    if len(finite) == 0 or (depth <= 0).any():
+        return np.zeros((0, 2))
+    return project_distorted(camera, finite)
+
+
+def _near(shape: tuple[int, int], pixels: np.ndarray, radius: float) -> np.ndarray:
+    """(H, W) bool: the convex hull of ``pixels`` grown by ``radius`` pixels (all False under three pixels)."""
+    near = np.zeros(shape, np.uint8)
+    if len(pixels) < 3:
+        return near > 0
+    hull = cv2.convexHull(np.round(pixels).clip(-(2**20), 2**20).astype(np.int32))
+    cv2.fillConvexPoly(near, hull, 1)
+    r = max(1, int(round(radius)))
+    return cv2.dilate(near, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
 
 
 def crop_masks(folder: Path, seen, found, crops: dict, detector, threshold: float) -> None:
     """For each kept view (``found``: ``pipelines.prepare.person_targets.Triangulated``) with a crop
-    (:func:`redetect`) whose keypoints show the triangulated person, the crop's mask replaces the raw mask in
-    ``folder/mask_raw`` (read back from the detection cache)."""
+    (:func:`redetect`) whose keypoints show the triangulated person, the crop's mask (read back from the detection
+    cache) replaces the raw mask in ``folder/mask_raw``."""
     for i, frame in enumerate(found.frames):
         for v, camera in enumerate(seen.cameras):
-            for box in crops.get((v, frame), []):
-                image = folder / camera.name / f"{frame:06d}.jpg"
-                rgb = cv2.cvtColor(cv2.imread(str(image)), cv2.COLOR_BGR2RGB)
-                keypoints, mask = detector.crop(image, rgb, box)
-                detector.reused -= 1  # read back for its mask, not a view the run reused
-                targets = _undistorted(camera, to_targets(keypoints, "blazepose"))
-                if mask is not None and matches(
-                    projection_matrix(camera), targets, found.points[i], camera.height, threshold
-                ):
-                    cv2.imwrite(str(folder / "mask_raw" / camera.name / f"{frame:06d}.png"), mask.astype(np.uint8))
+            for (x0, y0, x1, y1), key in crops.get((v, frame), []):
+                keypoints, mask = detector.kept_crop(key, (y1 - y0, x1 - x0))
+                targets = to_targets(keypoints + np.array([x0, y0, 0.0]), "blazepose")
+                shown = matches(
+                    projection_matrix(camera), _undistorted(camera, targets), found.points[i], camera.height, threshold
+                )
+                if mask is not None and shown:
+                    whole = np.zeros((camera.height, camera.width), np.uint8)
+                    whole[y0:y1, x0:x1] = mask
+                    cv2.imwrite(str(folder / "mask_raw" / camera.name / f"{frame:06d}.png"), whole)
                     break
 
 
@@ -112,13 +149,8 @@ def cut_mask(mask: np.ndarray, pixels: np.ndarray) -> np.ndarray:
     pixels = pixels[np.isfinite(pixels).all(-1)]
     if len(pixels) < 3 or not mask.any():
         return mask
-    near = np.zeros(mask.shape, np.uint8)
-    hull = cv2.convexHull(np.round(pixels).astype(np.int32).clip(-(2**20), 2**20))
-    cv2.fillConvexPoly(near, hull, 1)
-    radius = max(1, int(round(CUT_RADIUS * mask.shape[0])))
-    near = cv2.dilate(near, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * radius + 1, 2 * radius + 1)))
-    count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
-    touching = np.unique(labels[(near > 0) & mask])
+    _, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=8)
+    touching = np.unique(labels[_near(mask.shape, pixels, CUT_RADIUS * mask.shape[0]) & mask])
     return np.isin(labels, touching[touching > 0])
 
 
@@ -129,10 +161,7 @@ def cut_masks(folder: Path, cameras: list[Camera], found) -> None:
         for camera in cameras:
             path = folder / "mask_raw" / camera.name / f"{frame:06d}.png"
             mask = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 0
-            finite = found.points[i][np.isfinite(found.points[i]).all(-1)]
-            depth = finite @ camera.cam_from_world[2, :3] + camera.cam_from_world[2, 3]
-            if len(finite) < 3 or (depth <= 0).any():
-                continue
-            cut = cut_mask(mask, project_distorted(camera, finite))
+            pixels = _pixels(camera, found.points[i])
+            cut = cut_mask(mask, pixels) if len(pixels) >= 3 else mask
             if not np.array_equal(cut, mask):
                 cv2.imwrite(str(path), cut.astype(np.uint8))

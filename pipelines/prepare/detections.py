@@ -67,30 +67,32 @@ class CachedDetector:
         self.detected += 1
         return keypoints, mask
 
-    def crop(self, image: Path, rgb: np.ndarray, box: tuple[int, int, int, int]):
-        """The detection inside ``box`` (x0, y0, x1, y1) of the view written at ``image`` (``rgb``: its pixels):
-        keypoints in the whole image's pixels and the mask pasted into an empty image. Kept under the hash of the
-        file's bytes, the box and the detector (a crop is asked for after the frames are written and shifted into
-        step, so the file, not the recording, names it)."""
-        x0, y0, x1, y1 = box
-        key = f"{hashlib.sha256(Path(image).read_bytes()).hexdigest()}|{tuple(box)}|{self.detector_id}"
-        digest = hashlib.sha256(key.encode()).hexdigest()[:32]
-        path = self.folder / "crops" / digest[:2] / f"{digest}.npz"
-        kept = _read(path, (y1 - y0, x1 - x0))
+    def crop(self, rgb: np.ndarray, box: tuple[int, int, int, int]):
+        """The detection of ``rgb`` (H, W, 3: a crop of a view) whose top-left corner is ``box[:2]`` of the whole
+        image: keypoints in the whole image's pixels, the mask (of the crop's size) and the cache key of the
+        detection (:meth:`kept_crop`). Kept under the hash of the crop's pixels and the detector (a crop is asked for
+        after the frames are written and shifted into step, and with other people painted out, so its pixels, not
+        the recording, name it)."""
+        key = hashlib.sha256(np.ascontiguousarray(rgb).tobytes() + str(rgb.shape).encode()).hexdigest()
+        kept = self.kept_crop(key, rgb.shape[:2])
         if kept is not None:
             self.reused += 1
             keypoints, mask = kept
         else:
-            keypoints, mask = self.detector(np.ascontiguousarray(rgb[y0:y1, x0:x1]))
-            atomic_write_bytes(path, _encode(keypoints, mask))
+            keypoints, mask = self.detector(np.ascontiguousarray(rgb))
+            atomic_write_bytes(self._crop_path(key), _encode(keypoints, mask))
             self.detected += 1
         if keypoints is not None:
-            keypoints = keypoints + np.array([x0, y0, 0.0])
-        if mask is not None:
-            whole = np.zeros(rgb.shape[:2], bool)
-            whole[y0:y1, x0:x1] = mask
-            mask = whole
-        return keypoints, mask
+            keypoints = keypoints + np.array([box[0], box[1], 0.0])
+        return keypoints, mask, key
+
+    def kept_crop(self, key: str, shape: tuple[int, int]):
+        """The kept (keypoints in the crop's pixels, mask) of the crop ``key`` (:meth:`crop`), or None."""
+        return _read(self._crop_path(key), shape)
+
+    def _crop_path(self, key: str) -> Path:
+        digest = hashlib.sha256(f"{key}|{self.detector_id}".encode()).hexdigest()[:32]
+        return self.folder / "crops" / digest[:2] / f"{digest}.npz"
 
     def for_source(self, source: Source):
         """``detect(frame, rgb)`` of one recording."""

@@ -57,22 +57,21 @@ def splits(n_frames: int, names: list[str], holdout: str | None, novel_fraction:
     }
 
 
-def _check_pass(root: Path, seen, found, fitted, vertices, faces) -> tuple[dict, list]:
-    """Final masks (the raw ones limited to the body's neighbourhood), overlays and IoU per (frame, view); returns
-    per-camera IoU lists and the tiles of overlay.mp4."""
+def _check_pass(root: Path, seen, found, fitted, vertices, faces, ious: dict, progress=None):
+    """Final masks (the raw ones limited to the body's neighbourhood), overlays and IoU per (frame, view), a frame at
+    a time: fills ``ious`` (camera -> list) and yields each frame of overlay.mp4 (RGB), so that nothing is held for
+    the whole recording."""
     cameras = seen.cameras
-    ious = {c.name: [] for c in cameras}
-    tiles = [[] for _ in found.frames]
-    for v, cam in enumerate(cameras):
+    for cam in cameras:
+        ious.setdefault(cam.name, [])
         for folder in ("mask", "mask_cihp", "overlay"):
             (root / folder / cam.name).mkdir(parents=True, exist_ok=True)
-        for i, source in enumerate(found.frames):
-            raw = (
-                cv2.imread(str(root / ".frames" / "mask_raw" / cam.name / f"{source:06d}.png"), cv2.IMREAD_GRAYSCALE)
-                > 0
-            )
+    for i, source in enumerate(found.frames):
+        tiles = []
+        for v, cam in enumerate(cameras):
+            raw = cv2.imread(str(root / ".frames" / "mask_raw" / cam.name / f"{source:06d}.png"), cv2.IMREAD_GRAYSCALE)
             body = silhouette(cam, vertices[i], faces)
-            mask = mask_near_body(raw, body)
+            mask = mask_near_body(raw > 0, body)
             for folder in ("mask", "mask_cihp"):
                 cv2.imwrite(str(root / folder / cam.name / f"{i:06d}.png"), mask.astype(np.uint8))
             if found.used[i, v]:
@@ -82,8 +81,10 @@ def _check_pass(root: Path, seen, found, fitted, vertices, faces) -> tuple[dict,
             overlay = draw_overlay(image, body, found.distorted[i, v], targets, bool(found.used[i, v]))
             cv2.imwrite(str(root / "overlay" / cam.name / f"{i:06d}.jpg"), overlay, [cv2.IMWRITE_JPEG_QUALITY, 85])
             width = int(round(overlay.shape[1] * OVERLAY_HEIGHT / overlay.shape[0])) // 2 * 2
-            tiles[i].append(cv2.resize(overlay, (width, OVERLAY_HEIGHT), interpolation=cv2.INTER_AREA))
-    return ious, tiles
+            tiles.append(cv2.resize(overlay, (width, OVERLAY_HEIGHT), interpolation=cv2.INTER_AREA))
+            if progress is not None:
+                progress()
+        yield np.concatenate(tiles, axis=1)[..., ::-1]
 
 
 def _errors(cameras, found, fitted) -> tuple[np.ndarray, np.ndarray]:
@@ -133,11 +134,19 @@ def _camera_report(seen, found, triangulated, body, ious) -> dict:
 
 def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, request, calibration, floor) -> dict:
     """Masks, overlays, splits and the report (returned, and written to ``report.json``)."""
+    from tqdm import tqdm
+
     from fitting.video import write_mp4
 
     cameras, names = seen.cameras, [c.name for c in seen.cameras]
-    ious, tiles = _check_pass(root, seen, found, fitted, vertices, faces)
-    write_mp4(root / "overlay" / "overlay.mp4", [np.concatenate(t, axis=1)[..., ::-1] for t in tiles], fps=15)
+    ious = {}
+    total = len(found.frames) * len(cameras)
+    with tqdm(total=total, desc="masks and overlays", unit="view", disable=not request.progress) as bar:
+        write_mp4(
+            root / "overlay" / "overlay.mp4",
+            _check_pass(root, seen, found, fitted, vertices, faces, ious, bar.update),
+            fps=15,
+        )
     shutil.rmtree(root / ".frames")
     triangulated, body = _errors(cameras, found, fitted)
     excluded = [[i, v] for i in range(len(found.frames)) for v in range(len(cameras)) if not found.used[i, v]]

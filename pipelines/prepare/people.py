@@ -23,6 +23,8 @@ from pipelines.prepare.multiview import consensus, project, triangulate_robust
 TRACK_RADIUS = 0.5
 #: frames a track may miss and still go on; past them, tracks are joined only by ``JOIN_RADIUS``
 MAX_GAP = 10
+#: frames before a track's first and after its last in which the person is still looked for where last seen
+HOLD = 5
 #: the most metres a person may move between two frames in which they are seen (however many frames apart)
 JOIN_RADIUS = 1.0
 #: two people found in one frame whose centres (the median of their targets) are nearer than this (metres) are one
@@ -224,18 +226,22 @@ def _pixel_distance(track: Track, camera: Camera, pixel: np.ndarray, frames: int
 
 def guide(track: Track, frames: list[int]) -> dict[int, np.ndarray]:
     """The track's targets at each of ``frames``: its own where it has them, else interpolated linearly between
-    its frames on either side when both are within ``MAX_GAP``; frames farther from the track have none."""
+    its frames on either side when both are within ``MAX_GAP``, or held from its first or last frame for up to
+    ``HOLD`` frames beyond it (where the crops may find the person again); frames farther from the track have none."""
     known = sorted(track.points)
     out = {}
     for frame in frames:
+        at = np.searchsorted(known, frame)
         if frame in track.points:
             out[frame] = track.points[frame]
-            continue
-        at = np.searchsorted(known, frame)
-        if 0 < at < len(known) and known[at] - known[at - 1] <= MAX_GAP:
+        elif 0 < at < len(known) and known[at] - known[at - 1] <= MAX_GAP:
             before, after = known[at - 1], known[at]
             w = (frame - before) / (after - before)
             out[frame] = (1 - w) * track.points[before] + w * track.points[after]
+        elif at == 0 and known[0] - frame <= HOLD:
+            out[frame] = track.points[known[0]]
+        elif at == len(known) and frame - known[-1] <= HOLD:
+            out[frame] = track.points[known[-1]]
     return out
 
 

@@ -28,8 +28,8 @@ from pipelines.prepare.observe import observe
 from pipelines.prepare.people import choose_track
 from pipelines.prepare.person_targets import find_tracks, triangulate_people
 from pipelines.prepare.silhouettes import silhouette_stage
-from pipelines.prepare.sources import find_sources, frame_rate, match_cameras
-from pipelines.prepare.sync import synchronise
+from pipelines.prepare.sources import find_sources, frame_count, frame_rate, match_cameras
+from pipelines.prepare.sync import report_followed, synchronise
 
 CALIBRATION_PATTERNS = ("*.qca.txt", "*.toml", "intri.yml", "annots.npy")
 MARKER = "prepared.json"
@@ -149,7 +149,8 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
     matched, unused = sources
     pairs = [(camera, source) for camera, source, _ in matched]
     wanted = range(request.start, request.stop if request.stop is not None else 10**9, request.stride)
-    total = len(pairs) * len(wanted) if request.stop is not None else None
+    counts = [frame_count(source) for _, source in pairs]  # for the bar's ETA only
+    total = None if None in counts else sum(len(range(wanted.start, min(wanted.stop, n), wanted.step)) for n in counts)
     with tqdm(total=total, desc="reading frames", unit="view", disable=not request.progress) as bar:
         seen = observe(
             pairs,
@@ -170,6 +171,7 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
     if not common:
         raise CaptureError(f"{request.recording}: the cameras share no frame in {wanted.start}:{request.stop or ''}")
     found = follow_person(staging / ".frames", seen, common, detector if request.keypoints is None else None, request)
+    seen = report_followed(seen, found)
     if detector is not None:  # the cache stays for the next run with this --out (docs/guides/real-captures.md)
         seen.detections = {"reused": detector.reused, "detected": detector.detected, "cache": str(detector.folder)}
     settings, start = request.fit, None
@@ -197,7 +199,7 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
 
 #: with several people and ``--person best-seen``, each is looked for in every view of one frame in this many
 #: before the choice (docs/guides/real-captures.md, *Other people in view*)
-CHOICE_STRIDE = 5
+CHOICE_STRIDE = 10
 
 
 def follow_person(folder: Path, seen, frames: list[int], detector, request: PrepareRequest):
@@ -216,23 +218,31 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
         )
     crops, looked, counted = {}, 0, None
     detector = detector if len(seen.cameras) > 2 else None  # two views: a crop can add no third opinion
-    with tqdm(desc="detecting around each person", unit="view", disable=not request.progress) as bar:
-        if detector is not None and len(tracks) > 1 and request.follow == "best-seen":
+    several = detector is not None and len(tracks) > 1 and request.follow == "best-seen"
+    total = len(seen.cameras) * (len(frames) + several * len(tracks) * len(frames[::CHOICE_STRIDE]))
+    bar = tqdm(total=total, desc="looking for the person", unit="view", disable=not request.progress or not detector)
+    with bar:
+        if several:
             counted = frames[::CHOICE_STRIDE]
-            for track in tracks:
-                looked += redetect(folder, seen, guide(track, counted), crops, detector, request.threshold, bar.update)
+            for k, track in enumerate(tracks):
+                rest = _others(tracks, k, counted)
+                looked += redetect(
+                    folder, seen, guide(track, counted), crops, detector, request.threshold, rest, bar.update
+                )
             tracks = find_tracks(seen.cameras, seen.people, frames, request.threshold)
         chosen, whom = choose_track(tracks, request.follow, seen.cameras, counted)
         if detector is not None:
             route = guide(tracks[chosen], frames)
-            added = redetect(folder, seen, route, crops, detector, request.threshold, bar.update)
+            rest = _others(tracks, chosen, frames)
+            added = redetect(folder, seen, route, crops, detector, request.threshold, rest, bar.update)
             if added:
                 looked += added
                 tracks = find_tracks(seen.cameras, seen.people, frames, request.threshold)
                 chosen = nearest_track(tracks, route)
-    others = {f: [t.points[f] for k, t in enumerate(tracks) if k != chosen and f in t.points] for f in frames}
     route = guide(tracks[chosen], frames)
-    found = triangulate_people(seen.cameras, seen.people, frames, request.threshold, route, others)
+    found = triangulate_people(
+        seen.cameras, seen.people, frames, request.threshold, route, _others(tracks, chosen, frames)
+    )
     if not found.frames:
         raise CaptureError(f"{request.recording}: the person followed is never seen by two agreeing views")
     crop_masks(folder, seen, found, crops, detector, request.threshold)
@@ -245,6 +255,11 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
         "views_detected_again": looked,
     }
     return found
+
+
+def _others(tracks, chosen: int, frames) -> dict[int, list[np.ndarray]]:
+    """By frame, the targets of every track but ``chosen``."""
+    return {f: [t.points[f] for k, t in enumerate(tracks) if k != chosen and f in t.points] for f in frames}
 
 
 def brought_bodies(folder: Path, frames: list[int], person: int | None):

@@ -172,6 +172,20 @@ def frame_rate(source: Source) -> float | None:
     return float(rate) if rate and np.isfinite(rate) else None
 
 
+def frame_count(source: Source) -> int | None:
+    """The frames a recording holds: its images, or the count its video container states (None when it states
+    none; the stated count can be off by a frame or two, so it sizes progress bars, never the frames read)."""
+    if not source.is_video:
+        return len(_images(source.path))
+    with native_stderr_to_null():
+        video = cv2.VideoCapture(str(source.path))
+    try:
+        count = video.get(cv2.CAP_PROP_FRAME_COUNT) if video.isOpened() else 0.0
+    finally:
+        video.release()
+    return int(count) if count and np.isfinite(count) and count > 0 else None
+
+
 @contextlib.contextmanager
 def native_stderr_to_null():
     """What native code (ffmpeg through OpenCV) writes to file descriptor 2 during the block goes to the null

@@ -206,3 +206,19 @@ def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
             entry["error_as_recorded_pct"] = first[name]["error_in_step_pct"]
         record[name] = entry
     return replace(seen, sync={"mode": sync if isinstance(sync, str) else "given", "cameras": record})
+
+
+def report_followed(seen, found):
+    """``seen`` with its ``report``-mode estimates made again on the followed person alone (``found``: the
+    ``pipelines.prepare.person_targets.Triangulated`` person, in the views that agreed on them): with other people
+    in view, each view's most confident detection, which the first estimate takes, may be somebody else. Other modes
+    are returned as they are (their shifts were made before the person was followed)."""
+    if seen.sync.get("mode") != "report":
+        return seen
+    people = [{} for _ in seen.cameras]
+    for i, frame in enumerate(found.frames):
+        for v in np.flatnonzero(found.used[i]):
+            people[v][frame] = [found.distorted[i, v]]
+    estimates = estimate_offsets(seen.cameras, seen.frames, people)
+    record = {name: dict(estimates[name], applied_frames=0) for name in estimates}
+    return replace(seen, sync={"mode": "report", "cameras": record, "person": "the person followed"})
