@@ -499,3 +499,20 @@ def test_openpose_entries_with_no_keypoints_are_no_person(tmp_path):
     assert len(found) == 1 and np.array_equal(found[0], person)
     path.write_text(json.dumps({"version": 1.3, "people": [{"pose_keypoints_2d": []}]}))
     assert read_openpose(path) == []
+
+
+def test_a_cameras_folder_is_never_another_cameras(tmp_path):
+    """Keypoint and mask folders are found by the camera's name followed by a separator: ``cam1``'s is ``cam1_json``,
+    never ``cam10_json`` (which sorts first); two candidates are an error naming both."""
+    from pipelines.prepare.observe import camera_folder
+
+    for name in ("cam10_json", "cam1_json", "cam12_json", "cam2"):
+        (tmp_path / name).mkdir()
+    assert camera_folder(tmp_path, "cam1").name == "cam1_json"
+    assert camera_folder(tmp_path, "cam10").name == "cam10_json"
+    assert camera_folder(tmp_path, "cam2").name == "cam2"
+    with pytest.raises(CaptureError, match="no sub-folder for camera 'cam3'"):
+        camera_folder(tmp_path, "cam3")
+    (tmp_path / "cam1-masks").mkdir()
+    with pytest.raises(CaptureError, match="cam1-masks, cam1_json"):
+        camera_folder(tmp_path, "cam1")

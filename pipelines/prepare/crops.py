@@ -117,23 +117,35 @@ def _near(shape: tuple[int, int], pixels: np.ndarray, radius: float) -> np.ndarr
     return cv2.dilate(near, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1))) > 0
 
 
-def crop_masks(folder: Path, seen, found, crops: dict, detector, threshold: float) -> None:
-    """For each kept view (``found``: ``pipelines.prepare.person_targets.Triangulated``) with a crop
-    (:func:`redetect`) whose keypoints show the triangulated person, the crop's mask (read back from the detection
-    cache) replaces the raw mask in ``folder/mask_raw``."""
+def crop_masks(folder: Path, seen, found, crops: dict, whole: dict, detector, threshold: float) -> int:
+    """Each used view of ``found`` (``pipelines.prepare.person_targets.Triangulated``) takes the mask that came with
+    a detection of the person: a crop's (:func:`redetect`; read back from the detection cache) replaces the raw mask
+    in ``folder/mask_raw``; the whole image's detection (``whole[(view, frame)]``, targets) keeps it. A view where
+    neither shows the person has only somebody else's mask: it is no longer used (``found.used``). Returns the
+    number of such views."""
+    dropped = 0
     for i, frame in enumerate(found.frames):
         for v, camera in enumerate(seen.cameras):
+            if not found.used[i, v]:
+                continue
             for (x0, y0, x1, y1), key in crops.get((v, frame), []):
                 keypoints, mask = detector.kept_crop(key, (y1 - y0, x1 - x0))
                 targets = to_targets(keypoints + np.array([x0, y0, 0.0]), "blazepose")
-                shown = matches(
-                    projection_matrix(camera), _undistorted(camera, targets), found.points[i], camera.height, threshold
-                )
-                if mask is not None and shown:
-                    whole = np.zeros((camera.height, camera.width), np.uint8)
-                    whole[y0:y1, x0:x1] = mask
-                    cv2.imwrite(str(folder / "mask_raw" / camera.name / f"{frame:06d}.png"), whole)
+                if mask is not None and _shows(camera, targets, found.points[i], threshold):
+                    pasted = np.zeros((camera.height, camera.width), np.uint8)
+                    pasted[y0:y1, x0:x1] = mask
+                    cv2.imwrite(str(folder / "mask_raw" / camera.name / f"{frame:06d}.png"), pasted)
                     break
+            else:
+                if (v, frame) in whole and not _shows(camera, whole[(v, frame)], found.points[i], threshold):
+                    found.used[i, v] = False
+                    dropped += 1
+    return dropped
+
+
+def _shows(camera: Camera, targets: np.ndarray, points: np.ndarray, threshold: float) -> bool:
+    """Whether a view's ``targets`` (T, 3, distorted pixels) show the person ``points`` (``people.matches``)."""
+    return matches(projection_matrix(camera), _undistorted(camera, targets), points, camera.height, threshold)
 
 
 def _undistorted(camera: Camera, targets: np.ndarray) -> np.ndarray:

@@ -90,14 +90,23 @@ def _numbered_files(folder: Path, suffixes: tuple[str, ...]) -> dict[int, Path]:
 
 
 def camera_folder(root: Path, name: str) -> Path:
-    """The sub-folder of ``root`` for camera ``name``: ``name``, or one whose name starts with it (``cam01_json``)."""
+    """The sub-folder of ``root`` for camera ``name``: ``name``, or one whose name is ``name`` followed by a separator
+    and more (``cam01_json``, ``cam01-masks``): ``cam1_json`` is never ``cam10``'s. Several such folders are an
+    error naming them."""
     exact = root / name
     if exact.is_dir():
         return exact
-    found = sorted(p for p in root.iterdir() if p.is_dir() and p.name.startswith(name)) if root.is_dir() else []
+    found = sorted(p for p in root.iterdir() if p.is_dir() and _named_after(p.name, name)) if root.is_dir() else []
     if not found:
         raise CaptureError(f"{root}: no sub-folder for camera '{name}'")
+    if len(found) > 1:
+        raise CaptureError(f"{root}: several sub-folders for camera '{name}' ({', '.join(p.name for p in found)})")
     return found[0]
+
+
+def _named_after(folder: str, name: str) -> bool:
+    """Whether ``folder`` is ``name``, a separator (not a letter or digit) and more."""
+    return folder.startswith(name) and len(folder) > len(name) and not folder[len(name)].isalnum()
 
 
 class _Keypoints:

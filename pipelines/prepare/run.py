@@ -205,23 +205,54 @@ CHOICE_STRIDE = 10
 def follow_person(folder: Path, seen, frames: list[int], detector, request: PrepareRequest):
     """The person ``request.follow`` picks, triangulated in ``frames`` (``pipelines.prepare.people``). With a
     ``detector`` (keypoints from the detector), views that missed a person are detected again around them
-    (``pipelines.prepare.crops``): for ``best-seen`` every person in one frame of ``CHOICE_STRIDE`` before the
-    choice, then the chosen one in every frame. Every kept view's mask is the person's (its crop's, cut to them).
-    ``seen.people`` gains the crops' detections and ``seen.person`` says whom."""
-    from pipelines.prepare.crops import crop_masks, cut_masks, redetect
-    from pipelines.prepare.people import guide, nearest_track
+    (:func:`_look_again`). Every used view's mask is the person's (their crop's, or the whole image's when its
+    detection is theirs; a view with only somebody else's is no longer used), cut to them. ``seen.people`` gains the
+    crops' detections and ``seen.person`` says whom."""
+    from pipelines.prepare.crops import crop_masks, cut_masks
+    from pipelines.prepare.people import guide
 
     tracks = find_tracks(seen.cameras, seen.people, frames, request.threshold)
     if not tracks:
         raise CaptureError(
             f"{request.recording}: no person is seen by two agreeing views in any of the {len(frames)} frames read"
         )
-    crops, looked, counted = {}, 0, None
     detector = detector if len(seen.cameras) > 2 else None  # two views: a crop can add no third opinion
+    # the detector's one person per view, whose mask the view holds until a crop of the followed person replaces it
+    whole = {(v, f): found[0] for v, by_frame in enumerate(seen.people) for f, found in by_frame.items() if found}
+    tracks, chosen, whom, crops, looked = _look_again(folder, seen, frames, tracks, detector, request)
+    route = guide(tracks[chosen], frames)
+    found = triangulate_people(
+        seen.cameras, seen.people, frames, request.threshold, route, _others(tracks, chosen, frames)
+    )
+    if not found.frames:
+        raise CaptureError(f"{request.recording}: the person followed is never seen by two agreeing views")
+    without_mask = crop_masks(folder, seen, found, crops, whole if detector else {}, detector, request.threshold)
+    cut_masks(folder, seen.cameras, found)
+    seen.person = {
+        "choice": request.follow if isinstance(request.follow, str) else ":".join(map(str, request.follow)),
+        "followed": whom,
+        "people_seen": len(tracks),
+        "frames_per_person": sorted((len(t.points) for t in tracks), reverse=True),
+        "views_detected_again": looked,
+        "views_without_their_mask": without_mask,
+    }
+    return found
+
+
+def _look_again(folder: Path, seen, frames: list[int], tracks, detector, request: PrepareRequest):
+    """Choose the track (``choose_track``) and, with a ``detector``, look for people in the views that missed them
+    (``pipelines.prepare.crops.redetect``): for ``best-seen`` with several people, each of them in one frame of
+    ``CHOICE_STRIDE`` before the choice; then the chosen one in every frame. Returns the tracks found again, the
+    chosen one's index, the line saying whom, the crops and the number of views detected again."""
+    from pipelines.prepare.crops import redetect
+    from pipelines.prepare.people import guide, nearest_track
+
+    crops, looked, counted = {}, 0, None
     several = detector is not None and len(tracks) > 1 and request.follow == "best-seen"
     total = len(seen.cameras) * (len(frames) + several * len(tracks) * len(frames[::CHOICE_STRIDE]))
-    bar = tqdm(total=total, desc="looking for the person", unit="view", disable=not request.progress or not detector)
-    with bar:
+    with tqdm(
+        total=total, desc="looking for the person", unit="view", disable=not request.progress or not detector
+    ) as bar:
         if several:
             counted = frames[::CHOICE_STRIDE]
             for k, track in enumerate(tracks):
@@ -232,29 +263,13 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
             tracks = find_tracks(seen.cameras, seen.people, frames, request.threshold)
         chosen, whom = choose_track(tracks, request.follow, seen.cameras, counted)
         if detector is not None:
-            route = guide(tracks[chosen], frames)
-            rest = _others(tracks, chosen, frames)
+            route, rest = guide(tracks[chosen], frames), _others(tracks, chosen, frames)
             added = redetect(folder, seen, route, crops, detector, request.threshold, rest, bar.update)
             if added:
                 looked += added
                 tracks = find_tracks(seen.cameras, seen.people, frames, request.threshold)
                 chosen = nearest_track(tracks, route)
-    route = guide(tracks[chosen], frames)
-    found = triangulate_people(
-        seen.cameras, seen.people, frames, request.threshold, route, _others(tracks, chosen, frames)
-    )
-    if not found.frames:
-        raise CaptureError(f"{request.recording}: the person followed is never seen by two agreeing views")
-    crop_masks(folder, seen, found, crops, detector, request.threshold)
-    cut_masks(folder, seen.cameras, found)
-    seen.person = {
-        "choice": request.follow if isinstance(request.follow, str) else ":".join(map(str, request.follow)),
-        "followed": whom,
-        "people_seen": len(tracks),
-        "frames_per_person": sorted((len(t.points) for t in tracks), reverse=True),
-        "views_detected_again": looked,
-    }
-    return found
+    return tracks, chosen, whom, crops, looked
 
 
 def _others(tracks, chosen: int, frames) -> dict[int, list[np.ndarray]]:
