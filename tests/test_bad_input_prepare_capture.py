@@ -26,6 +26,22 @@ def test_prepare_floor_flag(tmp_path, capsys, value):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("value", ["first", "near:1,2", "near:1,2,x", "pixel:cam01:5", "pixel:5,6", "near:1,2,nan"])
+def test_prepare_person_flag(tmp_path, capsys, value):
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as usage:
+        prepare_capture.main([str(tmp_path), "--out", str(tmp_path / "o"), f"--person={value}"])
+    assert usage.value.code == 2 and "argument --person" in capsys.readouterr().err.splitlines()[-1]
+    assert not (tmp_path / "o").exists()
+
+
+def test_a_person_pixel_of_an_unknown_camera_is_one_line(recording, tmp_path, capsys):
+    rec = recording / "rec"
+    flags = ["--keypoints", rec / "keypoints", "--masks", rec / "masks", "--quiet", "--person", "pixel:nocam:5,6"]
+    error = prepare_error(capsys, [rec, "--out", tmp_path / "o", *flags])
+    assert "nocam is not one of the cameras" in error and not (tmp_path / "o").exists()
+
+
 def test_a_capture_whose_every_camera_is_flagged_is_refused_unless_kept():
     from pipelines.prepare.run import PrepareRequest, _refuse_all_flagged
 

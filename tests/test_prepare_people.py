@@ -68,10 +68,20 @@ def test_the_capture_follows_the_person_seen_best(recording, crowded):
     assert apart_views >= 5  # 7 of the 40 views, by the passer-by's path (OFFSET, STEP)
 
 
-def test_person_picks_the_other_one(recording, crowded, tmp_path):
+@pytest.mark.parametrize("how", ["near", "pixel"])
+def test_person_picks_the_other_one(recording, crowded, tmp_path, how):
+    """``--person near:X,Y,Z`` (the passer-by's pelvis half-way) and ``pixel:CAM:U,V`` (their pelvis in the first
+    frame, in a camera that sees them) follow the passer-by."""
     root, passer = crowded
-    middle = passer[5, 0]
-    assert _prepare(root / "rec", tmp_path / "other", "--person", "near:" + ",".join(f"{v:.3f}" for v in middle)) == 0
+    if how == "near":
+        choice = "near:" + ",".join(f"{v:.3f}" for v in passer[5, 0])
+    else:
+        from pipelines.datasets.camera import project_distorted
+
+        camera = next(c for c in ZjuCapture(recording / "truth").cameras if _inside(c, project_distorted(c, passer[0])))
+        u, v = project_distorted(camera, passer[0, :1])[0]
+        choice = f"pixel:{camera.name}:{u:.1f},{v:.1f}"
+    assert _prepare(root / "rec", tmp_path / "other", "--person", choice) == 0
     report = json.loads((tmp_path / "other" / "report.json").read_text())
     assert "nearest" in report["person"]["followed"]
     kept = report["frames"]["source_frames"]
@@ -79,6 +89,10 @@ def test_person_picks_the_other_one(recording, crowded, tmp_path):
     # seen by two or three of the four cameras, where the first person is seen by four: each joint's triangulation
     # rests on fewer views than the 2 cm of the first person's (measured 2.3 cm)
     assert len(kept) >= 3 and np.median(error_cm) < 3.0, (kept, np.median(error_cm))
+
+
+def _inside(camera, pixels: np.ndarray) -> bool:
+    return bool(((pixels >= 0) & (pixels < [camera.width, camera.height])).all())
 
 
 RED, GREEN = np.array([220, 30, 30]), np.array([30, 220, 30])

@@ -118,6 +118,10 @@ def _prepare_locked(request: PrepareRequest) -> dict:
     if len(set(names)) != len(names) or any("/" in n or n.startswith(".") for n in names):
         raise CaptureError(f"{calibration}: camera names must be distinct folder names, got {names}")
     holdout = _holdout(request.holdout_camera, names)
+    if isinstance(request.follow, tuple) and request.follow[0] == "pixel" and request.follow[1] not in names:
+        raise CaptureError(
+            f"--person pixel:{request.follow[1]}:...: {request.follow[1]} is not one of the cameras {names}"
+        )
     if isinstance(request.sync, dict) and set(request.sync) - set(names):  # before any frame is read
         raise CaptureError(f"--sync: {', '.join(sorted(set(request.sync) - set(names)))} not among the cameras {names}")
     detector = None

@@ -163,12 +163,7 @@ def frame_rate(source: Source) -> float | None:
     """A video's frame rate as its container states it (None for image folders or when it states none)."""
     if not source.is_video:
         return None
-    with native_stderr_to_null():
-        video = cv2.VideoCapture(str(source.path))
-    try:
-        rate = video.get(cv2.CAP_PROP_FPS) if video.isOpened() else 0.0
-    finally:
-        video.release()
+    rate = _stated(source, cv2.CAP_PROP_FPS)
     return float(rate) if rate and np.isfinite(rate) else None
 
 
@@ -177,13 +172,18 @@ def frame_count(source: Source) -> int | None:
     none; the stated count can be off by a frame or two, so it sizes progress bars, never the frames read)."""
     if not source.is_video:
         return len(_images(source.path))
+    count = _stated(source, cv2.CAP_PROP_FRAME_COUNT)
+    return int(count) if count and np.isfinite(count) and count > 0 else None
+
+
+def _stated(source: Source, prop: int) -> float:
+    """A property of a video as OpenCV reads it from the container (0 when the video cannot be opened)."""
     with native_stderr_to_null():
         video = cv2.VideoCapture(str(source.path))
     try:
-        count = video.get(cv2.CAP_PROP_FRAME_COUNT) if video.isOpened() else 0.0
+        return video.get(prop) if video.isOpened() else 0.0
     finally:
         video.release()
-    return int(count) if count and np.isfinite(count) and count > 0 else None
 
 
 @contextlib.contextmanager
