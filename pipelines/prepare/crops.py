@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from pipelines.datasets.camera import Camera, project_distorted
-from pipelines.datasets.keypoints import to_targets
+from pipelines.datasets.keypoints import mirror_index, to_targets
 from pipelines.prepare.multiview import projection_matrix, undistort_points
 from pipelines.prepare.people import matches
 from pipelines.prepare.person_targets import MIN_CONFIDENCE
@@ -57,15 +57,13 @@ def redetect(folder: Path, seen, route: dict, crops: dict, detector, threshold: 
     ``progress()`` is called once per view looked at. Returns the number of views detected again."""
     count = 0
     for v, camera in enumerate(seen.cameras):
-        P_v = projection_matrix(camera)
         for frame, points in route.items():
             if progress is not None:
                 progress()
             if frame not in seen.people[v]:
                 continue
             people = seen.people[v][frame]
-            undistorted = [_undistorted(camera, p) for p in people]
-            if any(matches(P_v, d, points, camera.height, threshold) for d in undistorted):
+            if any(_shows(camera, p, points, threshold) for p in people):
                 continue
             box = crop_box(camera, points)
             if box is None:
@@ -144,8 +142,12 @@ def crop_masks(folder: Path, seen, found, crops: dict, whole: dict, detector, th
 
 
 def _shows(camera: Camera, targets: np.ndarray, points: np.ndarray, threshold: float) -> bool:
-    """Whether a view's ``targets`` (T, 3, distorted pixels) show the person ``points`` (``people.matches``)."""
-    return matches(projection_matrix(camera), _undistorted(camera, targets), points, camera.height, threshold)
+    """Whether a view's ``targets`` (T, 3, distorted pixels) show the person ``points`` (``people.matches``), as
+    detected or with left and right swapped (detectors swap the sides of a person seen from the back, and the
+    consensus takes either)."""
+    P_v, undistorted = projection_matrix(camera), _undistorted(camera, targets)
+    mirrored = undistorted[[mirror_index(t) for t in range(len(undistorted))]]
+    return any(matches(P_v, d, points, camera.height, threshold) for d in (undistorted, mirrored))
 
 
 def _undistorted(camera: Camera, targets: np.ndarray) -> np.ndarray:
