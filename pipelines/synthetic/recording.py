@@ -29,30 +29,56 @@ def true_joints(capture: ZjuCapture, body: BodyModel) -> np.ndarray:
 
 
 def write_recording(
-    capture_root: Path, out: Path, noise_px: float = 1.0, seed: int = 0, fps: int = 30, layout: str = "body25"
+    capture_root: Path,
+    out: Path,
+    noise_px: float = 1.0,
+    seed: int = 0,
+    fps: int = 30,
+    layout: str = "body25",
+    cameras: int | None = None,
+    frames: int | None = None,
 ) -> Path:
     """Write ``out/videos/<camera>.mp4``, ``out/calibration/Calib.qca.txt``, ``out/keypoints/<camera>_json/`` and
     ``out/masks/<camera>/`` from a synthetic ZJU-layout capture (module docstring); the keypoints in ``layout``
-    (``pipelines.datasets.keypoints.LAYOUT_SIZES``). Returns ``out``."""
+    (``pipelines.datasets.keypoints.LAYOUT_SIZES``). ``cameras``: that many of the capture's cameras, evenly spread
+    (None: all); ``frames``: that many frames, the capture's played forth and back (None: its own). Frames are
+    streamed into the videos. Returns ``out``."""
     capture = ZjuCapture(capture_root, ratio=1.0, mask_source="mask")
     rng = np.random.default_rng(seed)
     joints = true_joints(capture, BodyModel())
-    write_qualisys(out / "calibration" / "Calib.qca.txt", capture.cameras)
-    for c, camera in enumerate(capture.cameras):
-        frames = []
-        for f in range(capture.n_frames):
-            image = cv2.imread(str(capture.root / capture.ims[f][c]), cv2.IMREAD_COLOR)
-            frames.append(image[..., ::-1])
-            mask = cv2.imread(
-                str(capture.root / "mask" / Path(capture.ims[f][c]).with_suffix(".png")), cv2.IMREAD_GRAYSCALE
-            )
+    n = capture.n_frames
+    order = [f % n if (f // n) % 2 == 0 else n - 1 - f % n for f in range(frames or n)]
+    chosen = np.linspace(0, len(capture.cameras) - 1, cameras or len(capture.cameras)).round().astype(int)
+    write_qualisys(out / "calibration" / "Calib.qca.txt", [capture.cameras[c] for c in chosen])
+
+    def camera_frames(c: int, camera):
+        for i, f in enumerate(order):
+            mask = cv2.imread(str(capture.root / "mask" / Path(capture.ims[f][c]).with_suffix(".png")), 0)
             (out / "masks" / camera.name).mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(out / "masks" / camera.name / f"{f:06d}.png"), (mask > 0).astype(np.uint8) * 255)
+            cv2.imwrite(str(out / "masks" / camera.name / f"{i:06d}.png"), (mask > 0).astype(np.uint8) * 255)
             pixels = project_distorted(camera, joints[f]) + rng.normal(0.0, noise_px, (len(joints[f]), 2))
-            path = out / "keypoints" / f"{camera.name}_json" / f"{camera.name}_{f:012d}_keypoints.json"
+            path = out / "keypoints" / f"{camera.name}_json" / f"{camera.name}_{i:012d}_keypoints.json"
             write_openpose(path, [keypoints_from_joints(pixels, layout)])
-        write_mp4(out / "videos" / f"{camera.name}.mp4", frames, fps=fps)
+            yield cv2.imread(str(capture.root / capture.ims[f][c]), cv2.IMREAD_COLOR)[..., ::-1]
+
+    for c in chosen:
+        camera = capture.cameras[c]
+        write_mp4(out / "videos" / f"{camera.name}.mp4", camera_frames(c, camera), fps=fps)
     return out
+
+
+def main(argv: list[str] | None = None) -> None:
+    """``python -m pipelines.synthetic.recording CAPTURE OUT [--cameras N] [--frames N]``: a long recording to
+    measure ``narf-prepare-capture`` on (docs/results/real-capture.md, *Long takes*)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(description=write_recording.__doc__)
+    parser.add_argument("capture", type=Path, help="a synthetic capture (narf-synth)")
+    parser.add_argument("out", type=Path, help="the recording to write")
+    parser.add_argument("--cameras", type=int, default=None, help="that many cameras, evenly spread (default: all)")
+    parser.add_argument("--frames", type=int, default=None, help="that many frames, played forth and back")
+    args = parser.parse_args(argv)
+    print(write_recording(args.capture, args.out, cameras=args.cameras, frames=args.frames))
 
 
 def add_passer_by(
@@ -89,3 +115,7 @@ def add_passer_by(
             mask |= silhouette(camera, vertices[f], body.faces)
             cv2.imwrite(str(mask_path), mask.astype(np.uint8) * 255)
     return joints
+
+
+if __name__ == "__main__":
+    main()
