@@ -16,22 +16,16 @@ from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import write_openpose
 from pipelines.datasets.rig_files import read_qualisys, write_qualisys
 
+FLOORS = ["down", "z", "w-up", "z-up=high", "z-up=inf", "+z"]
+PEOPLE = ["first", "near:1,2", "near:1,2,x", "pixel:cam01:5", "pixel:5,6", "near:1,2,nan"]
 
-@pytest.mark.parametrize("value", ["down", "z", "w-up", "z-up=high", "z-up=inf", "+z"])
-def test_prepare_floor_flag(tmp_path, capsys, value):
+
+@pytest.mark.parametrize(("flag", "value"), [("floor", v) for v in FLOORS] + [("person", v) for v in PEOPLE])
+def test_prepare_flag_values(tmp_path, capsys, flag, value):
     capsys.readouterr()
     with pytest.raises(SystemExit) as usage:
-        prepare_capture.main([str(tmp_path), "--out", str(tmp_path / "o"), f"--floor={value}"])
-    assert usage.value.code == 2 and "argument --floor" in capsys.readouterr().err.splitlines()[-1]
-    assert not (tmp_path / "o").exists()
-
-
-@pytest.mark.parametrize("value", ["first", "near:1,2", "near:1,2,x", "pixel:cam01:5", "pixel:5,6", "near:1,2,nan"])
-def test_prepare_person_flag(tmp_path, capsys, value):
-    capsys.readouterr()
-    with pytest.raises(SystemExit) as usage:
-        prepare_capture.main([str(tmp_path), "--out", str(tmp_path / "o"), f"--person={value}"])
-    assert usage.value.code == 2 and "argument --person" in capsys.readouterr().err.splitlines()[-1]
+        prepare_capture.main([str(tmp_path), "--out", str(tmp_path / "o"), f"--{flag}={value}"])
+    assert usage.value.code == 2 and f"argument --{flag}" in capsys.readouterr().err.splitlines()[-1]
     assert not (tmp_path / "o").exists()
 
 

@@ -32,11 +32,9 @@ def crop_box(camera: Camera, points: np.ndarray) -> tuple[int, int, int, int] | 
     """(x0, y0, x1, y1) pixels of a square box around ``points`` (T, 3) projected into ``camera``, grown by
     ``BOX_MARGIN`` and clipped to the image; None when the person is too small or mostly outside (module
     constants)."""
-    finite = points[np.isfinite(points).all(-1)]
-    depth = finite @ camera.cam_from_world[2, :3] + camera.cam_from_world[2, 3]
-    if len(finite) < 3 or (depth <= 0).any():
+    xy = _pixels(camera, points)
+    if len(xy) < 3:
         return None
-    xy = project_distorted(camera, finite)
     low, high = xy.min(0), xy.max(0)
     centre, side = (low + high) / 2, (1 + 2 * BOX_MARGIN) * (high - low).max()
     x0, y0 = np.floor(centre - side / 2).astype(int)
