@@ -61,6 +61,12 @@ class ModelConfig:
     image_size: int = 128  #: cnn only: side of its square bone maps and output images (paper: 128)
     latent_dim: int = 0  #: autoencoder: size of z_s and of z_a (paper 256); 0 for a per-subject fit
     encoder_channels: int = 32  #: autoencoder: image encoder base width c (paper 32: 32..512 channels)
+    #: what the colour may depend on (docs/model.md §4, *Colour conditioning*): the view direction's encoded
+    #: frequencies (4: gamma_4 as in the paper; 0: no view direction), its random turn in training (degrees per
+    #: tangent axis) and the chance that a training ray's pose features xi are zeroed
+    view_freqs: int = 4
+    view_jitter: float = 0.0
+    pose_dropout: float = 0.0
 
 
 @dataclass
@@ -115,6 +121,8 @@ class TrainConfig:
     colour_lr: float = 1e-3  #: Adam learning rate of the camera colour transforms
     colour_prior: float = 1e-3  #: pull of each camera's transform towards the identity
     random_background: bool = False  #: random background colour per ray; the mask's band leaves the colour loss
+    window_steps: int = 0  #: coarse-to-fine: steps over which gamma_10's frequencies open (0: all open from the start)
+    window_start: float = 4.0  #: coarse-to-fine: the frequencies open at step 0 (docs/model.md §2)
 
 
 @dataclass
@@ -291,6 +299,9 @@ RANGES = {
     "model.image_size": (lambda v: v >= 32 and v % 32 == 0, "a multiple of 32, >= 32"),
     "model.latent_dim": (lambda v: v >= 0, ">= 0"),
     "model.encoder_channels": (lambda v: v >= 1, ">= 1"),
+    "model.view_freqs": (lambda v: 0 <= v <= 4, "in [0, 4]"),
+    "model.view_jitter": (lambda v: 0 <= v <= 45, "in [0, 45] (degrees)"),
+    "model.pose_dropout": (lambda v: 0 <= v < 1, "in [0, 1)"),
     "render.train_coarse": (lambda v: v >= 2, ">= 2"),
     "render.train_fine": (lambda v: v >= 0, ">= 0"),
     "render.eval_coarse": (lambda v: v >= 2, ">= 2"),
@@ -328,6 +339,8 @@ RANGES = {
     "train.mask_body_iterations": (lambda v: v >= 0, ">= 0"),
     "train.colour_lr": (lambda v: v > 0, "> 0"),
     "train.colour_prior": (lambda v: v >= 0, ">= 0"),
+    "train.window_steps": (lambda v: v >= 0, ">= 0 (0: off)"),
+    "train.window_start": (lambda v: 0 <= v <= 10, "in [0, 10]"),
 }
 
 
@@ -372,6 +385,9 @@ def validate_config(config: FitConfig) -> None:
         raise ConfigError("render.occupancy: the occupancy grid is for per-subject fits (densities differ per person)")
     if config.train.colour_jitter and not spec.rays:
         raise ConfigError("train.colour_jitter: only the NeRF-type autoencoders use it")
+    model_class = getattr(spec.build, "func", spec.build)  # a constructor or a functools.partial of one
+    if config.model.pose_dropout and getattr(model_class, "pose_in_density", True):
+        raise ConfigError(f"model.pose_dropout: {config.model.name}'s density reads the pose features; leave it at 0")
     for key in ("pose_correction", "camera_colour", "random_background"):
         if getattr(config.train, key) and not spec.rays:
             raise ConfigError(f"train.{key}: the CNN baseline renders no rays; set it false (--set train.{key}=false)")

@@ -75,7 +75,7 @@ def load_fitted(run: Path | SavedRun, device="cpu", kind: str | None = None) -> 
     run_dir, state, config = saved.run_dir, saved.state, saved.config
     if kind is not None and config.kind != kind:
         raise CheckpointError(f"{run_dir}: holds a {config.kind} run; this needs a {kind} run")
-    field = make_field(config).to(device)
+    field = make_field(config, int(state.get("step", 0))).to(device)
     load_weights(field, state["model"], run_dir, f"the {config.model.name} model of its config")
     bad = next((name for name, value in field.state_dict().items() if not torch.isfinite(value).all()), None)
     if bad is not None:

@@ -21,6 +21,7 @@ from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
 from fitting.files import atomic_write_text, named_errors
 from fitting.plots import write_curve, write_validation
 from fitting.run_folder import write_config
+from narf.encodings import POINT_FREQS
 from narf.fields import model_spec
 from narf.fields.common import PoseBatch
 from narf.metrics import psnr
@@ -28,17 +29,36 @@ from narf.occupancy import OccupancyGrid, field_ray_bounds, refresh_cells
 from narf.renderer import bind_field, bind_grid_proposal, render_rays
 
 
-def make_field(config: FitConfig):
-    """The model of a config, given the options its constructor takes (its spec in ``narf.fields.MODEL_SPECS``)."""
+def make_field(config: FitConfig, step: int = 0):
+    """The model of a config, given the options its constructor takes (its spec in ``narf.fields.MODEL_SPECS``), as
+    it is at ``step`` (:func:`configure_field`)."""
     m = config.model
     spec = model_spec(m.name)
     field = spec.build(**{option: getattr(m, option) for option in spec.options})
     if not spec.rays:
         return field
+    configure_field(field, config, step)
     r = config.render
     if r.occupancy:
         field.occupancy = OccupancyGrid(field.n_parts, r.occupancy_resolution, r.occupancy_threshold)
     return field
+
+
+def encoding_window(config: FitConfig, step: int) -> float | None:
+    """The coarse-to-fine window's alpha at ``step``: from ``train.window_start`` to all 10 frequencies of gamma_10,
+    linearly over ``train.window_steps`` (docs/model.md §2); None once open (or when the window is off)."""
+    t = config.train
+    if t.window_steps <= 0 or step >= t.window_steps:
+        return None
+    return t.window_start + (POINT_FREQS - t.window_start) * step / t.window_steps
+
+
+def configure_field(field, config: FitConfig, step: int) -> None:
+    """Set what a field's colour may depend on (the model config) and its point encoding's window at ``step``.
+    Training and evaluation both come through here, so a run evaluated at step n sees the field it trained."""
+    m = config.model
+    field.view_freqs, field.view_jitter, field.pose_dropout = m.view_freqs, math.radians(m.view_jitter), m.pose_dropout
+    field.point_window = encoding_window(config, step)
 
 
 def ray_loss(
@@ -338,6 +358,7 @@ class Trainer:
             t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction, self.generator, t.views_per_frame
         )
         n = batch.origins.shape[0]
+        self.field.point_window = encoding_window(self.config, self.step)
         uniforms = [torch.rand(n, k, generator=self.generator).to(self.device) for k in (r.train_coarse, r.train_fine)]
         backgrounds = None
         if t.random_background:

@@ -63,3 +63,25 @@ def point_encoding(values: torch.Tensor, gradient_freqs: int | None = None) -> t
     passing = torch.arange(POINT_FREQS, device=values.device) < gradient_freqs
     angles = torch.where(passing, values[..., None] * freqs, values.detach()[..., None] * freqs)  # (..., D, L)
     return torch.cat([torch.sin(angles), torch.cos(angles)], dim=-1).flatten(-2)
+
+
+def frequency_window(alpha: float, n_freqs: int, device=None, dtype=torch.float32) -> torch.Tensor:
+    """BARF's coarse-to-fine weights w_k(alpha) = (1 - cos(pi clamp(alpha - k, 0, 1))) / 2 of frequencies k < L: 1
+    for k <= alpha - 1, 0 for k >= alpha, a half-cosine between. At an integer alpha the window keeps exactly the
+    alpha lowest frequencies (docs/model.md §2).
+
+    Returns:
+        (2 L,) weights laid out as one scalar's :func:`positional_encoding` ([sin k, cos k]).
+    """
+    k = torch.arange(n_freqs, device=device, dtype=dtype)
+    weights = (1 - torch.cos(math.pi * (alpha - k).clamp(0, 1))) / 2
+    return torch.cat([weights, weights])
+
+
+def windowed(encoded: torch.Tensor, alpha: float | None, n_freqs: int) -> torch.Tensor:
+    """``encoded`` (..., D * 2L), a :func:`positional_encoding` of D scalars, times :func:`frequency_window`
+    (alpha): unchanged (the same tensor) when alpha is None or >= L."""
+    if alpha is None or alpha >= n_freqs:
+        return encoded
+    weights = frequency_window(alpha, n_freqs, encoded.device, encoded.dtype)
+    return (encoded.unflatten(-1, (-1, 2 * n_freqs)) * weights).flatten(-2)

@@ -49,6 +49,8 @@ def test_every_preset_loads_and_builds_its_model():
         ("model.temperature=5", "model.temperature: narf_d does not take it (only narf_p)"),
         ("train.encoder_lr=0.01", "train.encoder_lr: only autoencoder runs use it (this is a subject run)"),
         ("data.ratio=0", "config key 'data.ratio': must be in (0, 1], got 0.0"),
+        ("model.view_freqs=5", "config key 'model.view_freqs': must be in .0, 4., got 5"),
+        ("model.pose_dropout=1", "config key 'model.pose_dropout': must be in .0, 1), got 1.0"),
     ],
 )
 def test_bad_values_name_their_key(override, message):
@@ -59,6 +61,21 @@ def test_bad_values_name_their_key(override, message):
 def test_model_options_reach_the_constructor():
     assert make_field(load_config("tiny", ["model.name=narf_p", "model.temperature=0.5"])).temperature == 0.5
     assert make_field(load_config("tiny", ["model.name=p_nerf", "model.pose_in_color=false"])).pose_in_color is False
+
+
+def test_colour_conditioning_and_the_window_reach_the_field(tmp_path):
+    """The model config's colour options and the coarse-to-fine window (alpha from 4 to 10 over 1,000 steps: 7 at
+    step 500, open at 1,000) reach the field, in training and in a run loaded for evaluation at its step."""
+    sets = ["model.view_freqs=1", "model.view_jitter=30", "model.pose_dropout=0.25", "train.window_steps=1000"]
+    config = load_config("tiny", sets)
+    field = make_field(config, 500)
+    assert (field.view_freqs, field.pose_dropout, field.point_window) == (1, 0.25, 7.0)
+    assert field.view_jitter == pytest.approx(torch.pi / 6, rel=1e-12)  # degrees to radians, float64
+    assert make_field(config).point_window == 4.0 and make_field(config, 1000).point_window is None
+    save_checkpoint(tmp_path, {"config": config.to_dict(), "step": 250, "model": field.state_dict()})
+    assert load_fitted(tmp_path).field.point_window == 5.5
+    with pytest.raises(ConfigError, match="model.pose_dropout: p_nerf's density reads the pose features"):
+        load_config("tiny", ["model.name=p_nerf", "model.pose_dropout=0.5"])
 
 
 @pytest.mark.parametrize("legacy, kind", [("zju", "subject"), ("thuman", "autoencoder"), ("rigid", "rigid")])

@@ -5,6 +5,7 @@ import torch
 from kornia.geometry.linalg import inverse_transformation as invert_rigid
 from kornia.geometry.linalg import transform_points
 
+from narf.encodings import frequency_window, positional_encoding, windowed
 from narf.fields import PoseBatch, build_field, model_names, paper_presets, paper_rows
 from narf.fields.base import masked_softmax, rescale_selection
 from narf.fields.common import part_box_coordinates, part_directions, part_local
@@ -418,3 +419,75 @@ def test_fast_paths_run_under_bf16_autocast(name):
     assert out.sigma.shape == (4, 6) and out.rgb.shape == (4, 6, 3)
     assert torch.isfinite(out.sigma).all() and (out.sigma >= 0).all() and out.sigma[0, 0] == 0
     assert ((out.rgb >= 0) & (out.rgb <= 1)).all()
+
+
+def test_frequency_window_hand_values():
+    """BARF's w_k = (1 - cos(pi clamp(alpha - k, 0, 1))) / 2 at alpha = 2.5, L = 4: 1, 1, 1/2, 0 (sin and cos alike)."""
+    expected = torch.tensor([1.0, 1.0, 0.5, 0.0] * 2)
+    assert torch.allclose(frequency_window(2.5, 4), expected, atol=1e-7)  # float32 cosines of exact angles
+    assert torch.equal(frequency_window(3.0, 4), torch.tensor([1.0, 1.0, 1.0, 0.0] * 2))
+    encoded = positional_encoding(torch.rand(5, 3), 4)
+    assert windowed(encoded, None, 4) is encoded and windowed(encoded, 4.0, 4) is encoded
+    kept = windowed(encoded, 1.0, 4).unflatten(-1, (3, 8))  # per scalar [sin k, cos k]: only k = 0 survives
+    assert torch.equal(kept[..., [1, 2, 3, 5, 6, 7]], torch.zeros(5, 3, 6))
+    assert torch.equal(kept[..., [0, 4]], encoded.unflatten(-1, (3, 8))[..., [0, 4]])
+
+
+@pytest.mark.parametrize("name", model_names("field", "rigid"))
+def test_colour_without_the_view_direction_ignores_it(name):
+    """model.view_freqs = 0: the colour is the same from every direction (and the density always was); the default
+    (all 4 frequencies) does depend on it."""
+    field = _field(name).eval()
+    points, dirs = _points()
+    pose = _random_pose(n_parts=field.n_parts).select(torch.zeros(4, dtype=torch.long))
+    turned = dirs.flip(0)
+    assert not torch.allclose(field(points, dirs, pose).rgb, field(points, turned, pose).rgb)
+    field.view_freqs = 0
+    a, b = field(points, dirs, pose), field(points, turned, pose)
+    assert torch.equal(a.sigma, b.sigma) and torch.equal(a.rgb, b.rgb)
+
+
+@pytest.mark.parametrize("name", ["narf_d", "narf_h", "narf_p", "d_narf"])
+def test_fast_path_matches_dense_reference_with_window_and_low_order_directions(name, monkeypatch):
+    """The coarse-to-fine window and the kept direction frequencies act alike on the fast paths and the dense
+    references (float64: the same sums in another order, as the test above)."""
+    monkeypatch.setattr("narf.fields.narf_p.PACKED_SHARE", 1.0)
+    fast = _field(name, width=16, dtype=torch.float64)
+    dense = _field(name, width=16, dtype=torch.float64)
+    dense.load_state_dict(fast.state_dict())
+    dense.fast = False
+    for model in (fast, dense):
+        model.view_freqs, model.point_window = 1, 5.5
+    points, dirs = _points(8, 12, seed=5, dtype=torch.float64)
+    pose = _random_pose(n_frames=2, dtype=torch.float64).select(torch.tensor([0, 1] * 4))
+    a, b = fast(points, dirs, pose), dense(points, dirs, pose)
+    if name == "d_narf":  # its fast path skips the head where sigma = 0 (no render weighs that colour)
+        inside = (b.part_probs.sum(-1) > 0)[..., None]
+        a.rgb, b.rgb = torch.where(inside, a.rgb, 0.0), torch.where(inside, b.rgb, 0.0)
+    assert torch.allclose(a.sigma, b.sigma, atol=1e-10) and torch.allclose(a.rgb, b.rgb, atol=1e-10)
+    plain = _field(name, width=16, dtype=torch.float64)
+    plain.load_state_dict(fast.state_dict())
+    assert not torch.allclose(plain(points, dirs, pose).sigma, a.sigma)  # the window does act on the density
+
+
+@pytest.mark.parametrize("name", ["narf_d", "narf_h", "d_narf"])
+def test_jitter_and_pose_dropout_act_in_training_only_and_never_on_the_density(name):
+    """model.view_jitter and model.pose_dropout perturb a training forward's colour inputs; evaluation (eval mode)
+    is the unperturbed field, to the bit, and the density never changes."""
+    field = _field(name)
+    points, dirs = _points(64, 6)
+    pose = _random_pose(n_frames=2).select(torch.arange(64) % 2)
+    reference = field.eval()(points, dirs, pose)
+    field.view_jitter, field.pose_dropout = math.radians(10), 0.5
+    evaluated = field(points, dirs, pose)
+    assert torch.equal(evaluated.sigma, reference.sigma) and torch.equal(evaluated.rgb, reference.rgb)
+    torch.manual_seed(3)
+    trained = field.train()(points, dirs, pose)
+    assert torch.equal(trained.sigma, reference.sigma)
+    changed = (trained.rgb - reference.rgb).abs().amax(dim=(1, 2)) > 0
+    hit = reference.sigma.amax(dim=1) > 0  # rays with a sample in some box
+    assert changed[hit].all()
+    field.view_jitter = 0.0  # dropout alone: about half of the rays keep their colour exactly
+    torch.manual_seed(4)
+    dropped = (field(points, dirs, pose).rgb - reference.rgb).abs().amax(dim=(1, 2)) > 0
+    assert 0.2 < dropped[hit].float().mean() < 0.8  # binomial(n >= 40, 1/2): outside [0.2, 0.8] with p < 1e-4

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -9,7 +10,7 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
-from narf.encodings import POSE_FREQS, positional_encoding
+from narf.encodings import POINT_FREQS, POSE_FREQS, point_encoding, positional_encoding, windowed
 from narf.fields.common import PoseBatch, RadianceHead, part_box_coordinates, part_directions, part_local
 from narf.geometry import check_shape
 from narf.layers import GroupedLinear
@@ -67,6 +68,17 @@ class Field(nn.Module):
     #: (``narf.encodings.point_encoding``); None: all. Set while poses are corrected; no effect on the field's own
     #: gradients or on any value.
     pose_gradient_freqs: int | None = None
+    #: what the colour may depend on (docs/model.md §4, *Colour conditioning*), set from the model config by
+    #: ``fitting.trainer.configure_field``: the direction encoding's kept frequencies (0: no view direction), the
+    #: view direction's jitter in training (radians, per tangent axis) and the probability that a training ray's
+    #: pose features xi are zeroed
+    view_freqs: int = POSE_FREQS
+    view_jitter: float = 0.0
+    pose_dropout: float = 0.0
+    #: whether the density reads the pose features xi (P-NeRF, RP-NeRF): their dropout would reach the geometry
+    pose_in_density = False
+    #: coarse-to-fine window of the point encoding gamma_10 (``narf.encodings.frequency_window``); None: all open
+    point_window: float | None = None
 
     def __init__(self, n_parts: int, latent_dim: int = 0):
         super().__init__()
@@ -88,6 +100,16 @@ class Field(nn.Module):
         """u_i = (x_i - c_i) / h_i and the in-box indicator ``max|u_i| <= 1``: (R, S, P, 3), (R, S, P)."""
         u = (x_local - self.box_centres) / self.box_half_extents
         return u, u.abs().amax(dim=-1) <= 1
+
+    def encode_points(self, values: torch.Tensor) -> torch.Tensor:
+        """gamma_10 of part-local points or box coordinates (..., 3) -> (..., 60), through the coarse-to-fine
+        window and with the pose's gradient band-limited (``narf.encodings.point_encoding``)."""
+        return windowed(point_encoding(values, self.pose_gradient_freqs), self.point_window, POINT_FREQS)
+
+    def encode_dirs(self, dirs: torch.Tensor) -> torch.Tensor:
+        """gamma_4 of view directions (..., 3) -> (..., 24), the frequencies k >= ``view_freqs`` zeroed (all of them
+        at 0: the colour does not see the view direction)."""
+        return windowed(positional_encoding(dirs, POSE_FREQS), float(self.view_freqs), POSE_FREQS)
 
     @staticmethod
     def zeta_encoding(pose: PoseBatch) -> torch.Tensor:
@@ -133,6 +155,8 @@ class Field(nn.Module):
             )
         # fused u (one affine map per ray); x_local, the per-part points, only for the fields that read them
         x_local = part_local(points, dirs, pose)[0] if self.uses_part_points else None
+        if self.training:
+            dirs, pose = self._perturbed_colour_inputs(dirs, pose)
         d_local = part_directions(dirs, pose)
         u = part_box_coordinates(points, pose, self.box_centres, self.box_half_extents)
         in_box = u.abs().amax(dim=-1) <= 1
@@ -141,6 +165,17 @@ class Field(nn.Module):
             check_shape("latent", latent, (points.shape[0], 2 * self.latent_dim))
             z_s, z_a = latent[None, :, None, : self.latent_dim], latent[None, :, None, self.latent_dim :]
         return FieldInputs(points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a)
+
+    def _perturbed_colour_inputs(self, dirs: torch.Tensor, pose: PoseBatch) -> tuple[torch.Tensor, PoseBatch]:
+        """Training only: each ray's direction turned at random (d <- (d + e) / |d + e|, e ~ N(0, view_jitter^2 I),
+        so the angle per tangent axis has standard deviation ``view_jitter``) and its pose features zeroed with
+        probability ``pose_dropout`` (docs/model.md §4). Neither reaches the density."""
+        if self.view_jitter > 0:
+            dirs = nn.functional.normalize(dirs + self.view_jitter * torch.randn_like(dirs), dim=-1)
+        if self.pose_dropout > 0:
+            kept = torch.rand(dirs.shape[0], 1, 1, device=dirs.device) >= self.pose_dropout
+            pose = dataclasses.replace(pose, pose_features=pose.pose_features * kept)
+        return dirs, pose
 
     def _density(self, inputs: FieldInputs) -> torch.Tensor:
         return self._forward(inputs).sigma

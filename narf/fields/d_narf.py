@@ -11,7 +11,6 @@ from narf.encodings import (
     POINT_WIDTH,
     POSE_FREQS,
     XI_WIDTH,
-    point_encoding,
     positional_encoding,
     zeta_width,
 )
@@ -58,15 +57,13 @@ class DNarf(Field):
         if self.fast:
             return self._forward_in_box(inputs)
         encoded_zeta = self.zeta_encoding(pose)
-        probs = masked_softmax(
-            self.selector(point_encoding(u, self.pose_gradient_freqs), encoded_zeta), in_box
-        )  # (R, S, P)
+        probs = masked_softmax(self.selector(self.encode_points(u), encoded_zeta), in_box)  # (R, S, P)
         canonical = torch.einsum("rsp,rspc->rsc", probs, x_local + pose.rest_offsets[:, None])
         blended_dirs = torch.einsum("rsp,rpc->rsc", probs, d_local)
         blended_xi = torch.einsum("rsp,rpc->rsc", probs, pose.pose_features)
-        density = {"x": point_encoding(canonical / 1.25, self.pose_gradient_freqs)[None], "zeta": encoded_zeta[None]}
+        density = {"x": self.encode_points(canonical / 1.25)[None], "zeta": encoded_zeta[None]}
         colour = {
-            "dirs": positional_encoding(blended_dirs, POSE_FREQS)[None],
+            "dirs": self.encode_dirs(blended_dirs)[None],
             "pose": positional_encoding(blended_xi / math.pi, POSE_FREQS)[None],
         }
         sigma, rgb = self.head(density, colour, z_s, z_a)
@@ -77,7 +74,7 @@ class DNarf(Field):
         r_count, s_count, p_count = in_box.shape
         ray, sample, part = in_box_pairs(in_box)
         flat = ray * s_count + sample
-        encoded = point_encoding(u[ray, sample, part], self.pose_gradient_freqs)  # (M, 60)
+        encoded = self.encode_points(u[ray, sample, part])  # (M, 60)
         chunks = torch.split(encoded, torch.bincount(part, minlength=p_count).tolist())
         logit = selector_logits(self.selector, chunks, ray, part, self.zeta_encoding(pose))
         probs = segment_softmax(logit, flat, r_count * s_count)  # (M,)
@@ -91,11 +88,11 @@ class DNarf(Field):
         live = in_box.reshape(-1, p_count).any(dim=-1).nonzero()[:, 0]  # samples inside some box
         live_rays = live // s_count
         density = {
-            "x": point_encoding(canonical[live] / 1.25, self.pose_gradient_freqs)[None, None],
+            "x": self.encode_points(canonical[live] / 1.25)[None, None],
             "zeta": self.zeta_encoding(pose)[live_rays, 0][None, None],
         }
         colour = {
-            "dirs": positional_encoding(blended_dirs[live], POSE_FREQS)[None, None],
+            "dirs": self.encode_dirs(blended_dirs[live])[None, None],
             "pose": positional_encoding(blended_xi[live] / math.pi, POSE_FREQS)[None, None],
         }
         z_s = None if z_s is None else z_s[0, live_rays, 0][None, None]

@@ -9,7 +9,6 @@ from narf.encodings import (
     POINT_WIDTH,
     POSE_FREQS,
     XI_WIDTH,
-    point_encoding,
     positional_encoding,
     zeta_width,
 )
@@ -69,12 +68,12 @@ class NarfH(Field):
             sigma, rgb = self.head.forward_embedded(density, colour, {"zeta": encoded_zeta[None]}, z_s, z_a)
             return FieldOutput(sigma[0], rgb[0], probs)
         r, s, p, _ = u.shape
-        encoded_u = point_encoding(u, self.pose_gradient_freqs)  # (R, S, P, 60)
+        encoded_u = self.encode_points(u)  # (R, S, P, 60)
         encoded_zeta = self.zeta_encoding(pose)
         weights, probs = self.part_weights(encoded_u, in_box, encoded_zeta)
         masked_u = (weights[..., None] * encoded_u).reshape(1, r, s, p * POINT_WIDTH)
         encoded_xi = positional_encoding(pose.pose_features / math.pi, POSE_FREQS)[:, None]  # (R, 1, P, 48)
-        encoded_d = positional_encoding(d_local, POSE_FREQS)[:, None]  # (R, 1, P, 24)
+        encoded_d = self.encode_dirs(d_local)[:, None]  # (R, 1, P, 24)
         colour = {
             "pose": (weights[..., None] * encoded_xi).reshape(1, r, s, p * XI_WIDTH),
             "dirs": (weights[..., None] * encoded_d).reshape(1, r, s, p * DIRECTION_WIDTH),

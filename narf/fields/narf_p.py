@@ -11,7 +11,6 @@ from narf.encodings import (
     POINT_WIDTH,
     POSE_FREQS,
     XI_WIDTH,
-    point_encoding,
     positional_encoding,
     zeta_width,
 )
@@ -78,12 +77,12 @@ class NarfP(Field):
         """Every part's network on every sample (the reference): sigma_i (R, S, P), c_i (R, S, P, 3)."""
         p = self.n_parts
         density = {
-            "u": point_encoding(u, self.pose_gradient_freqs).permute(2, 0, 1, 3),
+            "u": self.encode_points(u).permute(2, 0, 1, 3),
             "zeta": self.zeta_encoding(pose)[None].expand(p, -1, -1, -1),
         }
         colour = {
             "pose": positional_encoding(pose.pose_features / math.pi, POSE_FREQS).permute(1, 0, 2)[:, :, None],
-            "dirs": positional_encoding(d_local, POSE_FREQS).permute(1, 0, 2)[:, :, None],
+            "dirs": self.encode_dirs(d_local).permute(1, 0, 2)[:, :, None],
         }
         sigma_parts, rgb_parts = self.head(density, colour, z_s, z_a)  # (P, R, S), (P, R, S, 3)
         return sigma_parts.permute(1, 2, 0), rgb_parts.permute(1, 2, 0, 3)
@@ -111,12 +110,12 @@ class NarfP(Field):
             return out.index_put((block_id, position), values)[:, None]
 
         density = {
-            "u": packed(point_encoding(u[ray, sample, part], self.pose_gradient_freqs)),
+            "u": packed(self.encode_points(u[ray, sample, part])),
             "zeta": packed(self.zeta_encoding(pose)[ray, 0]),
         }
         colour = {
             "pose": packed(positional_encoding(pose.pose_features[ray, part] / math.pi, POSE_FREQS)),
-            "dirs": packed(positional_encoding(d_local[ray, part], POSE_FREQS)),
+            "dirs": packed(self.encode_dirs(d_local[ray, part])),
         }
         z_s = None if z_s is None else packed(z_s[0, ray, 0])
         z_a = None if z_a is None else packed(z_a[0, ray, 0])

@@ -9,7 +9,6 @@ from narf.encodings import (
     POINT_WIDTH,
     POSE_FREQS,
     XI_WIDTH,
-    point_encoding,
     positional_encoding,
     zeta_width,
 )
@@ -23,6 +22,8 @@ class PNerf(Field):
 
     ``pose_in_color=False`` reproduces the supplement's 0.85M parameter count (upstream).
     """
+
+    pose_in_density = True
 
     def __init__(
         self,
@@ -44,11 +45,11 @@ class PNerf(Field):
         x_hat = (points - pelvis[:, None]) / (1.25 * pose.reach[:, None, None])
         encoded_pose = positional_encoding(pose.pose_features / math.pi, POSE_FREQS).flatten(1)[None, :, None]
         density = {
-            "x": point_encoding(x_hat, self.pose_gradient_freqs)[None],
+            "x": self.encode_points(x_hat)[None],
             "pose": encoded_pose,
             "zeta": self.zeta_encoding(pose)[None],
         }
-        colour = {"dirs": positional_encoding(dirs, POSE_FREQS)[None, :, None]}
+        colour = {"dirs": self.encode_dirs(dirs)[None, :, None]}
         if self.pose_in_color:
             colour["pose"] = encoded_pose
         sigma, rgb = self.head(density, colour, z_s, z_a)

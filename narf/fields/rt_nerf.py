@@ -9,7 +9,6 @@ from narf.encodings import (
     POINT_WIDTH,
     POSE_FREQS,
     XI_WIDTH,
-    point_encoding,
     positional_encoding,
 )
 from narf.fields.base import Field, FieldInputs, FieldOutput
@@ -33,16 +32,18 @@ class RtNerf(Field):
 
     def _forward(self, inputs: FieldInputs) -> FieldOutput:
         _, _, pose, _, d_local, u, _, z_s, z_a = inputs
-        colour = {"dirs": positional_encoding(d_local[:, 0], POSE_FREQS)[None, :, None]}
+        colour = {"dirs": self.encode_dirs(d_local[:, 0])[None, :, None]}
         if self.use_pose:
             colour["pose"] = positional_encoding(pose.pose_features[:, 0] / math.pi, POSE_FREQS)[None, :, None]
-        sigma, rgb = self.head({"u": point_encoding(u[:, :, 0], self.pose_gradient_freqs)[None]}, colour, z_s, z_a)
+        sigma, rgb = self.head({"u": self.encode_points(u[:, :, 0])[None]}, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], None)
 
 
 class RpNerf(Field):
     """RP-NeRF: density from the global gamma(x / (1.25 s)) (60) and gamma(xi/pi) (48); colour from gamma(xi/pi),
     gamma(d) (world)."""
+
+    pose_in_density = True
 
     def __init__(self, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward"):
         super().__init__(1, latent_dim)
@@ -58,7 +59,7 @@ class RpNerf(Field):
         points, dirs, pose, _, _, _, _, z_s, z_a = inputs
         x_hat = points / (1.25 * pose.reach[:, None, None])
         encoded_pose = positional_encoding(pose.pose_features[:, 0] / math.pi, POSE_FREQS)[None, :, None]
-        density = {"x": point_encoding(x_hat, self.pose_gradient_freqs)[None], "pose": encoded_pose}
-        colour = {"pose": encoded_pose, "dirs": positional_encoding(dirs, POSE_FREQS)[None, :, None]}
+        density = {"x": self.encode_points(x_hat)[None], "pose": encoded_pose}
+        colour = {"pose": encoded_pose, "dirs": self.encode_dirs(dirs)[None, :, None]}
         sigma, rgb = self.head(density, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], None)

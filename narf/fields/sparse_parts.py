@@ -14,7 +14,7 @@ import math
 
 import torch
 
-from narf.encodings import POINT_WIDTH, POSE_FREQS, point_encoding, positional_encoding
+from narf.encodings import POINT_WIDTH, POSE_FREQS, positional_encoding
 
 
 def segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: int) -> torch.Tensor:
@@ -77,7 +77,7 @@ def sparse_masked_inputs(
     def per_sample(values: torch.Tensor) -> torch.Tensor:  # (M,) pair values -> (RS, P), zero off the pairs
         return torch.zeros(r_count * s_count, p_count, dtype=u.dtype, device=u.device).index_put((sample, part), values)
 
-    table = _colour_table(head, pose, d_local).to(u.dtype)  # (R, P, H/2)
+    table = _colour_table(model, pose, d_local).to(u.dtype)  # (R, P, H/2)
     # the colour sums sum_i p_i table[r, i] of a ray's samples are one (S, P) x (P, H/2) product per ray
     per_part = per_sample(weights)
     colour_bias = (head.color_embed["pose"].bias[0] + head.color_embed["dirs"].bias[0]).to(u.dtype)
@@ -102,7 +102,7 @@ def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: 
     n_samples = r_count * s_count
     ray, in_ray, part = in_box_pairs(in_box)
     sample = ray * s_count + in_ray
-    encoded = point_encoding(u[ray, in_ray, part], model.pose_gradient_freqs)  # (M, 60)
+    encoded = model.encode_points(u[ray, in_ray, part])  # (M, 60)
     counts = torch.bincount(part, minlength=p_count).tolist()
     chunks = torch.split(encoded, counts)
     w_density = head.density_embed["parts"].effective_weight()
@@ -129,11 +129,11 @@ def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: 
     return density.index_add(0, sample, weights[:, None] * features), weights, probs, sample, part
 
 
-def _colour_table(head, pose, d_local: torch.Tensor) -> torch.Tensor:
+def _colour_table(model, pose, d_local: torch.Tensor) -> torch.Tensor:
     """Per ray and part: W_pose,i gamma(xi_i/pi) + W_dirs,i gamma(d_i), (R, P, H/2)."""
     encoded_xi = positional_encoding(pose.pose_features / math.pi, POSE_FREQS)  # (R, P, 48)
-    encoded_d = positional_encoding(d_local, POSE_FREQS)  # (R, P, 24)
-    p_count = encoded_xi.shape[1]
+    encoded_d = model.encode_dirs(d_local)  # (R, P, 24)
+    p_count, head = encoded_xi.shape[1], model.head
     w_pose = head.color_embed["pose"].effective_weight()[0].reshape(-1, p_count, 48)  # (H/2, P, 48)
     w_dirs = head.color_embed["dirs"].effective_weight()[0].reshape(-1, p_count, 24)
     return torch.einsum("hpk,rpk->rph", w_pose, encoded_xi) + torch.einsum("hpk,rpk->rph", w_dirs, encoded_d)
