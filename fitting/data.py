@@ -99,6 +99,17 @@ class TrainingSet:
         empty pool draws from the body pool, and an image with no body pixel from its whole box. ``views_per_frame``
         k > 1: the images are k views each of n_images / k frames (:meth:`choose_images`)."""
         chosen = self.choose_images(n_images, views_per_frame, generator)
+        return self.sample_images(chosen, rays_per_image, body_fraction, border_fraction, generator)
+
+    def sample_images(
+        self,
+        chosen: list[int],
+        rays_per_image: int,
+        body_fraction: float,
+        border_fraction: float,
+        generator: torch.Generator,
+    ) -> RayBatch:
+        """Mask-guided pixels of the images ``chosen``, as :meth:`sample` draws them."""
         n_body = int(round(rays_per_image * body_fraction))
         n_border = int(round(rays_per_image * border_fraction))
         counts = (n_body, n_border, rays_per_image - n_body - n_border)
@@ -174,6 +185,8 @@ class FitData:
             has none, e.g. posed joint frames only).
         validation_frame: the training-frame index of the validation view's pose (None: not a training frame).
         provenance: what the fit depends on outside its config (the body model's record), saved in the checkpoint.
+        selection: the views of the training frames held back to choose the step kept (``fitting.selection``), or
+            None.
     """
 
     training: TrainingSet
@@ -184,3 +197,4 @@ class FitData:
     capture_poses: CapturePoses | None = None
     validation_frame: int | None = None
     provenance: dict = field(default_factory=dict)
+    selection: TrainingSet | None = None

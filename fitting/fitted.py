@@ -10,7 +10,8 @@ import torch
 
 from fitting.checkpoint import CheckpointError, load_checkpoint
 from fitting.config import ConfigError, FitConfig, load_config, migrate_saved
-from fitting.trainer import make_field
+from fitting.model_setup import make_field
+from fitting.selection import kept_weights
 
 
 def run_config(state: dict, path: Path, overrides: list[str] | None = None) -> FitConfig:
@@ -47,11 +48,13 @@ def read_run(run: Path | SavedRun) -> SavedRun:
 
 @dataclass
 class Fitted:
-    """A fitted run: its checkpoint ``state``, ``config`` and the ``field`` (eval mode) on the device."""
+    """A fitted run: its checkpoint ``state``, ``config`` and the ``field`` (eval mode) on the device, with the
+    weights of step ``kept_step`` (``fitting.selection.kept_weights``: the last step unless frames were held back)."""
 
     state: dict
     config: FitConfig
     field: torch.nn.Module
+    kept_step: int | None = None
 
     @property
     def step(self) -> int:
@@ -75,9 +78,10 @@ def load_fitted(run: Path | SavedRun, device="cpu", kind: str | None = None) -> 
     run_dir, state, config = saved.run_dir, saved.state, saved.config
     if kind is not None and config.kind != kind:
         raise CheckpointError(f"{run_dir}: holds a {config.kind} run; this needs a {kind} run")
-    field = make_field(config, int(state.get("step", 0))).to(device)
-    load_weights(field, state["model"], run_dir, f"the {config.model.name} model of its config")
+    weights, step = kept_weights(state, config.train.keep)  # the step chosen on held-back frames, or the last
+    field = make_field(config, step).to(device)
+    load_weights(field, weights, run_dir, f"the {config.model.name} model of its config")
     bad = next((name for name, value in field.state_dict().items() if not torch.isfinite(value).all()), None)
     if bad is not None:
         raise CheckpointError(f"{run_dir}: its weights are not finite ({bad}); nothing to render from a diverged fit")
-    return Fitted(state, config, field.eval())
+    return Fitted(state, config, field.eval(), step)

@@ -19,46 +19,14 @@ from fitting.corrections import CameraColour, PoseCorrection, PosePrior, RowAdam
 from fitting.data import FitData
 from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
 from fitting.files import atomic_write_text, named_errors
+from fitting.model_setup import encoding_window, make_field
 from fitting.plots import write_curve, write_validation
 from fitting.run_folder import write_config
-from narf.encodings import POINT_FREQS
-from narf.fields import model_spec
+from fitting.selection import selection_set
 from narf.fields.common import PoseBatch
 from narf.metrics import psnr
-from narf.occupancy import OccupancyGrid, field_ray_bounds, refresh_cells
+from narf.occupancy import field_ray_bounds, refresh_cells
 from narf.renderer import bind_field, bind_grid_proposal, render_rays
-
-
-def make_field(config: FitConfig, step: int = 0):
-    """The model of a config, given the options its constructor takes (its spec in ``narf.fields.MODEL_SPECS``), as
-    it is at ``step`` (:func:`configure_field`)."""
-    m = config.model
-    spec = model_spec(m.name)
-    field = spec.build(**{option: getattr(m, option) for option in spec.options})
-    if not spec.rays:
-        return field
-    configure_field(field, config, step)
-    r = config.render
-    if r.occupancy:
-        field.occupancy = OccupancyGrid(field.n_parts, r.occupancy_resolution, r.occupancy_threshold)
-    return field
-
-
-def encoding_window(config: FitConfig, step: int) -> float | None:
-    """The coarse-to-fine window's alpha at ``step``: from ``train.window_start`` to all 10 frequencies of gamma_10,
-    linearly over ``train.window_steps`` (docs/model.md §2); None once open (or when the window is off)."""
-    t = config.train
-    if t.window_steps <= 0 or step >= t.window_steps:
-        return None
-    return t.window_start + (POINT_FREQS - t.window_start) * step / t.window_steps
-
-
-def configure_field(field, config: FitConfig, step: int) -> None:
-    """Set what a field's colour may depend on (the model config) and its point encoding's window at ``step``.
-    Training and evaluation both come through here, so a run evaluated at step n sees the field it trained."""
-    m = config.model
-    field.view_freqs, field.view_jitter, field.pose_dropout = m.view_freqs, math.radians(m.view_jitter), m.pose_dropout
-    field.point_window = encoding_window(config, step)
 
 
 def ray_loss(
@@ -196,6 +164,7 @@ class Trainer:
             self.field.forward = torch.compile(self.field.forward, dynamic=True)
         self._build_extra_modules()
         self._build_corrections(data)
+        self.selection = None if data.selection is None else selection_set(data.selection, config.train.select_rays)
         self.rays_per_step = config.train.images_per_step * config.train.rays_per_image
         # fused: one kernel for all parameters (0.25 against 0.99 ms a CPU-preset step; same update rule)
         groups = self._parameter_groups() + self._correction_groups()
@@ -297,6 +266,8 @@ class Trainer:
 
     def _restore(self, state: dict) -> None:
         self.field.load_state_dict(state["model"])
+        if self.selection is not None and state.get("selection") is not None:
+            self.selection.restore(state["selection"])
         for name, module in self._correction_modules().items():
             if name not in state:
                 raise ValueError(f"the checkpoint has no {name} (written by an earlier version; fit anew)")
@@ -336,6 +307,7 @@ class Trainer:
                 "rng": {"sampler": self.generator.get_state(), "torch": torch.get_rng_state()},
                 **self._correction_state(),
                 **self._extra_state(),
+                **({} if self.selection is None else {"selection": self.selection.state()}),
             },
         )
         self._saved_step = self.step
@@ -460,38 +432,65 @@ class Trainer:
                 window_rays += self.rays_per_step
                 self.elapsed = elapsed0 + time.perf_counter() - start
                 bar.update()
-                if self.processes.is_main and (self.step % t.log_every == 0 or self.step == t.steps):
+                selected = self._select(self.step % t.select_every == 0 or self.step == t.steps)
+                if self.processes.is_main and (self.step % t.log_every == 0 or self.step == t.steps or selected):
                     rate = window_rays / max(time.perf_counter() - window_start, 1e-9)
                     window_start, window_rays = time.perf_counter(), 0
                     bar.set_postfix(loss=f"{loss:.4f}", psnr=f"{score:.2f}", rays_s=f"{rate:,.0f}")
-                    with named_errors(log_path), open(log_path, "a") as handle:
-                        handle.write(
-                            json.dumps(
-                                {
-                                    "step": self.step,
-                                    "loss": loss,
-                                    "psnr": score,
-                                    "rays_per_s": rate,
-                                    "lr": self.scheduler.get_last_lr()[0],
-                                    "elapsed_s": self.elapsed,
-                                    "world_size": self.processes.world_size,
-                                    **self._occupancy_row(),
-                                }
-                            )
-                            + "\n"
-                        )
+                    self._log_row(log_path, {"loss": loss, "psnr": score, "rays_per_s": rate, **selected})
                 if self.processes.is_main and t.validate_every and self.step % t.validate_every == 0:
                     self.validate()
                 if (time.perf_counter() - last_save) / 60 >= t.checkpoint_minutes:
                     self.checkpoint()
                     last_save = time.perf_counter()
             finished = self.step >= t.steps
+            self._select(True)  # the last step is scored too when the time budget ends the fit
         finally:
             bar.close()
             self.checkpoint()
             if self.processes.is_main:
                 write_curve(log_path, self.run_dir / "curve.png")
         return FitResult(self.run_dir, self.step, loss, score, finished)
+
+    def _log_row(self, log_path: Path, values: dict) -> None:
+        """Append one row of ``log.jsonl``: the step, ``values`` and the run's state."""
+        row = {
+            "step": self.step,
+            **values,
+            "lr": self.scheduler.get_last_lr()[0],
+            "elapsed_s": self.elapsed,
+            "world_size": self.processes.world_size,
+            **self._occupancy_row(),
+        }
+        with named_errors(log_path), open(log_path, "a") as handle:
+            handle.write(json.dumps(row) + "\n")
+
+    def _select(self, due: bool) -> dict:
+        """When ``due`` and the fit holds frames back, score them (``fitting.selection``; once per step) and keep the
+        weights if they are the best: the log's ``select_psnr`` and ``best_step``, else {}."""
+        if not due or self.selection is None or not self.processes.is_main:
+            return {}
+        if self.selection.history and self.selection.history[-1][0] == self.step:
+            return {}
+        score = self.score_selection()
+        self.selection.update(self.step, score, self.field)
+        return {"select_psnr": score, "best_step": self.selection.best_step}
+
+    def score_selection(self) -> float:
+        """PSNR (dB) of the field's colour at the selection set's fixed person pixels, deterministic samples at the
+        evaluation counts, the field in eval mode (no jitter or dropout)."""
+        rays, poses, r = self.selection.rays, self.selection.views.poses, self.config.render
+        squared, count = 0.0, 0
+        self.field.eval()
+        with torch.no_grad():
+            for start in range(0, rays.origins.shape[0], r.chunk):
+                part = rays.take(slice(start, start + r.chunk))
+                _, colour = ray_loss(
+                    self.config, self.field, part, poses, None, r.eval_coarse, r.eval_fine, randomized=False
+                )
+                squared, count = squared + float(colour) * part.rgb.numel(), count + part.rgb.numel()
+        self.field.train()
+        return float(psnr(torch.tensor(squared / max(count, 1))))
 
     def validate(self) -> Path | None:
         """Render one held-out view (a training pose from a test camera) next to its ground truth."""

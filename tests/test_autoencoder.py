@@ -206,7 +206,7 @@ def test_code_refinement_recovers_a_code_and_leaves_the_field_alone(sets, body_m
     import imageio.v2 as imageio
 
     from fitting.evaluate import render_view
-    from fitting.trainer import make_field
+    from fitting.model_setup import make_field
 
     config = _config(sets)
     torch.manual_seed(0)  # the field's initial weights

@@ -9,7 +9,7 @@ import torch
 from fitting.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from fitting.config import CONFIG_DIR, ConfigError, FitConfig, ModelName, RunKindName, load_config
 from fitting.fitted import load_fitted
-from fitting.trainer import make_field
+from fitting.model_setup import make_field
 from narf.fields import MODEL_SPECS
 from pipelines.runs.kinds import RUN_KINDS
 

@@ -20,8 +20,8 @@ from fitting.checkpoint import load_checkpoint
 from fitting.config import load_config
 from fitting.files import atomic_write_text, folder_lock
 from fitting.fitted import SavedRun, read_run
+from fitting.model_setup import make_field
 from fitting.run_folder import auto_device
-from fitting.trainer import make_field
 from pipelines.experiments.orderings import check_orderings
 from pipelines.experiments.tables import SHORT, Row, Table
 from pipelines.runs.fit import fit

@@ -102,6 +102,7 @@ def evaluate_run(run: Path | SavedRun, request: EvalRequest) -> dict:
         return {
             "run": str(run_dir),
             "step": loaded.step,
+            "last_step": loaded.last_step,
             "model": config.model.name,
             "width": config.model.width,
             "image_size": config.model.image_size,

@@ -172,7 +172,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
     ``state``: the checkpoint of a fit being resumed (its body model is the recorded one)."""
     capture = open_capture(config)
     protocol = capture.protocol(config.data.protocol)
-    frames = list(protocol.train_frames[:: config.data.frame_stride])
+    frames, held_back = split_holdout(list(protocol.train_frames[:: config.data.frame_stride]), config.train)
     body_model = fit_body_model(capture, state)
     poses = training_poses(capture, body_model, frames)
     items = [(i, f, c) for i, f in enumerate(frames) for _, c in protocol.usable([f], protocol.train_views)]
@@ -208,7 +208,30 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         capture_poses(source, body_model, frames) if config.train.pose_correction or refine else None,
         frames.index(held_frame),
         {"body_model": body_model_record(body_model.path)},
+        held_back_views(capture, protocol, body_model, held_back, device, progress),
     )
+
+
+def split_holdout(frames: list[int], train) -> tuple[list[int], list[int]]:
+    """The training frames that train and those held back to choose the step kept (``train.holdout_every`` n: the
+    middle frame of every n, so that each held-back frame lies between trained ones; fitting.selection)."""
+    n = train.holdout_every
+    if n <= 0:
+        return frames, []
+    held = set(frames[n // 2 :: n])
+    if len(held) == len(frames) or not held:
+        raise ValueError(f"train.holdout_every={n}: {len(frames)} training frame(s) leave nothing to train on or hold")
+    return [f for f in frames if f not in held], sorted(held)
+
+
+def held_back_views(capture, protocol, body_model: BodyModel, frames: list[int], device, progress: bool):
+    """The training cameras' views of the held-back ``frames``, in the capture's poses (None when none)."""
+    if not frames:
+        return None
+    items = [(i, f, c) for i, f in enumerate(frames) for _, c in protocol.usable([f], protocol.train_views)]
+    views = decoded_views(capture, [(f, c) for _, f, c in items], progress)
+    poses = training_poses(capture, body_model, frames)
+    return TrainingSet(views, [i for i, _, _ in items], poses, device, store_dir=cache_dir() / "views")
 
 
 def start(
@@ -240,6 +263,7 @@ class LoadedRun:
     mesh_level: dict | None = None
     refined: dict[int, SmplParams] = field(default_factory=dict)
     other: ZjuCapture | None = None  #: another capture being evaluated (``narf-eval --capture``)
+    last_step: int | None = None  #: the fit's last step (``step`` is that of the weights kept: fitting.selection)
 
     def params(self, frame: int) -> SmplParams:
         """A frame's body parameters as the run shows it: corrected for a training frame of a fit that corrected its
@@ -266,7 +290,8 @@ def load_run(run: Path | SavedRun, device="cpu") -> LoadedRun:
     capture = open_capture(fitted.config, quiet=True)
     protocol = capture.protocol(fitted.config.data.protocol)
     refined = refined_params(fitted.state, capture, Path(source))
-    return LoadedRun(fitted.config, fitted.field, capture, protocol, body, fitted.step, refined=refined)
+    kept = fitted.step if fitted.kept_step is None else fitted.kept_step
+    return LoadedRun(fitted.config, fitted.field, capture, protocol, body, kept, refined=refined, last_step=fitted.step)
 
 
 REFINED = "refined_params"

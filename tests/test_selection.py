@@ -1,0 +1,76 @@
+"""The step a fit keeps (fitting.selection): held-back training frames leave the training set, are scored every
+``train.select_every`` steps, and the best-scoring weights are the ones evaluated (``train.keep``)."""
+
+import json
+
+import pytest
+import torch
+
+from fitting.checkpoint import load_checkpoint, save_checkpoint
+from fitting.config import load_config
+from fitting.fitted import load_fitted
+from fitting.run_folder import prepare_run_dir
+from fitting.selection import Selection, kept_weights
+from pipelines.runs.fit import start_run
+from pipelines.runs.subject.session import split_holdout
+
+
+def test_split_holdout_takes_the_middle_of_every_n():
+    config = load_config("tiny", ["train.holdout_every=4"])
+    assert split_holdout(list(range(10)), config.train) == ([0, 1, 3, 4, 5, 7, 8, 9], [2, 6])
+    assert split_holdout(list(range(10)), load_config("tiny").train) == (list(range(10)), [])
+    with pytest.raises(ValueError, match="leave nothing"):
+        split_holdout([5], load_config("tiny", ["train.holdout_every=2"]).train)
+
+
+def test_the_best_score_keeps_its_weights():
+    model = torch.nn.Linear(2, 1)
+    selection = Selection(views=None, rays=None)
+    assert selection.update(10, 12.0, model)
+    kept = {k: v.clone() for k, v in model.state_dict().items()}
+    with torch.no_grad():
+        model.weight += 1
+    assert not selection.update(20, 11.0, model)  # worse: the step-10 weights stay
+    assert selection.best_step == 10 and torch.equal(selection.best_model["weight"], kept["weight"])
+    state = {"model": model.state_dict(), "step": 20, "selection": selection.state()}
+    assert kept_weights(state, "best")[1] == 10 and kept_weights(state, "last")[1] == 20
+    assert kept_weights({"model": {}, "step": 7}, "best")[1] == 7  # no holdout: the last
+
+
+def test_a_fit_with_held_back_frames_scores_them_and_is_evaluated_at_its_best_step(data_root_64, tmp_path):
+    sets = [f"data.data_root={data_root_64}", "data.ratio=1.0", "train.steps=12", "train.holdout_every=4"]
+    config = load_config("tiny", [*sets, "train.select_every=4", "train.log_every=100"])
+    run = prepare_run_dir(tmp_path / "run", False)
+    trainer = start_run(run, torch.device("cpu"), config, progress=False)
+    held = {2, 6}  # the "narf" protocol trains on the first 9 of 10 frames; frames 2 and 6 are held back
+    # 2 frames x the one training camera (views 0, 6, 12, 18 of 4 cameras)
+    assert not held & set(trainer.frames) and len(trainer.fit_data.selection) == 2
+    trainer.fit()
+    rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    scored = [(row["step"], row["select_psnr"]) for row in rows if "select_psnr" in row]
+    assert [step for step, _ in scored] == [4, 8, 12]  # select_every, and rows between log_every's
+    state = load_checkpoint(run)
+    best_step, best = max(scored, key=lambda item: item[1])
+    assert state["selection"]["best_step"] == best_step and state["selection"]["best_psnr"] == pytest.approx(best)
+    fitted = load_fitted(run)
+    assert fitted.kept_step == best_step
+    for name, value in fitted.field.state_dict().items():
+        assert torch.equal(value, state["selection"]["model"][name]), name
+    # the score is the field's: rendering the same fixed rays again gives the same PSNR (deterministic samples)
+    trainer.field.load_state_dict(state["selection"]["model"])
+    assert trainer.score_selection() == pytest.approx(best, abs=1e-4)  # float32 sums over 4,096 rays
+
+
+def test_evaluation_loads_the_kept_weights_not_the_last(tiny_run, tmp_path):
+    """A checkpoint whose selection kept other weights (here the last ones plus 1, at step 1): ``keep: best`` loads
+    those, at their step's window; ``keep: last`` the last."""
+    state = load_checkpoint(tiny_run)
+    best = {k: v + 1 if v.is_floating_point() else v for k, v in state["model"].items()}
+    state["selection"] = {"best_step": 1, "best_psnr": 20.0, "model": best, "history": [[1, 20.0], [2, 19.0]]}
+    for keep, weights, step in (("best", best, 1), ("last", state["model"], 2)):
+        state["config"]["train"]["keep"] = keep
+        save_checkpoint(tmp_path / keep, state)
+        fitted = load_fitted(tmp_path / keep)
+        assert fitted.kept_step == step
+        for name, value in fitted.field.state_dict().items():
+            assert torch.equal(value, weights[name]), (keep, name)
