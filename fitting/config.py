@@ -121,6 +121,8 @@ class TrainConfig:
     colour_lr: float = 1e-3  #: Adam learning rate of the camera colour transforms
     colour_prior: float = 1e-3  #: pull of each camera's transform towards the identity
     random_background: bool = False  #: random background colour per ray; the mask's band leaves the colour loss
+    entropy_weight: float = 0.0  #: weight of the ray entropy on virtual cameras around the body (0: off)
+    virtual_rays: int = 256  #: with the entropy: rays of virtual cameras per step
     holdout_every: int = 0  #: subject fits: every n-th training frame is held back to choose the step kept (0: none)
     select_every: int = 500  #: with a holdout: steps between scores of the held-back frames
     select_rays: int = 4096  #: with a holdout: the person pixels of the held-back frames each score renders
@@ -289,6 +291,7 @@ KIND_ONLY = {
     "train.camera_colour": "subject",
     "train.random_background": "subject",
     "train.holdout_every": "subject",
+    "train.entropy_weight": "subject",
 }
 #: The range of each numeric setting, as a test and its words (the message names the key, the range and the value).
 RANGES = {
@@ -344,6 +347,8 @@ RANGES = {
     "train.mask_body_iterations": (lambda v: v >= 0, ">= 0"),
     "train.colour_lr": (lambda v: v > 0, "> 0"),
     "train.colour_prior": (lambda v: v >= 0, ">= 0"),
+    "train.entropy_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
+    "train.virtual_rays": (lambda v: v >= 1, ">= 1"),
     "train.holdout_every": (lambda v: v == 0 or v >= 2, "0 (none) or >= 2"),
     "train.select_every": (lambda v: v >= 1, ">= 1"),
     "train.select_rays": (lambda v: v >= 1, ">= 1"),
@@ -396,6 +401,6 @@ def validate_config(config: FitConfig) -> None:
     model_class = getattr(spec.build, "func", spec.build)  # a constructor or a functools.partial of one
     if config.model.pose_dropout and getattr(model_class, "pose_in_density", True):
         raise ConfigError(f"model.pose_dropout: {config.model.name}'s density reads the pose features; leave it at 0")
-    for key in ("pose_correction", "camera_colour", "random_background", "holdout_every"):
+    for key in ("pose_correction", "camera_colour", "random_background", "holdout_every", "entropy_weight"):
         if getattr(config.train, key) and not spec.rays:
             raise ConfigError(f"train.{key}: the CNN baseline renders no rays; set it false (--set train.{key}=false)")

@@ -23,6 +23,7 @@ from fitting.model_setup import encoding_window, make_field
 from fitting.plots import write_curve, write_validation
 from fitting.run_folder import write_config
 from fitting.selection import selection_set
+from fitting.unseen import ray_entropy, virtual_rays
 from narf.fields.common import PoseBatch
 from narf.metrics import psnr
 from narf.occupancy import field_ray_bounds, refresh_cells
@@ -354,9 +355,37 @@ class Trainer:
                 camera_colour=self.camera_colour,
                 backgrounds=None if backgrounds is None else backgrounds[share],
             )
+            if t.entropy_weight > 0:  # every process renders the same virtual rays (the same generator)
+                loss = loss + t.entropy_weight * self.unseen_entropy(poses, batch.frames) / self.processes.world_size
         # every process adds the penalty; the summed gradients then hold it once
         loss = loss + self.correction_penalty(index) / self.processes.world_size
         return self.optimise(loss, colour)
+
+    def unseen_entropy(self, poses: PoseBatch, frames: torch.Tensor) -> torch.Tensor:
+        """The ray entropy over ``train.virtual_rays`` rays of virtual cameras around the bodies of ``frames`` (indices
+        into ``poses``), rendered as the training rays are (``fitting.unseen``)."""
+        r = self.config.render
+        origins, dirs, frame = virtual_rays(poses, torch.unique(frames), self.config.train.virtual_rays, self.generator)
+        near, far, hit = field_ray_bounds(self.field, origins, dirs, poses.select(frame).detach())
+        proposal = bind_grid_proposal(self.field, poses.detach(), frame) if r.grid_proposal else None
+        field_fn = bind_field(self.field, dirs, poses, frame)
+        # drawn on the CPU generator and moved (a CPU generator cannot draw on a GPU)
+        uniforms = [
+            torch.rand(len(frame), k, generator=self.generator).to(self.device) for k in (r.train_coarse, r.train_fine)
+        ]
+        out = render_rays(
+            field_fn,
+            origins,
+            dirs,
+            near,
+            far,
+            hit,
+            r.train_coarse,
+            r.train_fine,
+            uniforms=uniforms,
+            proposal_fn=proposal,
+        )
+        return ray_entropy(out.sample_weights)
 
     def autocast(self):
         """bf16 autocast of a training forward pass when ``train.precision`` is bf16 (a no-op for fp32)."""

@@ -23,12 +23,15 @@ from narf.sampling import importance_depths, stratified_depths
 @dataclass
 class RenderOutput:
     """rgb (R, 3); mask (R,) accumulated alpha; depth (R,) expected depth; part_weights (R, P) = sum_k w_k p_k
-    (None when the field has no parts)."""
+    (None when the field has no parts); sample_weights (R', K) the compositing weights w_k of the rays that hit a
+    box, whose indices are ``hit_ids`` (R',) (None when no ray hit)."""
 
     rgb: torch.Tensor
     mask: torch.Tensor
     depth: torch.Tensor
     part_weights: torch.Tensor | None = None
+    sample_weights: torch.Tensor | None = None
+    hit_ids: torch.Tensor | None = None
 
     def segmentation(self) -> torch.Tensor:
         """(R,) argmax part where mask >= 0.5, else -1."""
@@ -139,7 +142,7 @@ def _place(origins: torch.Tensor, ids: torch.Tensor, out, depths, far, backgroun
     if out.part_probs is not None:
         part_weights = torch.zeros(n_rays, out.part_probs.shape[-1], dtype=dtype, device=device)
         part_weights = part_weights.index_put((ids,), (weights[..., None] * out.part_probs).sum(dim=1))
-    return RenderOutput(rgb, mask, depth, part_weights)
+    return RenderOutput(rgb, mask, depth, part_weights, weights, ids)
 
 
 @torch.no_grad()
