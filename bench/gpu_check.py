@@ -34,6 +34,13 @@ def _parser() -> argparse.ArgumentParser:
     parser.add_argument("--limit", type=int, default=10, help="novel_pose views evaluated")
     parser.add_argument("--skip-tests", action="store_true", help="leave out step 1")
     parser.add_argument("--out", type=Path, default=None, help="JSON of the figures (default: WORK/gpu-check.json)")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="a config override of the fit, e.g. --set train.precision=tf32 (repeatable)",
+    )
     return parser
 
 
@@ -65,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
             workers=min(8, os.cpu_count() or 1),
         )
         generate_capture(capture, config, progress=False)
-    config = load_config(args.preset, [f"data.subject={capture.resolve()}", "train.validate_every=0"])
+    config = load_config(args.preset, [f"data.subject={capture.resolve()}", "train.validate_every=0", *args.set])
     run = prepare_run_dir(args.work / "run", True)
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -77,6 +84,7 @@ def main(argv: list[str] | None = None) -> int:
     figures.update(
         {
             "preset": args.preset,
+            "overrides": args.set,
             "minutes": args.minutes,
             "steps": result.step,
             "rays_per_s": round(float(np.median([r["rays_per_s"] for r in log])) if log else mean_rate),

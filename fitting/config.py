@@ -103,7 +103,9 @@ class TrainConfig:
     validate_every: int = 1000  #: render a validation image every n steps (0: never)
     log_every: int = 50  #: write a log line every n steps
     seed: int = 0  #: seed of initialisation and ray sampling
-    precision: Literal["fp32", "bf16"] = "fp32"  #: fp32 (the reference) or bf16 (autocast of the forward pass)
+    #: fp32 (the reference), bf16 (autocast of the forward pass) or tf32 (CUDA matmuls in TensorFloat-32; on a CPU
+    #: the same as fp32)
+    precision: Literal["fp32", "bf16", "tf32"] = "fp32"
     compile: bool = False  #: torch.compile the field's forward pass (dynamic shapes; the eager path is the reference)
     deterministic: bool = True  #: deterministic kernels, so a resumed fit ends where an uninterrupted one would
     pose_correction: bool = False  #: subject fits: correct each training frame's body pose while fitting

@@ -146,6 +146,9 @@ class Trainer:
         # slower (docs/design.md, "Subnormal numbers"); no value that the fit can resolve changes. The mode is per
         # thread: here it reaches this thread; the commands set it before torch starts its worker threads
         torch.set_flush_denormal(True)
+        # TensorFloat-32 matmuls (10-bit mantissa inputs, float32 sums) on CUDA only; set either way, so that a fit
+        # in the same process after a tf32 one runs in float32 again (cuDNN's convolutions keep torch's default)
+        torch.backends.cuda.matmul.allow_tf32 = config.train.precision == "tf32"
         torch.manual_seed(config.train.seed)
         np.random.seed(config.train.seed)
         random.seed(config.train.seed)
