@@ -112,6 +112,7 @@ class FitResult:
     loss: float
     psnr: float
     finished: bool
+    kept: tuple[int, float] | None = None  #: with held-back frames: the best step and its score (fitting.selection)
 
 
 class TrainingDiverged(ValueError):
@@ -482,7 +483,9 @@ class Trainer:
             self.checkpoint()
             if self.processes.is_main:
                 write_curve(log_path, self.run_dir / "curve.png")
-        return FitResult(self.run_dir, self.step, loss, score, finished)
+        chosen = self.selection is not None and t.keep == "best"
+        kept = (self.selection.best_step, self.selection.best_psnr) if chosen else None
+        return FitResult(self.run_dir, self.step, loss, score, finished, kept)
 
     def _log_row(self, log_path: Path, values: dict) -> None:
         """Append one row of ``log.jsonl``: the step, ``values`` and the run's state."""

@@ -116,6 +116,9 @@ def main(argv: list[str] | None = None) -> int:
             f"narf-fit: {state} at step {outcome.step}, training PSNR {outcome.psnr:.2f} dB; run folder "
             f"{outcome.run_dir}"
         )
+        if outcome.kept is not None and outcome.kept[0] >= 0:
+            step, score = outcome.kept
+            print(f"narf-fit: evaluation uses the weights of step {step} (held-back frames {score:.2f} dB)")
     return 0
 
 

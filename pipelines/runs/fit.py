@@ -138,4 +138,4 @@ def _fit_into(out: Path, request: FitRequest, config: FitConfig, device, process
     if publish is not None:
         publish(run_dir)
     shutdown(processes)
-    return FitOutcome(run_dir, result.step, result.loss, result.psnr, result.finished, processes.is_main)
+    return FitOutcome(run_dir, result.step, result.loss, result.psnr, result.finished, processes.is_main, result.kept)

@@ -50,6 +50,7 @@ class FitOutcome:
     psnr: float
     finished: bool
     main_process: bool = True
+    kept: tuple[int, float] | None = None  #: (step, held-back frames' PSNR) of the weights kept (fitting.selection)
 
 
 @dataclass(frozen=True)
