@@ -148,8 +148,9 @@ def link_tracks(per_frame: dict[int, list[tuple[np.ndarray, int]]]) -> list[Trac
 
 
 def _joined(tracks: list[Track]) -> list[Track]:
-    """Tracks merged: a later one that starts within :func:`reach` of where an earlier one ended (the nearest such),
-    or whose frames shared with an earlier one all have their centres within ``SAME_PERSON``."""
+    """Tracks merged: a later one that starts within :func:`reach` of where an earlier one ended (the nearest of
+    those within their reach), or whose frames shared with an earlier one all have their centres within
+    ``SAME_PERSON``."""
     out: list[Track] = []
     for track in sorted(tracks, key=lambda t: t.first):
         same = [t for t in out if _shares_person(t, track)]
@@ -158,11 +159,16 @@ def _joined(tracks: list[Track]) -> list[Track]:
                 if frame not in same[0].points:
                     same[0].points[frame], same[0].views[frame] = points, track.views[frame]
             continue
-        ended = [t for t in out if t.last < track.first]
-        distances = [_centre_distance(t.points[t.last], track.points[track.first]) for t in ended]
-        reaches = [reach(track.first - t.last) for t in ended]
-        if distances and min(d - r for d, r in zip(distances, reaches)) <= 0:
-            earlier = ended[int(np.argmin(distances))]
+        # the candidates within their own reach: a nearer track out of its reach is somebody else
+        candidates = [
+            (distance, i)
+            for i, t in enumerate(out)
+            if t.last < track.first
+            and (distance := _centre_distance(t.points[t.last], track.points[track.first]))
+            <= reach(track.first - t.last)
+        ]
+        if candidates:
+            earlier = out[min(candidates)[1]]
             earlier.points.update(track.points)
             earlier.views.update(track.views)
         else:
