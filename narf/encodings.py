@@ -42,7 +42,9 @@ def zeta_width(n_parts: int) -> int:
     return encoding_dim(n_parts, POSE_FREQS)
 
 
-def point_encoding(values: torch.Tensor, gradient_freqs: int | None = None) -> torch.Tensor:
+def point_encoding(
+    values: torch.Tensor, gradient_freqs: int | None = None, without_pose: torch.Tensor | None = None
+) -> torch.Tensor:
     """gamma_10(values), the point and box-coordinate encoding, whose gradient w.r.t. ``values`` passes through its
     ``gradient_freqs`` lowest frequencies only (None: all). The value is :func:`positional_encoding`'s, bit for bit,
     and so is every gradient that does not go through ``values``; only the pose correction's path, from the colour
@@ -53,6 +55,9 @@ def point_encoding(values: torch.Tensor, gradient_freqs: int | None = None) -> t
     Args:
         values: (..., D) part-local coordinates.
         gradient_freqs: frequencies k < gradient_freqs pass gradient; None or >= POINT_FREQS: all.
+        without_pose: (..., D) the same values computed with the pose detached, where they also depend on trained
+            weights (D-NARF's canonical point sum_i p_i x_i, whose selector p is trained): the higher frequencies
+            then pass the weights' gradient through it and only the pose's is held. None: ``values.detach()``.
 
     Returns:
         (..., D * 2 POINT_FREQS), laid out as :func:`positional_encoding`'s.
@@ -61,7 +66,8 @@ def point_encoding(values: torch.Tensor, gradient_freqs: int | None = None) -> t
         return positional_encoding(values, POINT_FREQS)
     freqs = (2.0 ** torch.arange(POINT_FREQS, dtype=values.dtype, device=values.device)) * math.pi
     passing = torch.arange(POINT_FREQS, device=values.device) < gradient_freqs
-    angles = torch.where(passing, values[..., None] * freqs, values.detach()[..., None] * freqs)  # (..., D, L)
+    held = values.detach() if without_pose is None else without_pose
+    angles = torch.where(passing, values[..., None] * freqs, held[..., None] * freqs)  # (..., D, L)
     return torch.cat([torch.sin(angles), torch.cos(angles)], dim=-1).flatten(-2)
 
 

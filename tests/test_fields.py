@@ -491,3 +491,31 @@ def test_jitter_and_pose_dropout_act_in_training_only_and_never_on_the_density(n
     torch.manual_seed(4)
     dropped = (field(points, dirs, pose).rgb - reference.rgb).abs().amax(dim=(1, 2)) > 0
     assert 0.2 < dropped[hit].float().mean() < 0.8  # binomial(n >= 40, 1/2): outside [0.2, 0.8] with p < 1e-4
+
+
+@pytest.mark.parametrize("name", [*model_names("field", "rigid"), "d_narf_dense"])
+def test_the_pose_gradient_band_leaves_the_fields_own_gradients_alone(name):
+    """With the pose held fixed (no gradient), the band limit of the pose's gradient (pose_gradient_freqs, docs/model.md
+    §6) changes no trainable parameter's gradient, for every model: it may act on the pose's path only. D-NARF's
+    canonical point also depends on its trained selector, whose gradient must keep every frequency. The other models
+    run the same operations in the same order: equal to the bit. D-NARF's band-limited encoding sums the selector's
+    gradient over two paths (the passing frequencies through x', the others through x' with the pose detached) where
+    the plain one sums it over one: float32 rounding of sums of terms up to 2^9 pi in size, 1e-4 relative; without
+    the fix the higher frequencies' share of the selector's gradient is missing, tens of percent."""
+    model = name.removesuffix("_dense")
+    gradients = []
+    for freqs in (None, 4):
+        field = _field(model)
+        field.fast = name == model
+        field.pose_gradient_freqs = freqs
+        points, dirs = _points(8, 12, seed=5)
+        pose = _random_pose(n_frames=2, n_parts=field.n_parts).select(torch.tensor([0, 1] * 4))
+        out = field(points, dirs, pose)
+        (out.sigma.sum() + out.rgb.sum()).backward()
+        gradients.append({k: p.grad.clone() for k, p in field.named_parameters() if p.grad is not None})
+    assert gradients[0].keys() == gradients[1].keys() and gradients[0]
+    for key in gradients[0]:
+        if model == "d_narf":
+            assert torch.allclose(gradients[0][key], gradients[1][key], rtol=1e-4, atol=1e-6), key
+        else:
+            assert torch.equal(gradients[0][key], gradients[1][key]), key

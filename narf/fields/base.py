@@ -101,10 +101,12 @@ class Field(nn.Module):
         u = (x_local - self.box_centres) / self.box_half_extents
         return u, u.abs().amax(dim=-1) <= 1
 
-    def encode_points(self, values: torch.Tensor) -> torch.Tensor:
+    def encode_points(self, values: torch.Tensor, without_pose: torch.Tensor | None = None) -> torch.Tensor:
         """gamma_10 of part-local points or box coordinates (..., 3) -> (..., 60), through the coarse-to-fine
-        window and with the pose's gradient band-limited (``narf.encodings.point_encoding``)."""
-        return windowed(point_encoding(values, self.pose_gradient_freqs), self.point_window, POINT_FREQS)
+        window and with the pose's gradient band-limited (``narf.encodings.point_encoding``, which says what
+        ``without_pose`` is)."""
+        encoded = point_encoding(values, self.pose_gradient_freqs, without_pose)
+        return windowed(encoded, self.point_window, POINT_FREQS)
 
     def encode_dirs(self, dirs: torch.Tensor) -> torch.Tensor:
         """gamma_4 of view directions (..., 3) -> (..., 24), the frequencies k >= ``view_freqs`` zeroed (all of them

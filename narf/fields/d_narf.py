@@ -58,10 +58,14 @@ class DNarf(Field):
             return self._forward_in_box(inputs)
         encoded_zeta = self.zeta_encoding(pose)
         probs = masked_softmax(self.selector(self.encode_points(u), encoded_zeta), in_box)  # (R, S, P)
-        canonical = torch.einsum("rsp,rspc->rsc", probs, x_local + pose.rest_offsets[:, None])
+        local = x_local + pose.rest_offsets[:, None]
+        canonical = torch.einsum("rsp,rspc->rsc", probs, local)
         blended_dirs = torch.einsum("rsp,rpc->rsc", probs, d_local)
         blended_xi = torch.einsum("rsp,rpc->rsc", probs, pose.pose_features)
-        density = {"x": self.encode_points(canonical / 1.25)[None], "zeta": encoded_zeta[None]}
+        # the selector's gradient through x' passes every frequency; only the pose's is band-limited (docs/model.md §6)
+        held = None if self.pose_gradient_freqs is None else torch.einsum("rsp,rspc->rsc", probs, local.detach())
+        density = {"x": self.encode_points(canonical / 1.25, None if held is None else held / 1.25)[None]}
+        density["zeta"] = encoded_zeta[None]
         colour = {
             "dirs": self.encode_dirs(blended_dirs)[None],
             "pose": positional_encoding(blended_xi / math.pi, POSE_FREQS)[None],
@@ -83,12 +87,14 @@ class DNarf(Field):
             weighted = probs[:, None] * values  # bfloat16 under autocast (the selector's matmuls)
             return weighted.new_zeros(r_count * s_count, values.shape[-1]).index_add(0, flat, weighted)
 
-        canonical = blend(x_local[ray, sample, part] + pose.rest_offsets[ray, part])
+        local = x_local[ray, sample, part] + pose.rest_offsets[ray, part]
+        canonical = blend(local)
+        held = None if self.pose_gradient_freqs is None else blend(local.detach())  # as in _forward
         blended_dirs, blended_xi = blend(d_local[ray, part]), blend(pose.pose_features[ray, part])
         live = in_box.reshape(-1, p_count).any(dim=-1).nonzero()[:, 0]  # samples inside some box
         live_rays = live // s_count
         density = {
-            "x": self.encode_points(canonical[live] / 1.25)[None, None],
+            "x": self.encode_points(canonical[live] / 1.25, None if held is None else held[live] / 1.25)[None, None],
             "zeta": self.zeta_encoding(pose)[live_rays, 0][None, None],
         }
         colour = {
