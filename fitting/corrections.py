@@ -24,7 +24,7 @@ class PosePrior:
     capture's pose, at ``turn_degrees`` per joint turn and ``shift_cm`` of the body's shift; ``smooth`` the weight of
     the pull of neighbouring knots together (in the same units)."""
 
-    weight: float = 1e-4
+    weight: float = 1e-5  # as train.pose_prior (fitting.config)
     turn_degrees: float = 5.0
     shift_cm: float = 3.0
     smooth: float = 0.0

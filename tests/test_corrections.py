@@ -398,3 +398,17 @@ def test_degrade_refuses_bad_input_in_one_line(tmp_path, capsys):
         err = capsys.readouterr().err.strip()
         assert err.count("\n") == 0 and words in err, err
     assert not (tmp_path / "o").exists()
+
+
+def test_the_pose_priors_defaults_are_the_configs():
+    """PosePrior() (the harness's and the library's default) pulls as the fit's config does by default."""
+    from fitting.config import TrainConfig
+    from fitting.corrections import PosePrior
+
+    t, prior = TrainConfig(), PosePrior()
+    assert (prior.weight, prior.turn_degrees, prior.shift_cm, prior.smooth) == (
+        t.pose_prior,
+        t.pose_prior_degrees,
+        t.pose_prior_cm,
+        t.pose_smooth,
+    )
