@@ -14,6 +14,7 @@ This is the only module that renames output into place (docs/design.md, "Files")
 from __future__ import annotations
 
 import contextlib
+import errno
 import functools
 import inspect
 import os
@@ -65,6 +66,18 @@ def named_errors(path: Path) -> Iterator[None]:
         if err.filename is not None or err.errno is None:
             raise
         raise OSError(err.errno, err.strerror, str(path)) from err
+
+
+def write_image(path: Path, image, params: tuple[int, ...] = ()) -> None:
+    """``cv2.imwrite`` that raises: OpenCV returns False where Python raises (a full disk, a missing folder, an
+    unknown extension), which would leave a missing or partial image behind a finished-looking output. The OSError
+    names the file, as the fit's write errors do."""
+    import cv2
+
+    if not cv2.imwrite(str(path), image, list(params)):
+        raise OSError(
+            errno.EIO, "the image could not be written (disk full, folder missing or unknown format)", str(path)
+        )
 
 
 def remove_stale(path: Path) -> None:

@@ -289,3 +289,25 @@ def test_other_writers_killed_at_random_moments_leave_nothing_half_written(comma
             assert {p.name for p in tmp_path.iterdir() if not p.name.startswith(".")} <= {"run", target.name}
     assert spawn.run(_command(command, *argv), 300).returncode == 0
     assert out[command].exists() and not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_an_image_that_cannot_be_written_is_an_error_naming_it(tmp_path, monkeypatch):
+    """cv2.imwrite returns False on a full disk (as on a missing folder): write_image raises an OSError naming the file,
+    and the prepare's image writes all go through it (none calls cv2.imwrite itself)."""
+    import re
+
+    import cv2
+    import numpy as np
+
+    from fitting.files import write_image
+
+    image = np.zeros((4, 4), np.uint8)
+    with pytest.raises(OSError) as caught:
+        write_image(tmp_path / "missing" / "mask.png", image)  # no such folder: OpenCV returns False
+    assert caught.value.filename == str(tmp_path / "missing" / "mask.png")
+    monkeypatch.setattr(cv2, "imwrite", lambda *args: False)  # as a full disk answers
+    with pytest.raises(OSError, match="could not be written"):
+        write_image(tmp_path / "mask.png", image)
+    prepare = Path(__file__).resolve().parents[1] / "pipelines" / "prepare"
+    bare = [p.name for p in prepare.glob("*.py") if re.search(r"cv2\.imwrite\(", p.read_text())]
+    assert bare == []

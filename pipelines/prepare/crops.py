@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fitting.files import write_image
 from pipelines.datasets.camera import Camera, project_distorted
 from pipelines.datasets.keypoints import mirror_index, to_targets
 from pipelines.prepare.multiview import projection_matrix, undistort_points
@@ -130,7 +131,7 @@ def crop_masks(folder: Path, seen, found, crops: dict, whole: dict, detector, th
                 if mask is not None and _shows(camera, targets, found.points[i], threshold):
                     pasted = np.zeros((camera.height, camera.width), np.uint8)
                     pasted[y0:y1, x0:x1] = mask
-                    cv2.imwrite(str(folder / "mask_raw" / camera.name / f"{frame:06d}.png"), pasted)
+                    write_image(folder / "mask_raw" / camera.name / f"{frame:06d}.png", pasted)
                     break
             else:
                 if (v, frame) in whole and not _shows(camera, whole[(v, frame)], found.points[i], threshold):
@@ -176,4 +177,4 @@ def cut_masks(folder: Path, cameras: list[Camera], found) -> None:
             pixels = _pixels(camera, found.points[i])
             cut = cut_mask(mask, pixels) if len(pixels) >= 3 else mask
             if not np.array_equal(cut, mask):
-                cv2.imwrite(str(path), cut.astype(np.uint8))
+                write_image(path, cut.astype(np.uint8))

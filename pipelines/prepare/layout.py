@@ -15,6 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fitting.files import write_image
 from pipelines.datasets.camera import project_distorted, silhouette
 from pipelines.datasets.easymocap import write_easymocap_cameras
 from pipelines.datasets.floor import feet_against_floor
@@ -73,13 +74,13 @@ def _check_pass(root: Path, seen, found, fitted, vertices, faces, ious: dict, pr
             body = silhouette(cam, vertices[i], faces)
             mask = mask_near_body(raw > 0, body)
             for folder in ("mask", "mask_cihp"):
-                cv2.imwrite(str(root / folder / cam.name / f"{i:06d}.png"), mask.astype(np.uint8))
+                write_image(root / folder / cam.name / f"{i:06d}.png", mask.astype(np.uint8))
             if found.used[i, v]:
                 ious[cam.name].append(iou(body, mask))
             image = cv2.imread(str(root / cam.name / f"{i:06d}.jpg"))
             targets = project_distorted(cam, fitted.targets[i])
             overlay = draw_overlay(image, body, found.distorted[i, v], targets, bool(found.used[i, v]))
-            cv2.imwrite(str(root / "overlay" / cam.name / f"{i:06d}.jpg"), overlay, [cv2.IMWRITE_JPEG_QUALITY, 85])
+            write_image(root / "overlay" / cam.name / f"{i:06d}.jpg", overlay, (cv2.IMWRITE_JPEG_QUALITY, 85))
             width = int(round(overlay.shape[1] * OVERLAY_HEIGHT / overlay.shape[0])) // 2 * 2
             tiles.append(cv2.resize(overlay, (width, OVERLAY_HEIGHT), interpolation=cv2.INTER_AREA))
             if progress is not None:

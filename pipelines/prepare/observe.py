@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from fitting.files import write_image
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import (
@@ -229,8 +230,8 @@ def observe(
                 mask = _given_mask(mask_files, index, camera, size)
             if mask is None:
                 mask = np.zeros(bgr.shape[:2], bool)
-            cv2.imwrite(str(out / camera.name / f"{index:06d}.jpg"), bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
-            cv2.imwrite(str(out / "mask_raw" / camera.name / f"{index:06d}.png"), mask.astype(np.uint8))
+            write_image(out / camera.name / f"{index:06d}.jpg", bgr, (cv2.IMWRITE_JPEG_QUALITY, 95))
+            write_image(out / "mask_raw" / camera.name / f"{index:06d}.png", mask.astype(np.uint8))
             seen.append(index)
             progress()
         cameras.append(camera)
