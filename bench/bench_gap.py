@@ -44,6 +44,8 @@ LEVERS = {
     "mask weight 3": ["train.mask_weight=3"],
     "ray entropy on virtual cameras": ["train.entropy_weight=0.002"],
     "held-back frames choose the step": ["train.holdout_every=10"],
+    "view direction jittered 30 degrees": ["model.view_jitter=30"],
+    "view direction off, coarse-to-fine": ["model.view_freqs=0", "train.window_steps=2000"],
 }
 #: (label, capture, overrides): the levers on the recording, and the defaults on both captures
 ROWS = [(f"real, {name}", REAL, sets) for name, sets in LEVERS.items()] + [
