@@ -1,7 +1,7 @@
 """Run benchmarks and print one Markdown table: ``python -m bench [synth ...]`` (default: all but ``levers``, the
 fit's input corrections, which takes about two hours, ``poses``, the pose correction's harness, about half an
 hour, and ``gap``, the training images against the held-out camera on the real recording and its synthetic analogue,
-about half an hour for its two default rows: these run only when named).
+about an hour for its four default rows: these run only when named).
 
 Each benchmark's rows are saved under ``$NARF_CACHE/rows/`` as it finishes, so that an interrupted run loses only the
 benchmark it was in (the time-to-quality benchmark, the longest, also keeps each finished configuration): ``--reuse``
