@@ -49,6 +49,7 @@ LEVERS = {
     "coarse-to-fine over 2,000 steps": [*PAPER_COLOUR, "train.window_steps=2000"],
     "view direction off, coarse-to-fine": ["model.view_freqs=0", "train.window_steps=2000"],
     "ray entropy on virtual cameras": [*PAPER_COLOUR, "train.entropy_weight=0.002"],
+    "mask weight 3": [*PAPER_COLOUR, "train.mask_weight=3"],
     "held-back frames choose the step": [*PAPER_COLOUR, "train.holdout_every=10"],
 }
 #: (label, capture, overrides): every row on the recording and on its analogue
