@@ -71,3 +71,11 @@ def test_a_capture_like_itself_keeps_its_views(data_root_64, tmp_path):
     assert list(protocol.train_views) == [1, 2, 3] and list(protocol.test_views) == [0]
     with pytest.raises(FileExistsError):  # a folder holding something else is never overwritten
         views_like(source, like, like)
+
+
+def test_a_source_that_is_no_capture_is_one_line_and_exit_2(tmp_path, capsys):
+    from pipelines.synthetic.views_like import main
+
+    assert main([str(tmp_path / "none"), str(tmp_path / "like"), str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no annots.npy" in err[0]
