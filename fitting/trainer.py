@@ -30,6 +30,30 @@ from narf.occupancy import field_ray_bounds, refresh_cells
 from narf.renderer import bind_field, bind_grid_proposal, render_rays
 
 
+def render_training_rays(
+    config: FitConfig,
+    field,
+    origins: torch.Tensor,
+    dirs: torch.Tensor,
+    frames: torch.Tensor,
+    poses: PoseBatch,
+    n_coarse: int,
+    n_fine: int,
+    **options,
+):
+    """Render rays (R,) of ``frames`` (indices into ``poses``) as the fit does: bounds from the field's boxes (and
+    grid), the occupancy grid's proposal for randomized training renders when the config asks for it (validate_config
+    ties it to render.occupancy, so the field has its grid), both with the poses without gradient. ``options``:
+    ``latent`` for :func:`narf.renderer.bind_field`, the rest for :func:`narf.renderer.render_rays`."""
+    latent = options.pop("latent", None)
+    near, far, hit = field_ray_bounds(field, origins, dirs, poses.select(frames).detach())
+    proposal = None
+    if config.render.grid_proposal and options.get("randomized", True):
+        proposal = bind_grid_proposal(field, poses.detach(), frames)
+    field_fn = bind_field(field, dirs, poses, frames, latent)
+    return render_rays(field_fn, origins, dirs, near, far, hit, n_coarse, n_fine, proposal_fn=proposal, **options)
+
+
 def ray_loss(
     config: FitConfig,
     field,
@@ -55,28 +79,22 @@ def ray_loss(
     ``backgrounds``: (R, 3) a background colour per ray, which also replaces the target outside the mask; the
     boundary band, whose target keeps the recording's own background, then leaves the colour loss as well
     (docs/model.md §6). Ray bounds and the grid proposal take the poses without gradient."""
-    per_ray = poses.select(batch.frames)
-    near, far, hit = field_ray_bounds(field, batch.origins, batch.dirs, per_ray.detach())
     background = 1.0 if config.data.white_background else 0.0
     plain = camera_colour is None and backgrounds is None
-    # training renders only; validate_config ties the switch to render.occupancy, so the field has its grid
-    proposal = None
-    if config.render.grid_proposal and randomized:
-        proposal = bind_grid_proposal(field, poses.detach(), batch.frames)
-    out = render_rays(
-        bind_field(field, batch.dirs, poses, batch.frames, latent),
+    out = render_training_rays(
+        config,
+        field,
         batch.origins,
         batch.dirs,
-        near,
-        far,
-        hit,
+        batch.frames,
+        poses,
         n_coarse,
         n_fine,
+        latent=latent,
         background=background if plain else 0.0,
         randomized=randomized,
         generator=generator,
         uniforms=uniforms,
-        proposal_fn=proposal,
     )
     colour_count, mask_count = normalisers or (out.rgb.numel(), batch.mask_weight.sum().clamp_min(1))
     if plain:
@@ -370,24 +388,12 @@ class Trainer:
         into ``poses``), rendered as the training rays are (``fitting.unseen``)."""
         r = self.config.render
         origins, dirs, frame = virtual_rays(poses, torch.unique(frames), self.config.train.virtual_rays, self.generator)
-        near, far, hit = field_ray_bounds(self.field, origins, dirs, poses.select(frame).detach())
-        proposal = bind_grid_proposal(self.field, poses.detach(), frame) if r.grid_proposal else None
-        field_fn = bind_field(self.field, dirs, poses, frame)
         # drawn on the CPU generator and moved (a CPU generator cannot draw on a GPU)
         uniforms = [
             torch.rand(len(frame), k, generator=self.generator).to(self.device) for k in (r.train_coarse, r.train_fine)
         ]
-        out = render_rays(
-            field_fn,
-            origins,
-            dirs,
-            near,
-            far,
-            hit,
-            r.train_coarse,
-            r.train_fine,
-            uniforms=uniforms,
-            proposal_fn=proposal,
+        out = render_training_rays(
+            self.config, self.field, origins, dirs, frame, poses, r.train_coarse, r.train_fine, uniforms=uniforms
         )
         return ray_entropy(out.sample_weights)
 

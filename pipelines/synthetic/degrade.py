@@ -8,8 +8,6 @@ source capture's poses, the cameras' gains and biases) is written to ``degraded.
 from __future__ import annotations
 
 import json
-import os
-import shutil
 from dataclasses import asdict
 from pathlib import Path
 
@@ -25,7 +23,7 @@ from pipelines.body.model import BodyModel, capture_poses
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.zju_mocap import SmplParams, param_index_from_image, write_params
 from pipelines.synthetic.settings import Degradation  # noqa: F401 (re-exported)
-from pipelines.synthetic.staging import publish, start_staging
+from pipelines.synthetic.staging import link_into, publish, start_staging
 
 TRUTH = "degraded.json"
 FIELDS = ("poses", "rh", "th", "shapes")
@@ -72,20 +70,6 @@ def camera_colours(n_cameras: int, spread: float, seed: int) -> tuple[np.ndarray
     return np.exp(log_gains - log_gains.mean(0)), biases - biases.mean(0)
 
 
-def _link_tree(src: Path, dst: Path) -> None:
-    """Hard links of every file of ``src`` under ``dst`` (copies where the file system refuses links)."""
-    for path in src.rglob("*"):
-        target = dst / path.relative_to(src)
-        if path.is_dir():
-            target.mkdir(parents=True, exist_ok=True)
-            continue
-        target.parent.mkdir(parents=True, exist_ok=True)
-        try:
-            os.link(path, target)
-        except OSError:
-            shutil.copy2(path, target)
-
-
 def _recolour(capture: ZjuCapture, partial: Path, gains: np.ndarray, biases: np.ndarray, quality: int, progress):
     """Rewrite every image of camera c as ``clip(g_c I + b_c)`` (RGB), JPEG at ``quality``."""
     items = [(f, c) for f in range(capture.n_frames) for c in range(capture.n_cameras)]
@@ -115,7 +99,7 @@ def degrade_capture(src: Path, out: Path, degradation: Degradation, progress: bo
     partial = start_staging(out, "degraded", "degraded capture")
     for path in src.iterdir():
         if path.name not in REWRITTEN:
-            (_link_tree if path.is_dir() else lambda s, d: os.link(s, d))(path, partial / path.name)
+            link_into(path, partial / path.name)
     params = perturbed_params(capture, body, degradation)
     for folder, blend in (("params", False), ("new_params", True)):
         if not (src / folder).is_dir():

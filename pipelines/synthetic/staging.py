@@ -5,6 +5,8 @@ holds a marker is complete and an interrupted generation never looks finished.""
 from __future__ import annotations
 
 import json
+import os
+import shutil
 from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
@@ -41,6 +43,21 @@ def publish(partial: Path, out: Path, marker: dict) -> Path:
     """Write the marker last and move the staging folder into place (replacing an older finished set)."""
     (partial / MARKER).write_text(json.dumps(marker, indent=1))
     return publish_folder(partial, out)
+
+
+def link_into(src: Path, dst: Path) -> None:
+    """A file, or every file of a folder tree, at ``dst`` as hard links (copies where the file system refuses links):
+    captures derived from another share its images without their disk space."""
+    for path in [src] if src.is_file() else src.rglob("*"):
+        target = dst / path.relative_to(src) if path != src else dst
+        if path.is_dir():
+            target.mkdir(parents=True, exist_ok=True)
+            continue
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(path, target)
+        except OSError:
+            shutil.copy2(path, target)
 
 
 def use_stand_in(out: Path, what: str, dataset: str, complete: Callable, make: Callable, quiet: bool, generate: bool):

@@ -21,7 +21,7 @@ import numpy as np
 
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.errors import CaptureError
-from pipelines.synthetic.staging import publish, start_staging
+from pipelines.synthetic.staging import link_into, publish, start_staging
 
 DATASET = "views_like"
 
@@ -91,7 +91,7 @@ def views_like(source: Path, like: Path, out: Path, test_camera: int = 0) -> dic
     for path in Path(source).iterdir():
         if path.name in ("splits.json", "synthetic.json"):
             continue
-        _link(path, partial / path.name)
+        link_into(path, partial / path.name)
     (partial / "splits.json").write_text(json.dumps(splits, indent=1))
     relative = {
         "like": [
@@ -107,26 +107,6 @@ def views_like(source: Path, like: Path, out: Path, test_camera: int = 0) -> dic
 def _up(capture: ZjuCapture) -> np.ndarray | None:
     """The capture's up (its floor's normal, ``floor.json``), or None when it has no floor."""
     return None if capture.floor is None else capture.floor.up
-
-
-def _link(src: Path, dst: Path) -> None:
-    """Hard links of ``src`` (a file or a folder tree) at ``dst``; copies where links are refused."""
-    import shutil
-
-    if src.is_dir():
-        shutil.copytree(src, dst, copy_function=_hard_link_or_copy)
-    else:
-        _hard_link_or_copy(src, dst)
-
-
-def _hard_link_or_copy(src, dst) -> None:
-    import os
-    import shutil
-
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copy2(src, dst)
 
 
 def main(argv: list[str] | None = None) -> int:

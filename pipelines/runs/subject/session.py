@@ -175,11 +175,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
     frames, held_back = split_holdout(list(protocol.train_frames[:: config.data.frame_stride]), config.train)
     body_model = fit_body_model(capture, state)
     poses = training_poses(capture, body_model, frames)
-    items = [(i, f, c) for i, f in enumerate(frames) for _, c in protocol.usable([f], protocol.train_views)]
-    views = decoded_views(capture, [(f, c) for _, f, c in items], progress)
-    slots = [list(protocol.train_views).index(c) for _, _, c in items]  # each view's training camera, 0..C-1
-    store = cache_dir() / "views"
-    training = TrainingSet(views, [i for i, _, _ in items], poses, device, store_dir=store, camera_of_view=slots)
+    training = camera_views(capture, protocol, frames, poses, device, progress)
     source, refine = capture, config.train.mask_body_iterations > 0 and model_spec(config.model.name).rays
     if refine and len(protocol.train_views) < 2:  # one silhouette cannot place a body in depth: it would move it
         refine = False  # (measured on a 1-view synthetic capture: 5.5 -> 9.0 cm of joint error)
@@ -224,14 +220,21 @@ def split_holdout(frames: list[int], train) -> tuple[list[int], list[int]]:
     return [f for f in frames if f not in held], sorted(held)
 
 
+def camera_views(capture, protocol, frames: list[int], poses, device, progress: bool) -> TrainingSet:
+    """The training cameras' usable views of ``frames`` (Neural Body order) in the view store, with ``poses`` (one
+    per frame) and each view's training camera (0..C-1)."""
+    items = [(i, f, c) for i, f in enumerate(frames) for _, c in protocol.usable([f], protocol.train_views)]
+    views = decoded_views(capture, [(f, c) for _, f, c in items], progress)
+    slots = [list(protocol.train_views).index(c) for _, _, c in items]
+    store = cache_dir() / "views"
+    return TrainingSet(views, [i for i, _, _ in items], poses, device, store_dir=store, camera_of_view=slots)
+
+
 def held_back_views(capture, protocol, body_model: BodyModel, frames: list[int], device, progress: bool):
     """The training cameras' views of the held-back ``frames``, in the capture's poses (None when none)."""
     if not frames:
         return None
-    items = [(i, f, c) for i, f in enumerate(frames) for _, c in protocol.usable([f], protocol.train_views)]
-    views = decoded_views(capture, [(f, c) for _, f, c in items], progress)
-    poses = training_poses(capture, body_model, frames)
-    return TrainingSet(views, [i for i, _, _ in items], poses, device, store_dir=cache_dir() / "views")
+    return camera_views(capture, protocol, frames, training_poses(capture, body_model, frames), device, progress)
 
 
 def start(
