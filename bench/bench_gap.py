@@ -49,8 +49,11 @@ LEVERS = {
     "coarse-to-fine over 2,000 steps": [*PAPER_COLOUR, "train.window_steps=2000"],
     "view direction off, coarse-to-fine": ["model.view_freqs=0", "train.window_steps=2000"],
     "ray entropy on virtual cameras": [*PAPER_COLOUR, "train.entropy_weight=0.002"],
-    "mask weight 3": [*PAPER_COLOUR, "train.mask_weight=3"],
     "held-back frames choose the step": [*PAPER_COLOUR, "train.holdout_every=10"],
+    # against the preset as it is now (its colour without the view direction)
+    "defaults, mask weight 3": ["train.mask_weight=3"],
+    "defaults, appearance code per frame": ["model.appearance_dim=8"],
+    "defaults, depth smoothness on virtual patches": ["train.smoothness_weight=0.1"],
 }
 #: (label, capture, overrides): every row on the recording and on its analogue
 ROWS = [(f"real, {name}", REAL, sets) for name, sets in LEVERS.items()] + [

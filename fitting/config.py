@@ -67,6 +67,9 @@ class ModelConfig:
     view_freqs: int = 4
     view_jitter: float = 0.0
     pose_dropout: float = 0.0
+    #: subject fits: size of a per-frame appearance code that the colour reads (NeRF-W's; 0: none). Evaluation and
+    #: new poses use the zero code, the training frames' mean (docs/model.md §4, *Per-frame appearance*)
+    appearance_dim: int = 0
 
 
 @dataclass
@@ -123,8 +126,11 @@ class TrainConfig:
     colour_lr: float = 1e-3  #: Adam learning rate of the camera colour transforms
     colour_prior: float = 1e-3  #: pull of each camera's transform towards the identity
     random_background: bool = False  #: random background colour per ray; the mask's band leaves the colour loss
+    appearance_decay: float = 1e-3  #: with model.appearance_dim: weight decay of the per-frame codes (mean |a_f|^2)
     entropy_weight: float = 0.0  #: weight of the ray entropy on virtual cameras around the body (0: off)
     virtual_rays: int = 256  #: with the entropy: rays of virtual cameras per step
+    smoothness_weight: float = 0.0  #: weight of RegNeRF's depth smoothness on virtual patches (0: off)
+    virtual_patches: int = 4  #: with the smoothness: 8x8 patches of virtual cameras per step
     holdout_every: int = 0  #: subject fits: every n-th training frame is held back to choose the step kept (0: none)
     select_every: int = 500  #: with a holdout: steps between scores of the held-back frames
     select_rays: int = 4096  #: with a holdout: the person pixels of the held-back frames each score renders
@@ -294,6 +300,9 @@ KIND_ONLY = {
     "train.random_background": "subject",
     "train.holdout_every": "subject",
     "train.entropy_weight": "subject",
+    "train.smoothness_weight": "subject",
+    "model.appearance_dim": "subject",
+    "train.appearance_decay": "subject",
 }
 #: The range of each numeric setting, as a test and its words (the message names the key, the range and the value).
 RANGES = {
@@ -312,6 +321,7 @@ RANGES = {
     "model.view_freqs": (lambda v: 0 <= v <= 4, "in [0, 4]"),
     "model.view_jitter": (lambda v: 0 <= v <= 45, "in [0, 45] (degrees)"),
     "model.pose_dropout": (lambda v: 0 <= v < 1, "in [0, 1)"),
+    "model.appearance_dim": (lambda v: v >= 0, ">= 0 (0: none)"),
     "render.train_coarse": (lambda v: v >= 2, ">= 2"),
     "render.train_fine": (lambda v: v >= 0, ">= 0"),
     "render.eval_coarse": (lambda v: v >= 2, ">= 2"),
@@ -349,8 +359,11 @@ RANGES = {
     "train.mask_body_iterations": (lambda v: v >= 0, ">= 0"),
     "train.colour_lr": (lambda v: v > 0, "> 0"),
     "train.colour_prior": (lambda v: v >= 0, ">= 0"),
+    "train.appearance_decay": (lambda v: v >= 0, ">= 0"),
     "train.entropy_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
     "train.virtual_rays": (lambda v: v >= 1, ">= 1"),
+    "train.smoothness_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
+    "train.virtual_patches": (lambda v: v >= 1, ">= 1"),
     "train.holdout_every": (lambda v: v == 0 or v >= 2, "0 (none) or >= 2"),
     "train.select_every": (lambda v: v >= 1, ">= 1"),
     "train.select_rays": (lambda v: v >= 1, ">= 1"),
@@ -387,7 +400,7 @@ def validate_config(config: FitConfig) -> None:
         if config.kind != kind and get_value(config, key) != get_value(defaults, key):
             raise ConfigError(f"{key}: only {kind} runs use it (this is a {config.kind} run); leave it at its default")
     spec = MODEL_SPECS[config.model.name]
-    for option in ("temperature", "pose_in_color", "image_size"):
+    for option in ("temperature", "pose_in_color", "image_size", "appearance_dim"):
         if option not in spec.options and getattr(config.model, option) != getattr(defaults.model, option):
             users = ", ".join(name for name, other in MODEL_SPECS.items() if option in other.options)
             raise ConfigError(f"model.{option}: {config.model.name} does not take it (only {users})")
@@ -403,6 +416,7 @@ def validate_config(config: FitConfig) -> None:
     model_class = getattr(spec.build, "func", spec.build)  # a constructor or a functools.partial of one
     if config.model.pose_dropout and getattr(model_class, "pose_in_density", True):
         raise ConfigError(f"model.pose_dropout: {config.model.name}'s density reads the pose features; leave it at 0")
-    for key in ("pose_correction", "camera_colour", "random_background", "holdout_every", "entropy_weight"):
+    rays_only = ("pose_correction", "camera_colour", "random_background", "holdout_every", "entropy_weight")
+    for key in (*rays_only, "smoothness_weight"):
         if getattr(config.train, key) and not spec.rays:
             raise ConfigError(f"train.{key}: the CNN baseline renders no rays; set it false (--set train.{key}=false)")

@@ -1,7 +1,8 @@
 """What a subject fit corrects in its inputs while it fits (docs/model.md §6, *Input corrections*): the body pose of
-every training frame (:class:`PoseCorrection`) and the colour of every training camera (:class:`CameraColour`).
+every training frame (:class:`PoseCorrection`), the colour of every training camera (:class:`CameraColour`), and
+the look of every training frame (:class:`FrameAppearance`, docs/model.md §4).
 
-Both start at zero correction, are pulled back towards it by a penalty, and have their own learning rate; the
+Each starts at zero correction, is pulled back towards it by a penalty, and has its own learning rate; the
 trainer adds their parameters to its optimiser and their penalties to its loss (``fitting.trainer``)."""
 
 from __future__ import annotations
@@ -249,6 +250,34 @@ class CameraColour(nn.Module):
         """``weight mean_c (|log g_c|^2 + |b_c|^2)``: a pull towards the identity."""
         gains, biases = self.transforms()
         return weight * (gains.log().pow(2).sum(dim=1) + biases.pow(2).sum(dim=1)).mean()
+
+
+class FrameAppearance(nn.Module):
+    """NeRF-W's appearance embedding (Martin-Brualla et al., CVPR 2021), one code per training frame, read by the
+    colour branch in the place of the autoencoder's z_a (docs/model.md §4, *Per-frame appearance*). The codes are
+    centred, ``a_f = e_f - mean_k e_k``, so the zero code that evaluation and new poses use is the training frames'
+    mean look; the weight decay keeps each frame's share small.
+
+    Args:
+        n_frames: F training frames (indices 0..F-1 of the training PoseBatch). dim: A, the code size.
+    """
+
+    def __init__(self, n_frames: int, dim: int):
+        super().__init__()
+        self.codes = nn.Parameter(torch.zeros(n_frames, dim))
+
+    def forward(self, frames: torch.Tensor | None = None) -> torch.Tensor:
+        """The centred codes of training frames ``frames`` (K,) long, or of every frame: (K or F, A)."""
+        centred = self.codes - self.codes.mean(dim=0)
+        return centred if frames is None else centred[frames]
+
+    def penalty(self, weight: float) -> torch.Tensor:
+        """``weight mean_f |a_f|^2``: the weight decay towards the mean look."""
+        return weight * self().pow(2).sum(dim=1).mean()
+
+    def attach(self, poses: PoseBatch, frames: torch.Tensor | None = None) -> PoseBatch:
+        """``poses`` (of training frames ``frames``, or of every training frame) with their codes."""
+        return replace(poses, appearance=self(frames))
 
 
 def pose_correction_from_state(state: dict) -> PoseCorrection | None:

@@ -15,7 +15,14 @@ from tqdm import tqdm
 
 from fitting.checkpoint import save_checkpoint
 from fitting.config import FitConfig
-from fitting.corrections import CameraColour, PoseCorrection, PosePrior, RowAdam, corrected_colour_error
+from fitting.corrections import (
+    CameraColour,
+    FrameAppearance,
+    PoseCorrection,
+    PosePrior,
+    RowAdam,
+    corrected_colour_error,
+)
 from fitting.data import FitData
 from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
 from fitting.files import atomic_write_text, named_errors
@@ -23,35 +30,11 @@ from fitting.model_setup import encoding_window, make_field
 from fitting.plots import write_curve, write_validation
 from fitting.run_folder import write_config
 from fitting.selection import selection_set
-from fitting.unseen import ray_entropy, virtual_rays
+from fitting.training_rays import render_training_rays
+from fitting.unseen import unseen_views_loss
 from narf.fields.common import PoseBatch
 from narf.metrics import psnr
-from narf.occupancy import field_ray_bounds, refresh_cells
-from narf.renderer import bind_field, bind_grid_proposal, render_rays
-
-
-def render_training_rays(
-    config: FitConfig,
-    field,
-    origins: torch.Tensor,
-    dirs: torch.Tensor,
-    frames: torch.Tensor,
-    poses: PoseBatch,
-    n_coarse: int,
-    n_fine: int,
-    **options,
-):
-    """Render rays (R,) of ``frames`` (indices into ``poses``) as the fit does: bounds from the field's boxes (and
-    grid), the occupancy grid's proposal for randomized training renders when the config asks for it (validate_config
-    ties it to render.occupancy, so the field has its grid), both with the poses without gradient. ``options``:
-    ``latent`` for :func:`narf.renderer.bind_field`, the rest for :func:`narf.renderer.render_rays`."""
-    latent = options.pop("latent", None)
-    near, far, hit = field_ray_bounds(field, origins, dirs, poses.select(frames).detach())
-    proposal = None
-    if config.render.grid_proposal and options.get("randomized", True):
-        proposal = bind_grid_proposal(field, poses.detach(), frames)
-    field_fn = bind_field(field, dirs, poses, frames, latent)
-    return render_rays(field_fn, origins, dirs, near, far, hit, n_coarse, n_fine, proposal_fn=proposal, **options)
+from narf.occupancy import refresh_cells
 
 
 def ray_loss(
@@ -229,12 +212,18 @@ class Trainer:
             self.field.pose_gradient_freqs = t.pose_gradient_freqs
         if t.camera_colour:
             self.camera_colour = CameraColour(data.training.n_cameras).to(self.device)
+        self.frame_appearance = None
+        if self.config.model.appearance_dim:
+            n_frames = self.views.poses.reach.shape[0]
+            self.frame_appearance = FrameAppearance(n_frames, self.config.model.appearance_dim).to(self.device)
 
     def _correction_groups(self) -> list[dict]:
         """Optimiser groups of the input corrections, each with its own learning rate (decayed as the field's)."""
         t, groups = self.config.train, []
         if self.camera_colour is not None:
             groups.append({"params": list(self.camera_colour.parameters()), "lr": t.colour_lr})
+        if self.frame_appearance is not None:  # as the field's weights (NeRF-W)
+            groups.append({"params": list(self.frame_appearance.parameters()), "lr": t.lr})
         return groups
 
     def _pose_groups(self) -> list[dict]:
@@ -273,6 +262,8 @@ class Trainer:
             total = total + self.pose_correction.penalty(prior, frames)
         if self.camera_colour is not None:
             total = total + self.camera_colour.penalty(t.colour_prior)
+        if self.frame_appearance is not None:
+            total = total + self.frame_appearance.penalty(t.appearance_decay)
         return total
 
     def _parameter_groups(self) -> list[dict]:
@@ -306,6 +297,7 @@ class Trainer:
         modules = {
             "pose_correction": self.pose_correction,
             "camera_colour": self.camera_colour,
+            "frame_appearance": self.frame_appearance,
             "pose_optimizer": self.pose_optimiser,
             "pose_scheduler": self.pose_scheduler,
         }
@@ -362,6 +354,8 @@ class Trainer:
         if self.correcting_poses():  # only the frames this batch draws
             index, batch.frames = torch.unique(batch.frames, return_inverse=True)
             poses = self.poses_at(index)
+        if self.frame_appearance is not None:  # training rays only: evaluation reads the zero code
+            poses = self.frame_appearance.attach(poses, index)
         share = self.processes.share(n)
         with self.autocast():
             loss, colour = ray_loss(
@@ -377,25 +371,12 @@ class Trainer:
                 camera_colour=self.camera_colour,
                 backgrounds=None if backgrounds is None else backgrounds[share],
             )
-            if t.entropy_weight > 0:  # every process renders the same virtual rays (the same generator)
-                loss = loss + t.entropy_weight * self.unseen_entropy(poses, batch.frames) / self.processes.world_size
+            # every process renders the same virtual rays (the same generator)
+            unseen = unseen_views_loss(self.config, self.field, poses, batch.frames, self.generator)
+            loss = loss + unseen / self.processes.world_size
         # every process adds the penalty; the summed gradients then hold it once
         loss = loss + self.correction_penalty(index) / self.processes.world_size
         return self.optimise(loss, colour)
-
-    def unseen_entropy(self, poses: PoseBatch, frames: torch.Tensor) -> torch.Tensor:
-        """The ray entropy over ``train.virtual_rays`` rays of virtual cameras around the bodies of ``frames`` (indices
-        into ``poses``), rendered as the training rays are (``fitting.unseen``)."""
-        r = self.config.render
-        origins, dirs, frame = virtual_rays(poses, torch.unique(frames), self.config.train.virtual_rays, self.generator)
-        # drawn on the CPU generator and moved (a CPU generator cannot draw on a GPU)
-        uniforms = [
-            torch.rand(len(frame), k, generator=self.generator).to(self.device) for k in (r.train_coarse, r.train_fine)
-        ]
-        out = render_training_rays(
-            self.config, self.field, origins, dirs, frame, poses, r.train_coarse, r.train_fine, uniforms=uniforms
-        )
-        return ray_entropy(out.sample_weights)
 
     def autocast(self):
         """bf16 autocast of a training forward pass when ``train.precision`` is bf16 (a no-op for fp32)."""

@@ -1,21 +1,30 @@
 """Views nobody trained on (docs/model.md §6, *Unseen views*; not in the paper): rays from random virtual cameras
-around each training frame's body, and InfoNeRF's ray entropy (Kim et al., CVPR 2022) over them.
+around each training frame's body, InfoNeRF's ray entropy (Kim et al., CVPR 2022) over them, and RegNeRF's depth
+smoothness (Niemeyer et al., CVPR 2022) over small patches of them.
 
 With few training cameras, density that lies inside every training mask but outside the person is not seen by the
 loss, and shows from a new camera as a wrong silhouette or a halo. The entropy term asks each virtual ray that meets
 some density to concentrate it: a ray through a thin halo (weights spread along it) costs more than one that hits a
-surface (one weight near its opacity)."""
+surface (one weight near its opacity). The smoothness term asks neighbouring pixels of a virtual patch to see the
+surface at nearly the same depth: floaters and ridges that no training camera saw make depth jump."""
 
 from __future__ import annotations
 
 import torch
+from torch import nn
 
+from fitting.config import FitConfig
+from fitting.training_rays import render_training_rays
 from narf.fields.common import PoseBatch
 
 #: virtual cameras stand this many reaches s from the pelvis (about 2.2 m for an adult's 1.1 m), and aim at points
 #: within this many reaches of it along each axis
 VIRTUAL_DISTANCE = 2.0
 VIRTUAL_SPREAD = 0.6
+#: RegNeRF's patches: PATCH_SIDE^2 pixels, PATCH_PITCH reaches apart where the patch's centre ray meets its aim point
+#: (1.1 cm for an adult: about a pixel of the training images at the CPU preset's resolution)
+PATCH_SIDE = 8
+PATCH_PITCH = 0.01
 #: InfoNeRF's threshold: rays whose opacity is below it (they pass beside the body) are left out
 ENTROPY_MIN_OPACITY = 0.1
 
@@ -34,16 +43,74 @@ def virtual_rays(
     Returns:
         origins (R, 3), unit dirs (R, 3) and frame (R,) indices into ``poses``, on ``poses``' device.
     """
-    device = poses.world_from_part.device
-    pick = torch.randint(0, frames.numel(), (n_rays,), generator=generator).to(device)
-    frame = frames[pick]
-    pelvis, reach = poses.world_from_part[frame, 0, :3, 3], poses.reach[frame, None]
-    away = torch.randn(n_rays, 3, generator=generator).to(device)
-    away = away / away.norm(dim=-1, keepdim=True).clamp_min(1e-9)
-    target = pelvis + reach * VIRTUAL_SPREAD * (2 * torch.rand(n_rays, 3, generator=generator).to(device) - 1)
-    origins = pelvis + reach * VIRTUAL_DISTANCE * away
+    origins, target, frame = _virtual_cameras(poses, frames, n_rays, generator)
     dirs = target - origins
     return origins, dirs / dirs.norm(dim=-1, keepdim=True), frame
+
+
+def _virtual_cameras(poses: PoseBatch, frames: torch.Tensor, n: int, generator: torch.Generator):
+    """n virtual cameras as :func:`virtual_rays` draws them: origins (n, 3), aim points (n, 3), frames (n,)."""
+    device = poses.world_from_part.device
+    pick = torch.randint(0, frames.numel(), (n,), generator=generator).to(device)
+    frame = frames[pick]
+    pelvis, reach = poses.world_from_part[frame, 0, :3, 3], poses.reach[frame, None]
+    away = torch.randn(n, 3, generator=generator).to(device)
+    away = away / away.norm(dim=-1, keepdim=True).clamp_min(1e-9)
+    target = pelvis + reach * VIRTUAL_SPREAD * (2 * torch.rand(n, 3, generator=generator).to(device) - 1)
+    return pelvis + reach * VIRTUAL_DISTANCE * away, target, frame
+
+
+def virtual_patches(
+    poses: PoseBatch, frames: torch.Tensor, n_patches: int, generator: torch.Generator
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Square patches of PATCH_SIDE^2 rays from virtual cameras drawn as :func:`virtual_rays`' (RegNeRF's patches):
+    patch n's rays leave its camera o_n towards t_n + s (i - (S-1)/2) PATCH_PITCH r_n + s (j - (S-1)/2)
+    PATCH_PITCH u_n, with r_n, u_n unit vectors square to the centre ray and to each other (rolled at random).
+
+    Args:
+        poses, frames, generator: as :func:`virtual_rays`. n_patches: N.
+
+    Returns:
+        origins (N*S*S, 3), unit dirs (N*S*S, 3) and frames (N*S*S,), patch by patch, row-major within a patch.
+    """
+    origins, target, frame = _virtual_cameras(poses, frames, n_patches, generator)
+    forward = nn.functional.normalize(target - origins, dim=-1)
+    roll = torch.randn(n_patches, 3, generator=generator).to(origins.device)
+    right = nn.functional.normalize(torch.linalg.cross(forward, roll), dim=-1)
+    up = torch.linalg.cross(right, forward)
+    steps = (torch.arange(PATCH_SIDE, dtype=origins.dtype, device=origins.device) - (PATCH_SIDE - 1) / 2) * PATCH_PITCH
+    rows, cols = torch.meshgrid(steps, steps, indexing="ij")  # (S, S)
+    scale = poses.reach[frame][:, None, None, None]
+    aims = target[:, None, None] + scale * (
+        rows[..., None] * up[:, None, None] + cols[..., None] * right[:, None, None]
+    )
+    dirs = nn.functional.normalize(aims - origins[:, None, None], dim=-1).reshape(-1, 3)
+    per_ray = PATCH_SIDE * PATCH_SIDE
+    return origins.repeat_interleave(per_ray, dim=0), dirs, frame.repeat_interleave(per_ray)
+
+
+def depth_smoothness(depth: torch.Tensor, opacity: torch.Tensor, reach: torch.Tensor) -> torch.Tensor:
+    """RegNeRF's depth smoothness over patches: the mean over neighbouring pixel pairs (a, b) of
+    ((d_a - d_b) / s)^2, each pair weighed by M_a M_b, with d = D / M the depth where the ray's opacity M is and s
+    the frame's reach (so the term does not depend on the body's units). Pairs across the silhouette weigh little,
+    and the weights carry no gradient: the term moves depth, not the silhouette.
+
+    Args:
+        depth: (N, S, S) unnormalised depths D = sum w t (``RenderOutput.depth``). opacity: (N, S, S) M = sum w.
+        reach: (N,) of each patch's frame.
+
+    Returns:
+        () the weighted mean (0 where no pair has opacity), differentiable in the depths and opacities.
+    """
+    d = depth / opacity.clamp_min(1e-6) / reach[:, None, None]
+    total, weight = depth.sum() * 0, depth.sum() * 0
+    for a, b, ma, mb in (
+        (d[:, 1:], d[:, :-1], opacity[:, 1:], opacity[:, :-1]),
+        (d[:, :, 1:], d[:, :, :-1], opacity[:, :, 1:], opacity[:, :, :-1]),
+    ):
+        pair = (ma * mb).detach()
+        total, weight = total + (pair * (a - b).pow(2)).sum(), weight + pair.sum()
+    return total / weight.clamp_min(1e-6)
 
 
 def ray_entropy(sample_weights: torch.Tensor | None, min_opacity: float = ENTROPY_MIN_OPACITY) -> torch.Tensor:
@@ -66,3 +133,34 @@ def ray_entropy(sample_weights: torch.Tensor | None, min_opacity: float = ENTROP
         return sample_weights.sum() * 0
     p = sample_weights[kept] / opacity[kept, None]
     return -(p * torch.log(p.clamp_min(1e-10))).sum(dim=-1).mean()
+
+
+def unseen_views_loss(config: FitConfig, field, poses: PoseBatch, frames: torch.Tensor, generator: torch.Generator):
+    """The fit's terms on views nobody trained on: ``train.entropy_weight`` times the ray entropy over
+    ``train.virtual_rays`` virtual rays, plus ``train.smoothness_weight`` times the depth smoothness over
+    ``train.virtual_patches`` virtual patches, around the bodies of ``frames`` (a step's frame indices into
+    ``poses``), rendered as the training rays are. 0 when both weights are 0 (nothing drawn, nothing rendered)."""
+    t, total = config.train, 0.0
+    drawn = torch.unique(frames)
+    if t.entropy_weight > 0:
+        origins, dirs, frame = virtual_rays(poses, drawn, t.virtual_rays, generator)
+        total = total + t.entropy_weight * ray_entropy(
+            _render(config, field, origins, dirs, frame, poses, generator).sample_weights
+        )
+    if t.smoothness_weight > 0:
+        origins, dirs, frame = virtual_patches(poses, drawn, t.virtual_patches, generator)
+        out = _render(config, field, origins, dirs, frame, poses, generator)
+        shape = (-1, PATCH_SIDE, PATCH_SIDE)
+        reach = poses.reach[frame[:: PATCH_SIDE * PATCH_SIDE]]
+        total = total + t.smoothness_weight * depth_smoothness(out.depth.reshape(shape), out.mask.reshape(shape), reach)
+    return total
+
+
+def _render(config: FitConfig, field, origins, dirs, frame, poses: PoseBatch, generator: torch.Generator):
+    """Virtual rays rendered as the training rays, their stratified draws from the fit's CPU generator (moved: a CPU
+    generator cannot draw on a GPU)."""
+    r, device = config.render, origins.device
+    uniforms = [torch.rand(len(frame), k, generator=generator).to(device) for k in (r.train_coarse, r.train_fine)]
+    return render_training_rays(
+        config, field, origins, dirs, frame, poses, r.train_coarse, r.train_fine, uniforms=uniforms
+    )

@@ -10,8 +10,15 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from fitting.corrections import CameraColour, PoseCorrection, corrected_colour_error, pose_correction_from_state
+from fitting.corrections import (
+    CameraColour,
+    FrameAppearance,
+    PoseCorrection,
+    corrected_colour_error,
+    pose_correction_from_state,
+)
 from fitting.data import RayBatch
+from narf.fields.common import PoseBatch
 from narf.renderer import RenderOutput
 from pipelines.body.model import capture_poses, pose_batch
 from pipelines.datasets.capture import ZjuCapture
@@ -412,3 +419,30 @@ def test_the_pose_priors_defaults_are_the_configs():
         t.pose_prior_cm,
         t.pose_smooth,
     )
+
+
+def test_frame_appearance_is_centred_and_its_decay_by_hand():
+    """a_f = e_f - mean_k e_k (the zero code is the frames' mean look), the decay w mean_f |a_f|^2, and ``attach``
+    gives the codes of the frames asked for."""
+    appearance = FrameAppearance(3, 2)
+    with torch.no_grad():
+        appearance.codes.copy_(torch.tensor([[1.0, 0.0], [2.0, 3.0], [3.0, 0.0]]))
+    torch.testing.assert_close(appearance(), torch.tensor([[-1.0, -1.0], [0.0, 2.0], [1.0, -1.0]]))
+    torch.testing.assert_close(appearance.penalty(0.5), torch.tensor(0.5 * (2 + 4 + 2) / 3))
+    poses = PoseBatch(
+        torch.eye(4).expand(3, 19, 4, 4), torch.ones(3), torch.ones(3, 19), torch.zeros(3, 19, 6), torch.zeros(3, 19, 3)
+    )
+    assert torch.equal(
+        appearance.attach(poses.select(torch.tensor([2, 0])), torch.tensor([2, 0])).appearance[0], appearance()[2]
+    )
+
+
+@pytest.mark.slow
+def test_a_fit_with_frame_appearance_learns_codes_and_resumes(data_root_64, tmp_path):
+    """model.appearance_dim: the codes move in training, travel in the checkpoint, and a resumed fit restores them."""
+    subject, run = data_root_64 / "synthetic" / "taichi", tmp_path / "run"
+    trainer = _tiny_fit(subject, run, "train.steps=20", "model.appearance_dim=4", "train.mask_body_iterations=0")
+    codes = trainer.frame_appearance().detach()
+    assert codes.abs().max() > 0 and codes.shape[1] == 4
+    state = torch.load(run / "checkpoint.pt", weights_only=True)
+    assert torch.equal(state["frame_appearance"]["codes"], trainer.frame_appearance.codes.detach())

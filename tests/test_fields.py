@@ -32,7 +32,7 @@ def _random_pose(n_frames=1, n_parts=19, seed=0, dtype=torch.float32):
 
 def _field(name, width=16, n_parts=19, dtype=torch.float32, **kwargs):
     torch.manual_seed(0)
-    field = build_field(name, width=width, **kwargs) if name in model_names("field") else build_field(name, width=width)
+    field = build_field(name, width=width, **kwargs)
     field.set_boxes(torch.zeros(field.n_parts, 3), torch.full((field.n_parts, 3), 0.6))
     return field.to(dtype)
 
@@ -333,15 +333,16 @@ def test_sparse_fast_path_matches_dense_reference(name, monkeypatch):
 def test_density_alone_equals_the_forward_sigma(name):
     """Field.density (the occupancy refresh's query; NARF_D / NARF_H skip the colour branch) against the full
     forward's sigma: the same kernels on the same inputs, so equal to the bit; with an autoencoder latent, whose
-    shape half enters the density."""
+    shape half enters the density (articulated models: autoencoders are of bodies)."""
     dense = name == "narf_d_dense"
-    field = _field("narf_d" if dense else name, latent_dim=4)
+    rigid = name in model_names("rigid")
+    field = _field("narf_d" if dense else name, latent_dim=0 if rigid else 4)
     if dense:
         field.fast = False
     points, dirs = _points(8, 12, seed=5)
     points[0, :3] = 20.0  # outside every box: sigma 0
     pose = _random_pose(n_frames=2, n_parts=field.n_parts).select(torch.tensor([0, 1] * 4))
-    latent = torch.randn(8, 8)
+    latent = None if rigid else torch.randn(8, 8)
     with torch.no_grad():
         full, alone = field(points, dirs, pose, latent).sigma, field.density(points, dirs, pose, latent)
     assert alone.shape == (8, 12) and alone[0, :3].abs().max() == 0 and alone.abs().max() > 0
@@ -519,3 +520,23 @@ def test_the_pose_gradient_band_leaves_the_fields_own_gradients_alone(name):
             assert torch.allclose(gradients[0][key], gradients[1][key], rtol=1e-4, atol=1e-6), key
         else:
             assert torch.equal(gradients[0][key], gradients[1][key]), key
+
+
+@pytest.mark.parametrize("name", model_names("field", "rigid"))
+def test_the_appearance_code_moves_the_colour_only_and_none_is_the_zero_code(name):
+    """model.appearance_dim (docs/model.md §4, *Per-frame appearance*): a frame's code changes its colour, never its
+    density (to the bit: the density does not read z_a), and poses without codes (evaluation) are the zero code,
+    bit for bit (the same tensor of zeros either way)."""
+    field = _field(name, appearance_dim=3).eval()
+    points, dirs = _points(4, 16)
+    pose = _random_pose(n_parts=field.n_parts).select(torch.zeros(4, dtype=torch.long))
+    bare = field(points, dirs, pose)
+    zero = field(points, dirs, PoseBatch(**{**pose.__dict__, "appearance": torch.zeros(4, 3)}))
+    coded = field(points, dirs, PoseBatch(**{**pose.__dict__, "appearance": torch.full((4, 3), 2.0)}))
+    assert torch.equal(bare.rgb, zero.rgb) and torch.equal(bare.sigma, zero.sigma)
+    assert torch.equal(coded.sigma, bare.sigma)
+    assert (coded.rgb - bare.rgb).abs().amax() > 1e-3  # an O(1) code through an O(1) layer: far above rounding
+    with pytest.raises(ValueError, match="appearance"):
+        field(points, dirs, PoseBatch(**{**pose.__dict__, "appearance": torch.zeros(4, 5)}))
+    with pytest.raises(ValueError, match="not both"):
+        _field(name, latent_dim=4, appearance_dim=3)

@@ -59,7 +59,9 @@ class Field(nn.Module):
 
     Subclasses implement ``_forward(inputs: FieldInputs)`` (and may implement ``_density`` alike); ``inputs.x_local``
     is None unless the subclass sets ``uses_part_points``. Encoded widths come from ``narf.encodings`` and
-    ``n_parts``.
+    ``n_parts``. Every field's constructor also takes ``latent_dim`` (the autoencoder's z_s, z_a) and
+    ``appearance_dim`` (a per-frame appearance code in z_a's place, read from ``PoseBatch.appearance``; docs/model.md
+    §4, *Per-frame appearance*).
     """
 
     #: whether ``_forward`` reads x_local (R, S, P, 3); the others get None and skip computing it
@@ -80,9 +82,9 @@ class Field(nn.Module):
     #: coarse-to-fine window of the point encoding gamma_10 (``narf.encodings.frequency_window``); None: all open
     point_window: float | None = None
 
-    def __init__(self, n_parts: int, latent_dim: int = 0):
+    def __init__(self, n_parts: int, latent_dim: int = 0, appearance_dim: int = 0):
         super().__init__()
-        self.n_parts, self.latent_dim = n_parts, latent_dim
+        self.n_parts, self.latent_dim, self.appearance_dim = n_parts, latent_dim, appearance_dim
         self.register_buffer("box_centres", torch.zeros(n_parts, 3))
         self.register_buffer("box_half_extents", torch.ones(n_parts, 3))
         #: optional narf.occupancy.OccupancyGrid; renderers narrow their ray bounds with it (docs/model.md §5)
@@ -166,7 +168,17 @@ class Field(nn.Module):
         if latent is not None and self.latent_dim:
             check_shape("latent", latent, (points.shape[0], 2 * self.latent_dim))
             z_s, z_a = latent[None, :, None, : self.latent_dim], latent[None, :, None, self.latent_dim :]
+        if self.appearance_dim:
+            z_a = self._appearance(pose)[None, :, None]
         return FieldInputs(points, dirs, pose, x_local, d_local, u, in_box, z_s, z_a)
+
+    def _appearance(self, pose: PoseBatch) -> torch.Tensor:
+        """The per-ray appearance codes (R, A) of ``pose``: its own, or zeros where it has none (frames the fit did
+        not train on, evaluation)."""
+        if pose.appearance is None:
+            return pose.reach.new_zeros(pose.reach.shape[0], self.appearance_dim)
+        check_shape("pose.appearance", pose.appearance, (pose.reach.shape[0], self.appearance_dim))
+        return pose.appearance
 
     def _perturbed_colour_inputs(self, dirs: torch.Tensor, pose: PoseBatch) -> tuple[torch.Tensor, PoseBatch]:
         """Training only: each ray's direction turned at random (d <- (d + e) / |d + e|, e ~ N(0, view_jitter^2 I),

@@ -23,6 +23,8 @@ class PoseBatch:
         pose_features: (B, P, 6) xi (se(3) log in the body frame).
         rest_offsets: (B, P, 3) rest joints relative to the pelvis, in body units (D-NARF's t_can).
         world_from_joint: optional (B, 24, 4, 4) all SMPL joints (the CNN baseline's bone maps need the leaves).
+        appearance: optional (B, A) per-frame appearance codes (docs/model.md §4, *Per-frame appearance*): training
+            frames' only; None (evaluation, new poses) is the zero code.
     """
 
     world_from_part: torch.Tensor
@@ -31,6 +33,7 @@ class PoseBatch:
     pose_features: torch.Tensor
     rest_offsets: torch.Tensor
     world_from_joint: torch.Tensor | None = None
+    appearance: torch.Tensor | None = None
 
     def __post_init__(self):
         check_shape("world_from_part", self.world_from_part, (-1, -1, 4, 4))
@@ -41,6 +44,8 @@ class PoseBatch:
         check_shape("rest_offsets", self.rest_offsets, (n_frames, n_parts, 3))
         if self.world_from_joint is not None:
             check_shape("world_from_joint", self.world_from_joint, (n_frames, 24, 4, 4))
+        if self.appearance is not None:
+            check_shape("appearance", self.appearance, (n_frames, -1))
 
     def _map(self, fn) -> PoseBatch:
         return PoseBatch(*(None if (v := getattr(self, k)) is None else fn(v) for k in self.__dataclass_fields__))
@@ -130,6 +135,8 @@ class RadianceHead(nn.Module):
         width: H.
         groups: G independent heads (NARF_P: 19).
         latent_dim: size of z_s and z_a (0: no autoencoder latents).
+        appearance_dim: size of a per-frame appearance code, which takes z_a's place (W_a z_a; 0: none). A head has
+            the autoencoder's latents or a per-frame code, never both.
         density_act: ``leaky_backward`` or ``softplus``.
     """
 
@@ -141,13 +148,17 @@ class RadianceHead(nn.Module):
         groups: int = 1,
         latent_dim: int = 0,
         density_act: str = "leaky_backward",
+        appearance_dim: int = 0,
     ):
         super().__init__()
+        if latent_dim and appearance_dim:
+            raise ValueError("a radiance head takes the autoencoder's latents or a per-frame appearance code, not both")
         self.width, self.groups, self.latent_dim = width, groups, latent_dim
         self.density_embed = nn.ModuleDict({k: WNLinear(d, width, groups) for k, d in density_dims.items()})
         self.color_embed = nn.ModuleDict({k: WNLinear(d, width // 2, groups) for k, d in color_dims.items()})
         self.latent_shape = EqualLinear(latent_dim, width, groups) if latent_dim else None
-        self.latent_appearance = EqualLinear(latent_dim, width, groups) if latent_dim else None
+        code_dim = latent_dim or appearance_dim
+        self.latent_appearance = EqualLinear(code_dim, width, groups) if code_dim else None
         self.trunk = Trunk(width, groups)
         self.sigma_out = WNLinear(width, 1, groups)
         self.color_hidden = WNLinear(width, width // 2, groups, paper_skip=True)

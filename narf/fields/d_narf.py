@@ -40,8 +40,9 @@ class DNarf(Field):
         latent_dim: int = 0,
         density_act: str = "leaky_backward",
         fast: bool = True,
+        appearance_dim: int = 0,
     ):
-        super().__init__(n_parts, latent_dim)
+        super().__init__(n_parts, latent_dim, appearance_dim)
         self.fast = fast
         self.selector = PartSelector(n_parts)
         self.head = RadianceHead(
@@ -49,6 +50,7 @@ class DNarf(Field):
             {"dirs": DIRECTION_WIDTH, "pose": XI_WIDTH},
             width,
             latent_dim=latent_dim,
+            appearance_dim=appearance_dim,
             density_act=density_act,
         )
 

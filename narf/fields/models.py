@@ -60,7 +60,7 @@ class ModelSpec:
         return self.family == "field"
 
 
-_FIELD_OPTIONS = ("width", "density_act", "latent_dim")
+_FIELD_OPTIONS = ("width", "density_act", "latent_dim", "appearance_dim")
 
 
 def _field(name, build, label, cost=None, extra=(), family: Family = "field", variants=()) -> ModelSpec:

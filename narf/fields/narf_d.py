@@ -26,8 +26,9 @@ class NarfD(NarfH):
         density_act: str = "leaky_backward",
         selector: str = "softmax",
         fast: bool = True,
+        appearance_dim: int = 0,
     ):
-        super().__init__(n_parts, width, latent_dim, density_act, fast)
+        super().__init__(n_parts, width, latent_dim, density_act, fast, appearance_dim)
         if selector not in ("softmax", "sigmoid"):
             raise ValueError(f"selector must be 'softmax' or 'sigmoid', got '{selector}'")
         self.selector_kind = selector

@@ -25,6 +25,7 @@ class NarfH(Field):
         n_parts: P (19).
         width: H (256 paper, smaller on CPU).
         latent_dim: autoencoder latent size per half (0: none).
+        appearance_dim: per-frame appearance code size (0: none; ``Field``).
         density_act: ``leaky_backward`` (upstream) or ``softplus``.
         fast: evaluate only in-box (sample, part) pairs (``sparse_parts``); False runs the dense reference.
     """
@@ -36,14 +37,16 @@ class NarfH(Field):
         latent_dim: int = 0,
         density_act: str = "leaky_backward",
         fast: bool = True,
+        appearance_dim: int = 0,
     ):
-        super().__init__(n_parts, latent_dim)
+        super().__init__(n_parts, latent_dim, appearance_dim)
         self.fast = fast
         self.head = RadianceHead(
             {"parts": POINT_WIDTH * n_parts, "zeta": zeta_width(n_parts)},
             {"pose": XI_WIDTH * n_parts, "dirs": DIRECTION_WIDTH * n_parts},
             width,
             latent_dim=latent_dim,
+            appearance_dim=appearance_dim,
             density_act=density_act,
         )
 

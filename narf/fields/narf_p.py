@@ -43,8 +43,9 @@ class NarfP(Field):
         density_act: str = "leaky_backward",
         temperature: float = 10.0,
         fast: bool = True,
+        appearance_dim: int = 0,
     ):
-        super().__init__(n_parts, latent_dim)
+        super().__init__(n_parts, latent_dim, appearance_dim)
         self.fast = fast
         if temperature <= 0:
             raise ValueError(f"temperature must be positive, got {temperature}")
@@ -55,6 +56,7 @@ class NarfP(Field):
             width,
             groups=n_parts,
             latent_dim=latent_dim,
+            appearance_dim=appearance_dim,
             density_act=density_act,
         )
 

@@ -32,12 +32,15 @@ class PNerf(Field):
         latent_dim: int = 0,
         density_act: str = "leaky_backward",
         pose_in_color: bool = True,
+        appearance_dim: int = 0,
     ):
-        super().__init__(n_parts, latent_dim)
+        super().__init__(n_parts, latent_dim, appearance_dim)
         self.pose_in_color = pose_in_color
         colour = {"pose": XI_WIDTH * n_parts, "dirs": DIRECTION_WIDTH} if pose_in_color else {"dirs": DIRECTION_WIDTH}
         density = {"x": POINT_WIDTH, "pose": XI_WIDTH * n_parts, "zeta": zeta_width(n_parts)}
-        self.head = RadianceHead(density, colour, width, latent_dim=latent_dim, density_act=density_act)
+        self.head = RadianceHead(
+            density, colour, width, latent_dim=latent_dim, appearance_dim=appearance_dim, density_act=density_act
+        )
 
     def _forward(self, inputs: FieldInputs) -> FieldOutput:
         points, dirs, pose, _, _, _, _, z_s, z_a = inputs

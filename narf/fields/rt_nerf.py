@@ -23,12 +23,24 @@ class RtNerf(Field):
     """
 
     def __init__(
-        self, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward", use_pose: bool = True
+        self,
+        width: int = 256,
+        latent_dim: int = 0,
+        density_act: str = "leaky_backward",
+        use_pose: bool = True,
+        appearance_dim: int = 0,
     ):
-        super().__init__(1, latent_dim)
+        super().__init__(1, latent_dim, appearance_dim)
         self.use_pose = use_pose
         colour = {"dirs": DIRECTION_WIDTH, "pose": XI_WIDTH} if use_pose else {"dirs": DIRECTION_WIDTH}
-        self.head = RadianceHead({"u": POINT_WIDTH}, colour, width, latent_dim=latent_dim, density_act=density_act)
+        self.head = RadianceHead(
+            {"u": POINT_WIDTH},
+            colour,
+            width,
+            latent_dim=latent_dim,
+            density_act=density_act,
+            appearance_dim=appearance_dim,
+        )
 
     def _forward(self, inputs: FieldInputs) -> FieldOutput:
         _, _, pose, _, d_local, u, _, z_s, z_a = inputs
@@ -45,13 +57,16 @@ class RpNerf(Field):
 
     pose_in_density = True
 
-    def __init__(self, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward"):
-        super().__init__(1, latent_dim)
+    def __init__(
+        self, width: int = 256, latent_dim: int = 0, density_act: str = "leaky_backward", appearance_dim: int = 0
+    ):
+        super().__init__(1, latent_dim, appearance_dim)
         self.head = RadianceHead(
             {"x": POINT_WIDTH, "pose": XI_WIDTH},
             {"pose": XI_WIDTH, "dirs": DIRECTION_WIDTH},
             width,
             latent_dim=latent_dim,
+            appearance_dim=appearance_dim,
             density_act=density_act,
         )
 

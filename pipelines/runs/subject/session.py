@@ -104,7 +104,8 @@ def poses_for_frames(source, body_model: BodyModel, frames: list[int]):
 def training_poses(capture: ZjuCapture, body_model: BodyModel, frames: list[int], chunk: int = 64) -> PoseBatch:
     """PoseBatch of many frames, posed ``chunk`` at a time: the posed vertices (80 kB a frame) are never all held."""
     parts = [poses_for_frames(capture, body_model, frames[i : i + chunk])[0] for i in range(0, len(frames), chunk)]
-    return PoseBatch(*(torch.cat([getattr(p, k) for p in parts]) for k in PoseBatch.__dataclass_fields__))
+    stacked = {k: [getattr(p, k) for p in parts] for k in PoseBatch.__dataclass_fields__}
+    return PoseBatch(**{k: None if v[0] is None else torch.cat(v) for k, v in stacked.items()})
 
 
 def fit_boxes(body_model: BodyModel, bodies, shapes: torch.Tensor, scale_pad: float, abs_pad: float):
