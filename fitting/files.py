@@ -16,7 +16,9 @@ from __future__ import annotations
 import contextlib
 import errno
 import functools
+import glob
 import inspect
+import itertools
 import os
 import shutil
 import tempfile
@@ -24,19 +26,61 @@ from collections.abc import Iterator
 from pathlib import Path
 
 
+@functools.cache
 def _umask() -> int:
-    """The process's umask (read by setting it, so once, at import, before any thread writes)."""
+    """The process's umask, read once, on first use: from ``/proc/self/status`` where Linux gives it (nothing
+    changes), else by setting it and putting it back (the only portable way, which for that instant changes it for
+    every thread of the process)."""
+    with contextlib.suppress(OSError, ValueError):
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
 
 
-_UMASK = _umask()
+def new_file_mode() -> int:
+    """The permissions a new file gets (0666 less the umask)."""
+    return 0o666 & ~_umask()
+
+
+def sync_folder(folder: Path) -> None:
+    """Flush ``folder``'s entries (the renames into it) to the disk, so that a power loss after a rename that
+    publishes cannot undo it. A no-op where folders cannot be opened (Windows)."""
+    flags = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0)
+    try:
+        fd = os.open(folder, flags)
+    except (PermissionError, IsADirectoryError):  # Windows: folders are not files
+        return
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
+
+
+def sync_tree(folder: Path) -> None:
+    """Flush every file and folder under ``folder`` (before it is renamed into place: its files' data must reach
+    the disk before the rename does)."""
+    for root, _, files in os.walk(folder):
+        for name in files:
+            sync_file(Path(root) / name)
+        sync_folder(Path(root))
+
+
+def sync_file(path: Path) -> None:
+    """Flush the file ``path``'s data to the disk."""
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 def atomic_write_bytes(path: Path, data: bytes, sync: bool = False) -> None:
-    """Write ``data`` to ``path`` through a temporary file in the same folder and a rename (``sync``: flushed to
-    the disk first, for files a crash must not lose). The file gets the permissions of any new file (0666 less the
+    """Write ``data`` to ``path`` through a temporary file in the same folder and a rename (``sync``: the file
+    flushed to the disk before the rename and the folder after it, for files a power loss must not lose). The file
+    gets the permissions of any new file (0666 less the
     umask), not the 0600 of the temporary file. A kill mid-write leaves the old file and a hidden
     ``.<name>.*.tmp`` (:func:`remove_stale`)."""
     path = Path(path)
@@ -44,7 +88,7 @@ def atomic_write_bytes(path: Path, data: bytes, sync: bool = False) -> None:
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
         try:
-            os.fchmod(fd, 0o666 & ~_UMASK)
+            os.fchmod(fd, new_file_mode())
             with os.fdopen(fd, "wb") as handle:
                 handle.write(data)
                 if sync:
@@ -54,6 +98,8 @@ def atomic_write_bytes(path: Path, data: bytes, sync: bool = False) -> None:
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
+        if sync:
+            sync_folder(path.parent)
 
 
 @contextlib.contextmanager
@@ -87,13 +133,17 @@ def remove_stale(path: Path) -> None:
         stale.unlink(missing_ok=True)
 
 
+_OUTPUTS = itertools.count()
+
+
 @contextlib.contextmanager
 def atomic_output(path: Path) -> Iterator[Path]:
-    """A hidden file name beside ``path`` with its suffix (``.<stem>.partial<suffix>``), for writers that take a
-    name; renamed onto ``path`` when the block ends without error, removed in every case otherwise."""
+    """A hidden file name beside ``path`` with its suffix (``.<stem>.partial-<process id>-<n><suffix>``, one per
+    writer, so two writers of one file never write the same temporary file), for writers that take a name; renamed
+    onto ``path`` when the block ends without error, removed in every case otherwise."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.stem}.partial{path.suffix}")
+    tmp = path.with_name(f".{path.stem}.partial-{os.getpid()}-{next(_OUTPUTS)}{path.suffix}")
     try:
         yield tmp
         os.replace(tmp, path)
@@ -131,17 +181,22 @@ def publish_folder(partial: Path, out: Path, replace: bool = True) -> Path:
     """Move the finished staging folder ``partial`` onto ``out``, replacing an older ``out`` (``replace=False``: only
     an empty one). The older one is moved aside (``.<name>.old``) first and deleted only once the new one is in
     place, so a kill at any moment leaves the old folder or the new one: a kill between the two renames leaves the old
-    one aside, and the next writer of ``out`` puts it back (:func:`restore_replaced`)."""
+    one aside, and the next writer of ``out`` puts it back (:func:`restore_replaced`). The old folder is renamed to a
+    trash name before it is deleted, so a kill while deleting it leaves a half-deleted folder that is never restored.
+    The new folder's files are flushed to the disk before the rename, and the rename before the old one is deleted:
+    a power loss cannot leave a published folder of empty files in place of the old one."""
     out = Path(out)
     restore_replaced(out)
     old = _aside(out)
+    sync_tree(Path(partial))
     if out.exists():
         if replace:
             out.rename(old)
         else:
             out.rmdir()
     Path(partial).rename(out)
-    shutil.rmtree(old, ignore_errors=True)
+    sync_folder(out.parent)
+    _delete(old)
     return out
 
 
@@ -149,16 +204,34 @@ def _aside(out: Path) -> Path:
     return out.parent / f".{out.name}.old"
 
 
+def _delete(folder: Path) -> None:
+    """Delete ``folder`` (if there) by renaming it to a trash name first (``.<name>.trash-<process id>``), so that
+    no name that :func:`restore_replaced` reads ever holds a half-deleted folder."""
+    if not folder.exists():
+        return
+    trash = folder.with_name(f"{folder.name}.trash-{os.getpid()}")
+    if trash.exists():  # this process's own, killed earlier
+        shutil.rmtree(trash, ignore_errors=True)
+    folder.rename(trash)
+    if trash.is_dir():
+        shutil.rmtree(trash, ignore_errors=True)
+    else:  # a file that stood where a folder is published
+        trash.unlink(missing_ok=True)
+
+
 def restore_replaced(out: Path) -> None:
     """Undo a :func:`publish_folder` killed halfway: an old folder moved aside with no new one in its place goes back
-    to ``out``; one left beside a complete ``out`` (killed while deleting it) is deleted."""
+    to ``out``; one left beside a complete ``out`` is deleted, as are trash folders whose deletion was killed."""
     out, old = Path(out), _aside(Path(out))
+    for trash in out.parent.glob(f".{glob.escape(out.name)}.old.trash-*"):
+        shutil.rmtree(trash, ignore_errors=True)
     if not old.exists():
         return
     if out.exists():
-        shutil.rmtree(old, ignore_errors=True)
+        _delete(old)
     else:
         old.rename(out)
+        sync_folder(out.parent)
 
 
 def atomic_write_text(path: Path, text: str) -> None:
@@ -168,13 +241,18 @@ def atomic_write_text(path: Path, text: str) -> None:
 
 def merge_folder(partial: Path, out: Path) -> Path:
     """Move every entry of the finished staging folder ``partial`` into the folder ``out`` (created if missing),
-    each replacing the entry of its name; other entries of ``out`` stay. Removes ``partial``."""
+    each replacing the entry of its name; other entries of ``out`` stay. Removes ``partial``. A file is renamed onto
+    its name; a folder is published as :func:`publish_folder` does (the old one moved aside, then deleted), so a kill
+    at any moment leaves each entry old or new, never missing."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     for path in Path(partial).iterdir():
-        if path.is_dir() and (out / path.name).is_dir():
-            shutil.rmtree(out / path.name)
-        path.replace(out / path.name)
+        if path.is_dir():
+            publish_folder(path, out / path.name)
+        else:
+            sync_file(path)
+            path.replace(out / path.name)
+    sync_folder(out)
     Path(partial).rmdir()
     return out
 
@@ -193,19 +271,25 @@ def folder_lock(folder: Path) -> Iterator[None]:
     process that locked a file which was removed meanwhile tries again on the new one. Where ``flock`` does not
     exist (Windows) the block runs unlocked.
 
+    The lock is keyed by the folder's resolved path, so a path through a symbolic link takes the same lock. A lock
+    file that this user may not write (left by another user) is locked read-only (``flock`` allows it) and its
+    process id is not written.
+
     Raises:
         FolderBusy: another live process holds the lock (the message names the folder and its process id).
+        OSError: the lock file cannot be created (a read-only folder), naming it.
     """
     try:
         import fcntl
     except ImportError:  # no flock on this system
         yield
         return
-    folder = Path(folder)
-    folder.parent.mkdir(parents=True, exist_ok=True)
+    folder = Path(folder).resolve()
+    with named_errors(folder.parent):
+        folder.parent.mkdir(parents=True, exist_ok=True)
     lock = folder.parent / f".{folder.name}.lock"
     while True:
-        fd = os.open(lock, os.O_RDWR | os.O_CREAT, 0o666 & ~_UMASK)
+        fd, writable = _open_lock(lock)
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
@@ -218,12 +302,26 @@ def folder_lock(folder: Path) -> Iterator[None]:
             break
         os.close(fd)  # the holder removed the file as we opened it: lock the one there now
     try:
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
+        if writable:
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode(), 0)
         yield
     finally:
-        Path(lock).unlink(missing_ok=True)
+        with contextlib.suppress(PermissionError):  # another user's lock file in a folder we may not write
+            Path(lock).unlink(missing_ok=True)
         os.close(fd)
+
+
+def _open_lock(lock: Path) -> tuple[int, bool]:
+    """The lock file opened for ``flock``, and whether it could be opened for writing (a file of another user's may
+    only be readable). An OSError names the lock file (a folder where nothing may be created)."""
+    try:
+        return os.open(lock, os.O_RDWR | os.O_CREAT, new_file_mode()), True
+    except PermissionError:
+        if not lock.exists():
+            raise OSError(errno.EACCES, "cannot create the lock file (the folder is not writable)", str(lock)) from None
+        with named_errors(lock):
+            return os.open(lock, os.O_RDONLY), False
 
 
 def _same_file(fd: int, path: Path) -> bool:

@@ -104,6 +104,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from fitting.files import folder_lock
     from fitting.run_folder import auto_device
     from pipelines.runs.kinds import open_run
     from pipelines.runs.requests import EvalRequest
@@ -135,7 +136,9 @@ def main(argv: list[str] | None = None) -> int:
         refine_steps=args.refine_steps,
         capture=args.capture,
     )
-    print(kind.markdown(kind.evaluate(run, request)))
+    with folder_lock(args.run):  # not beside a fit (or another evaluation) of the same run
+        report = kind.evaluate(run, request)
+    print(kind.markdown(report))
     print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
     return 0
 

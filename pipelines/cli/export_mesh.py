@@ -82,6 +82,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(attach_dash_values(argv, ("--frames",)))
+    from fitting.files import folder_lock
     from fitting.run_folder import auto_device
     from pipelines.runs.kinds import open_run
     from pipelines.runs.requests import ExportRequest, a_run
@@ -105,6 +106,14 @@ def main(argv: list[str] | None = None) -> int:
         device=str(auto_device(args.device)),
         progress=not args.quiet,
     )
+    with folder_lock(Path(args.out)):  # one writer per output
+        return _export(kind, run, request, args)
+
+
+def _export(kind, run, request, args) -> int:
+    """Write the rigged glTF or the meshes and say what was written."""
+    from pipelines.runs.requests import a_run
+
     if args.rigged:
         if kind.rigged is None:
             raise ValueError(f"{args.run}: {a_run(kind.name)}; narf-export-mesh --rigged exports subject runs")

@@ -93,6 +93,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from fitting.files import folder_lock
     from fitting.run_folder import auto_device
     from pipelines.runs.kinds import open_run
     from pipelines.runs.requests import VideoRequest, a_run
@@ -133,7 +134,9 @@ def main(argv: list[str] | None = None) -> int:
         motion_fps=args.motion_fps,
         camera_path=args.camera_path,
     )
-    print(f"narf-render-video: wrote {kind.render(run, request)}")
+    with folder_lock(out):  # one writer per video file
+        written = kind.render(run, request)
+    print(f"narf-render-video: wrote {written}")
     return 0
 
 
