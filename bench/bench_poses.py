@@ -54,9 +54,10 @@ def _field_run(cache: Path) -> Path:
 
 
 def _fixed_row(label: str, sets: list[str], stride: int, field: Path) -> dict:
-    from pipelines.runs.subject.pose_check import correct_with_field_fixed
+    from pipelines.runs.subject.pose_check import PoseCheckRequest, correct_with_field_fixed
 
-    check = correct_with_field_fixed(field, PERTURBED, SYNTHETIC, STEPS, sets, every=STEPS // 4, frame_stride=stride)
+    request = PoseCheckRequest(field, PERTURBED, SYNTHETIC, STEPS, tuple(sets), every=STEPS // 4, frame_stride=stride)
+    check = correct_with_field_fixed(request)
     return {
         "row": label,
         "steps": STEPS,

@@ -217,3 +217,27 @@ def test_commands_that_write_beside_a_run_take_its_lock(command, main, argv, loc
         code = run_cli(command, importlib.import_module(f"pipelines.cli.{main}").main, ["--run", str(tiny_run), *argv])
     err = capsys.readouterr().err.strip().splitlines()
     assert code == 2 and len(err) == 1 and "another command is writing it" in err[0], err
+
+
+def test_the_umask_is_read_not_set_where_linux_gives_it():
+    """Importing fitting.files and writing a file never changes the process's umask where /proc gives it (setting
+    it, even back, is process-wide: another thread creating a file in that instant gets the wrong mode). (Checked
+    against the umask set and put back at import: os.umask was called.)"""
+    import subprocess
+    import sys
+
+    if not Path("/proc/self/status").is_file():
+        pytest.skip("no /proc/self/status: the umask can only be read by setting it")
+    code = (
+        "import os, sys, tempfile\ncalls = []\nreal = os.umask\nos.umask = lambda m: (calls.append(m), real(m))[1]\n"
+        "from fitting.files import atomic_write_bytes, new_file_mode\n"
+        "atomic_write_bytes(os.path.join(tempfile.mkdtemp(), 'f'), b'x')\nprint(calls, oct(new_file_mode()))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout.split()
+    assert out[0] == "[]" and out[1] == oct(0o666 & ~_current_umask())
+
+
+def _current_umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask

@@ -199,7 +199,8 @@ def test_the_photometric_correction_recovers_the_poses_with_the_field_fixed(exac
     fixed brings the 4-degree, 2-cm poses of three frames a third of the way back in 300 steps (measured 4.60 ->
     2.83 cm; the 27-frame synthetic benchmark recovers 84 %). Through every frequency of the point encoding it does
     not converge (4.29 -> 5.9 cm on a field of 400 steps), and a cut gradient path recovers nothing: both fail."""
-    from pipelines.runs.subject.pose_check import correct_with_field_fixed
+    from pipelines.runs.subject.pose_check import PoseCheckRequest, correct_with_field_fixed
 
-    check = correct_with_field_fixed(exact_field, perturbed, tiny_capture, 300, ["train.mask_body_iterations=0"], 100)
+    request = PoseCheckRequest(exact_field, perturbed, tiny_capture, 300, ("train.mask_body_iterations=0",), 100)
+    check = correct_with_field_fixed(request)
     assert check.recovered > 0.25, check.path

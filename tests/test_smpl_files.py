@@ -158,3 +158,22 @@ def test_a_commands_smpl_choice_ends_with_it(standin, tmp_path, monkeypatch):
     assert resolve_smpl_file() != other
     monkeypatch.setenv("NARF_SMPL_DIR", str(other))
     assert resolve_smpl_file() == other
+
+
+@pytest.mark.parametrize("command", ["eval", "render_video", "export_mesh", "view"])
+def test_a_commands_main_called_directly_keeps_its_smpl_choice(command, tmp_path, monkeypatch):
+    """A command's ``main`` called directly (not through ``run_cli``) leaves no ``--smpl-dir`` choice behind, however
+    it ends (here: the run folder is missing, after the choice was made). (Checked against the mains without their
+    own context: the choice leaked into the caller.)"""
+    import importlib
+
+    from pipelines.body.locate import default_smpl_dir
+
+    monkeypatch.delenv("NARF_SMPL_DIR", raising=False)
+    main = importlib.import_module(f"pipelines.cli.{command}").main
+    chosen = []
+    monkeypatch.setattr("pipelines.runs.kinds.open_run", lambda run: chosen.append(default_smpl_dir()) or 1 / 0)
+    argv = {"eval": ["--split", "novel_view"], "render_video": [], "export_mesh": ["--frame", "0", "--out", "x.ply"]}
+    with pytest.raises(Exception):
+        main(["--run", str(tmp_path), "--smpl-dir", str(tmp_path), *argv.get(command, [])])
+    assert chosen == [str(tmp_path)] and default_smpl_dir() is None

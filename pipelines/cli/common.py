@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import contextvars
 import ctypes
+import functools
 import math
 import os
 import sys
@@ -56,10 +57,21 @@ def add_smpl_dir(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def own_context(main: Callable) -> Callable:
+    """Decorator of a command's ``main``: it runs in a copy of the caller's context, so the choices it makes there
+    (``--smpl-dir``: :func:`use_smpl_dir`) end with it, also when a caller runs ``main`` directly."""
+
+    @functools.wraps(main)
+    def in_own_context(*args, **kwargs):
+        return contextvars.copy_context().run(main, *args, **kwargs)
+
+    return in_own_context
+
+
 def use_smpl_dir(path: str | None) -> None:
-    """A command's ``--smpl-dir``: the default SMPL model of this command's calls (``run_cli`` runs ``main`` in a
-    context of its own, so nothing outlives it), where a run's recorded body model is also looked for (the run's
-    recorded hash decides whether it is the same file: docs/guides/fitting.md)."""
+    """A command's ``--smpl-dir``: the default SMPL model of this command's calls (its ``main`` runs in a context of
+    its own, :func:`own_context`, so nothing outlives it), where a run's recorded body model is also looked for (the
+    run's recorded hash decides whether it is the same file: docs/guides/fitting.md)."""
     from pipelines.body.locate import choose_smpl_dir
 
     if path:

@@ -7,7 +7,15 @@ import argparse
 import sys
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, add_smpl_dir, at_least, positive_number, run_cli, use_smpl_dir
+from pipelines.cli.common import (
+    HelpFormatter,
+    add_smpl_dir,
+    at_least,
+    own_context,
+    positive_number,
+    run_cli,
+    use_smpl_dir,
+)
 
 #: Every split name of every run kind (``pipelines.runs.kinds``; kept here so that ``--help`` loads no model code).
 SPLITS = (
@@ -102,6 +110,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@own_context
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from fitting.files import folder_lock

@@ -12,6 +12,7 @@ from pipelines.cli.common import (
     add_smpl_dir,
     at_least,
     attach_dash_values,
+    own_context,
     positive_number,
     run_cli,
     use_smpl_dir,
@@ -80,6 +81,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@own_context
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(attach_dash_values(argv, ("--frames",)))
     from fitting.files import folder_lock

@@ -12,6 +12,7 @@ from pipelines.cli.common import (
     add_motion_fps,
     add_smpl_dir,
     at_least,
+    own_context,
     positive_number,
     run_cli,
     use_smpl_dir,
@@ -91,6 +92,7 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+@own_context
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from fitting.files import folder_lock

@@ -7,9 +7,18 @@ import sys
 import time
 from pathlib import Path
 
-from pipelines.cli.common import HelpFormatter, add_motion_fps, add_smpl_dir, at_least, run_cli, use_smpl_dir
+from pipelines.cli.common import (
+    HelpFormatter,
+    add_motion_fps,
+    add_smpl_dir,
+    at_least,
+    own_context,
+    run_cli,
+    use_smpl_dir,
+)
 
 
+@own_context
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="narf-view",

@@ -213,14 +213,20 @@ def choose_track(tracks: list[Track], how, cameras: list[Camera], frames=None) -
 
 
 def _image_height(track: Track, cameras: list[Camera]) -> float:
-    """Median over frames and cameras of the track's projected extent (rows), as a fraction of the image height."""
+    """Median over frames and cameras of the track's projected extent (rows), as a fraction of the image height. Only
+    the points in front of a camera count (a point behind it projects through the centre, upside down); a camera
+    that sees fewer than two of a frame's points adds nothing for that frame (0 where no camera sees any)."""
     sizes = []
     for points in track.points.values():
         finite = points[np.isfinite(points).all(-1)]
         for camera in cameras:
-            rows = project_distorted(camera, finite)[:, 1]
+            depth = finite @ camera.cam_from_world[2, :3] + camera.cam_from_world[2, 3]
+            in_front = finite[depth > 0]
+            if len(in_front) < 2:
+                continue
+            rows = project_distorted(camera, in_front)[:, 1]
             sizes.append((rows.max() - rows.min()) / camera.height)
-    return float(np.median(sizes))
+    return float(np.median(sizes)) if sizes else 0.0
 
 
 def _pixel_distance(track: Track, camera: Camera, pixel: np.ndarray, frames: int = 5) -> float:
@@ -263,7 +269,13 @@ def matches(P_v: np.ndarray, detection: np.ndarray, points: np.ndarray, height: 
 
 def nearest_track(tracks: list[Track], route: dict[int, np.ndarray]) -> int:
     """The track that stays nearest ``route`` (targets by frame): the most frames within ``TRACK_RADIUS`` of it, then
-    the smallest median distance (the followed person found again after more views were detected)."""
+    the smallest median distance (the followed person found again after more views were detected).
+
+    Raises:
+        ValueError: ``tracks`` is empty.
+    """
+    if not tracks:
+        raise ValueError("no track to choose from: nobody was followed")
     keys = []
     for track in tracks:
         distances = [_distance(track.points[f], route[f]) for f in track.points if f in route]

@@ -272,6 +272,8 @@ def _look_again(folder: Path, seen, frames: list[int], tracks, detector, request
             if added:
                 looked += added
                 tracks = find_tracks(seen.cameras, seen.people, frames, request.threshold)
+                if not tracks:
+                    raise ValueError(f"{folder}: after a second look nobody is seen by two cameras at once")
                 chosen = nearest_track(tracks, route)
     return tracks, chosen, whom, crops, looked
 

@@ -4,7 +4,8 @@ joint error against the truth, measured along the way, says whether the photomet
 where the correction goes; with the field fixed the truth is the loss's minimum, so anything short of it is the
 correction's own fault.
 
-``correct_with_field_fixed(field_run, capture, truth, steps)`` returns the path of the joint error over the steps."""
+``correct_with_field_fixed(PoseCheckRequest(field_run, capture, truth, steps))`` returns the path of the joint error
+over the steps."""
 
 from __future__ import annotations
 
@@ -71,23 +72,29 @@ def field_fixed_trainer(
         yield trainer
 
 
-def correct_with_field_fixed(
-    field_run: Path,
-    capture: Path,
-    truth: Path,
-    steps: int,
-    overrides: list[str] | tuple[str, ...] = (),
-    every: int = 50,
-    frame_stride: int = 1,
-) -> PoseCheck:
-    """Correct the poses of ``capture``'s training frames for ``steps`` steps with the field of ``field_run`` (fitted
-    on ``truth``'s exact poses) held fixed (:func:`field_fixed_trainer`), measuring the joint error against ``truth``
-    every ``every`` steps."""
+@dataclass(frozen=True)
+class PoseCheckRequest:
+    """What :func:`correct_with_field_fixed` runs: the poses of ``capture``'s training frames corrected for ``steps``
+    steps with the field of ``field_run`` (fitted on ``truth``'s exact poses) held fixed, the run's config changed by
+    ``overrides``, every ``frame_stride``-th frame; the joint error measured every ``every`` steps."""
+
+    field_run: Path
+    capture: Path
+    truth: Path
+    steps: int
+    overrides: tuple[str, ...] = ()
+    every: int = 50
+    frame_stride: int = 1
+
+
+def correct_with_field_fixed(request: PoseCheckRequest) -> PoseCheck:
+    """Run ``request`` (:class:`PoseCheckRequest`) with the fit's own trainer (:func:`field_fixed_trainer`)."""
     from pipelines.runs.subject.session import open_capture
 
-    with field_fixed_trainer(field_run, capture, overrides, frame_stride) as trainer:
+    r = request
+    with field_fixed_trainer(r.field_run, r.capture, r.overrides, r.frame_stride) as trainer:
         given = open_capture(trainer.config, quiet=True)
-        reference, body = ZjuCapture(truth), BodyModel()
+        reference, body = ZjuCapture(r.truth), BodyModel()
         frames = list(trainer.frames)
 
         def error() -> float:
@@ -96,9 +103,9 @@ def correct_with_field_fixed(
 
         before = 100 * float(joint_errors(reference, given, body, frames).mean())
         check = PoseCheck(before, before, [(0, before)])
-        for step in range(1, steps + 1):
+        for step in range(1, r.steps + 1):
             trainer.train_step()
-            if step % every == 0 or step == steps:
+            if step % r.every == 0 or step == r.steps:
                 check.path.append((step, error()))
         check.after = check.path[-1][1]
     return check
