@@ -516,3 +516,26 @@ def test_a_cameras_folder_is_never_another_cameras(tmp_path):
     (tmp_path / "cam1-masks").mkdir()
     with pytest.raises(CaptureError, match="cam1-masks, cam1_json"):
         camera_folder(tmp_path, "cam1")
+
+
+def test_cameras_that_agree_are_not_flagged_and_a_poor_capture_is_a_notice():
+    """The 64-px probe's figures (docs/results/faults.md): four cameras at 1.77-1.85 % of the image height, all
+    above the 1.5 % threshold, agree with each other: none is flagged, and the report carries one notice. A camera
+    standing 1.3 times above the others is flagged; one 3 times above small others is flagged by the ratio; with no
+    other camera to compare, the absolute threshold alone. (Checked against the absolute threshold alone: every
+    camera of the probe was flagged.)"""
+    from pipelines.prepare.checks import FLAG_ERROR, flag_cameras, reprojection_notice
+
+    names = ["A", "B", "C", "D"]
+    agree = dict(zip(names, [0.0177, 0.0179, 0.0181, 0.0185]))
+    none = {n: 0.0 for n in names}
+    ious = {n: 0.9 for n in names}
+    assert flag_cameras(names, agree, ious, none) == {}
+    notice = reprojection_notice(agree)
+    assert notice is not None and "1.77-1.85 %" in notice
+    assert reprojection_notice(dict(zip(names, [0.005, 0.006, 0.007, 0.02]))) is None  # the median is 0.65 %
+    apart = {**agree, "D": 0.024}  # 1.33 x the others' median 1.79 %
+    assert list(flag_cameras(names, apart, ious, none)) == ["D"]
+    small = dict(zip(names, [0.003, 0.003, 0.003, 0.009]))  # 3 x, under 1.5 %
+    assert list(flag_cameras(names, small, ious, none)) == ["D"]
+    assert list(flag_cameras(["A"], {"A": FLAG_ERROR + 0.001}, {"A": 0.9}, {"A": 0.0})) == ["A"]

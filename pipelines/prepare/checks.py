@@ -7,9 +7,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-#: a camera is flagged when its median reprojection error exceeds this fraction of the image height ...
-FLAG_ERROR = 0.015
-#: ... or this many times the median of the other cameras
+#: a camera is flagged when its median reprojection error exceeds this fraction of the image height and stands this
+#: many times above the median of the other cameras (cameras that all agree at a poor figure are a warning about the
+#: capture, :func:`reprojection_notice`, not a fault of each) ...
+FLAG_ERROR, FLAG_ABOVE = 0.015, 1.2
+#: ... or exceeds this many times the median of the other cameras, whatever its size
 FLAG_RATIO = 2.5
 #: and when its body-vs-mask IoU is below this
 FLAG_IOU = 0.6
@@ -53,6 +55,30 @@ def draw_overlay(
     return out
 
 
+def _flag_threshold(typical: float) -> float:
+    """The reprojection error above which a camera is flagged, given the other cameras' median ``typical`` (NaN:
+    no other camera to compare with, so the absolute threshold alone)."""
+    if not np.isfinite(typical):
+        return FLAG_ERROR
+    return min(FLAG_RATIO * typical, max(FLAG_ERROR, FLAG_ABOVE * typical))
+
+
+def reprojection_notice(errors: dict[str, float]) -> str | None:
+    """A warning when the cameras' typical median reprojection error (the median over cameras) exceeds
+    ``FLAG_ERROR`` of the image height: the cameras agree with each other, so none is flagged, but the bodies fit
+    the keypoints loosely everywhere (low resolution, keypoint noise, or a calibration off in the same way in
+    every camera). None when the capture is within it."""
+    finite = {n: e for n, e in errors.items() if np.isfinite(e)}
+    if not finite or float(np.median(list(finite.values()))) <= FLAG_ERROR:
+        return None
+    low, high = min(finite.values()), max(finite.values())
+    return (
+        f"every camera's median reprojection is {100 * low:.2f}-{100 * high:.2f} % of the image height (above "
+        f"{100 * FLAG_ERROR:.1f} %): the cameras agree, so none is flagged, but the bodies fit the keypoints loosely "
+        "(low resolution, keypoint noise, or a calibration off alike in every camera)"
+    )
+
+
 def flag_cameras(
     names: list[str],
     errors: dict[str, float],
@@ -83,7 +109,7 @@ def flag_cameras(
         error = errors[name]
         if not np.isfinite(error):
             flags[name] = "the body was never reprojected into this camera (no usable view)"
-        elif error > FLAG_ERROR or (np.isfinite(typical) and error > FLAG_RATIO * typical):
+        elif error > _flag_threshold(typical):
             flags[name] = (
                 f"median reprojection {100 * error:.2f} % of the image height against {100 * typical:.2f} % for the "
                 "other cameras: check this camera's calibration and synchronisation"

@@ -21,7 +21,7 @@ from pipelines.datasets.easymocap import write_easymocap_cameras
 from pipelines.datasets.floor import feet_against_floor
 from pipelines.datasets.keypoints import TARGET_NAMES
 from pipelines.datasets.zju_mocap import SmplParams, write_annots, write_params
-from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, mask_near_body
+from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, mask_near_body, reprojection_notice
 from pipelines.prepare.multiview import projection_matrix, relative_errors
 
 OVERLAY_HEIGHT = 480  # rows of each camera's tile in overlay.mp4
@@ -189,7 +189,7 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
         "splits": {k: v for k, v in split.items() if k != "excluded"} | {"excluded_views": len(excluded)},
         "floor": floor.to_json() | feet_against_floor(vertices, floor),
         "sync": seen.sync,
-        "notices": _notices(seen, split),
+        "notices": _notices(seen, split) + [n for n in [reprojection_notice(errors)] if n],
     }
     if seen.detections:
         report["detections"] = seen.detections
