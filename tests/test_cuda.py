@@ -62,10 +62,23 @@ def test_a_step_gives_the_cpu_loss_and_gradients(tiny_capture, sets):
 
 
 @cuda
-def test_a_short_fit_on_cuda_ends_finite(tiny_capture):
-    """40 steps of the CPU preset with pose correction on CUDA: finite loss, the corrections moved, a checkpoint."""
-    trainer = _trainer(tiny_capture, "cuda", "train.steps=40", "train.pose_correction=true", "train.pose_start=0")
-    result = trainer.fit()
-    assert result.finished and torch.isfinite(torch.tensor(result.loss))
-    assert trainer.pose_correction.magnitude()["pose_turn_max_deg"] > 0
-    assert (trainer.run_dir / "checkpoint.pt").is_file()
+def test_a_short_fit_on_cuda_follows_the_cpus(tiny_capture):
+    """40 steps of the CPU preset with pose correction on CUDA and on the CPU, same seed: both end finite with a
+    checkpoint, and CUDA's loss and correction sizes are the CPU's within 25 % and 50 %. The two fits start from
+    the same weights and draws but round differently, and Adam's sign-like first steps grow those differences to
+    about 1e-2 of each weight within a few steps (fitting/trainer.py), so the runs are not equal; the size of the
+    corrections is set by the loss, not by rounding, and a wrong kernel (a sign, a transposed rotation) moves it by
+    far more. Not yet run on a GPU: the bounds are reasoned, not measured."""
+    sets = ("train.steps=40", "train.pose_correction=true", "train.pose_start=0")
+    results = {}
+    for device in ("cpu", "cuda"):
+        trainer = _trainer(tiny_capture, device, *sets)
+        result = trainer.fit()
+        assert result.finished and torch.isfinite(torch.tensor(result.loss))
+        assert (trainer.run_dir / "checkpoint.pt").is_file()
+        results[device] = (result.loss, trainer.pose_correction.magnitude())
+    (loss_cpu, size_cpu), (loss_gpu, size_gpu) = results["cpu"], results["cuda"]
+    assert size_cpu["pose_turn_mean_deg"] > 0
+    assert loss_gpu == pytest.approx(loss_cpu, rel=0.25)
+    assert size_gpu["pose_turn_mean_deg"] == pytest.approx(size_cpu["pose_turn_mean_deg"], rel=0.5)
+    assert size_gpu["pose_shift_mean_cm"] == pytest.approx(size_cpu["pose_shift_mean_cm"], rel=0.5)

@@ -124,9 +124,10 @@ def build_parser() -> argparse.ArgumentParser:
         default="report",
         metavar="report|auto|off|CAM=FRAMES,...",
         help="cameras in step: report (the default) estimates each camera's time offset from the keypoints (the "
-        "other cameras' triangulation reprojects best into it) and reports it (report.json 'sync', the summary); "
-        "auto also shifts the cameras' frames by the whole frames; off estimates nothing; CAM=FRAMES,... gives the "
-        "offsets (a camera's frame t shows the others' t + FRAMES: a camera started 3 frames late is CAM=3)",
+        "other cameras' triangulation reprojects best into it once each joint's static part, a calibration error's "
+        "mark, is taken off) and reports it with its confidence (report.json 'sync', the summary); auto also shifts "
+        "the cameras the capture's error asks to shift, by whole frames; off estimates nothing; CAM=FRAMES,... gives "
+        "the offsets (a camera's frame t shows the others' t + FRAMES: a camera started 3 frames late is CAM=3)",
     )
     _choices(parser)
     return parser
@@ -301,8 +302,11 @@ def _print_sync(sync: dict) -> None:
         return
     parts = []
     for name, entry in sync.get("cameras", {}).items():
-        estimate = f"{entry['offset_frames']:+.1f}" if "error_at_offset_pct" in entry else "not estimated"
-        parts.append(f"{name} {estimate} (shifted {entry['applied_frames']:+d})")
+        if "status" not in entry:
+            parts.append(f"{name} not estimated")
+            continue
+        shifted = f", shifted {entry['applied_frames']:+d}" if entry["applied_frames"] else ""
+        parts.append(f"{name} {entry['offset_frames']:+.1f} {entry['status']} ({entry['confidence']}{shifted})")
     print(f"  time offsets in frames ({sync.get('mode')}): " + ", ".join(parts))
 
 

@@ -1,13 +1,24 @@
 """Cameras in step (docs/guides/real-captures.md, *Cameras in step*): each camera's time offset, estimated from the
-keypoints, and the whole-frame part of it corrected by renumbering that camera's frames.
+keypoints, told apart from a calibration error, and the whole-frame part of it corrected by renumbering that
+camera's frames.
 
 Camera c's offset d (frames) says that its frame t shows the instant of the other cameras' frame t + d: a camera
-started k frames late has d = +k. For each candidate d the other cameras' keypoints of frame t + d are triangulated
-(confidence-weighted DLT, ``pipelines.prepare.multiview``), projected into camera c and compared with c's own
-keypoints of frame t; the score is the median error over every joint and frame, as a fraction of the image height.
-The best whole d is then refined below a frame on a grid of tenths, the others' points interpolated linearly in time.
-Pose2Sim's synchronisation answers the same question with the correlation of the joints' speeds; reprojection needs no
-motion in one direction and uses the calibration we already trust.
+started k frames late has d = +k. For a candidate d the other cameras' keypoints of frame t + d are triangulated
+(confidence-weighted DLT, ``pipelines.prepare.multiview``) and projected into camera c; the residual is c's own
+keypoint minus that projection, as a fraction of the image height.
+
+A time offset and a calibration error leave different marks on the residual: an error of the camera's pose or
+intrinsics moves each joint's projection by about the same amount in every frame (a static part), while an offset
+moves it along the joint's motion, by its image speed times d. So each joint's median residual over the frames (its
+static part) is taken off before the residuals are scored (the median distance over every joint and frame): a
+calibration error no longer favours any d, and the d that lowers the score is the one the motion asks for. The best
+whole d is refined on a grid of tenths, the others' points interpolated linearly in time.
+
+A camera out of step spoils the triangulation that every other camera is judged by, so whole-frame shifts are chosen
+for the capture as a whole: among each camera's best whole shifts (and their neighbours), the one that lowers the
+capture's error (the mean over cameras of the score in step) most is made, if it lowers it by ``MIN_TOTAL_GAIN`` at
+least, and the search repeats; what is left below a frame is reported. Beside it, Pose2Sim's calibration-free
+estimate (the lag that best correlates a camera's keypoint speeds with the others') is a second opinion.
 
 Each view's person is its most confident detection (summed confidence): one person in view, or the one nearest the
 cameras, dominates.
@@ -16,13 +27,13 @@ cameras, dominates.
 from __future__ import annotations
 
 import warnings
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import TARGETS, mirror_index
-from pipelines.prepare.multiview import projection_matrix, relative_errors, triangulate_robust, undistort_points
+from pipelines.prepare.multiview import project, projection_matrix, triangulate_robust, undistort_points
 
 #: frames searched each way
 MAX_OFFSET = 10
@@ -32,11 +43,20 @@ MIN_PAIRS = 30
 MIN_CONFIDENCE = 0.3
 #: a view whose keypoint reprojects further than this (fraction of the height) leaves that joint's triangulation
 TRIANGULATION_ERROR = 0.03
-#: the least share of its error that a shift must take off a camera to be made: below it, the minimum is the noise
-#: of the keypoints (a shift of every camera alike changes nothing, and small ones would wander)
+#: the least share of the capture's error that a whole-frame shift must take off to be made. On the unmodified
+#: Pose2Sim demo the best shift of any camera takes off 0.6 %, a camera cut 3 frames late 24 % and one cut by 1
+#: frame (17 ms at 60 fps) about 4 %: one frame is what that recording cannot tell from its calibration
+MIN_TOTAL_GAIN = 0.05
+#: a shift that takes off this share or more is "high" confidence
+HIGH_TOTAL_GAIN = 0.10
+#: the least share of a camera's own error that its remaining (sub-frame) offset must take off to be reported as an
+#: offset rather than "in step"
 MIN_GAIN = 0.1
+#: the correlation of keypoint speeds below which the second opinion has nothing to say
+MIN_CORRELATION = 0.3
 #: each target's left/right counterpart
 MIRRORED = [mirror_index(t) for t in range(len(TARGETS))]
+METHOD = "reprojection of the others' triangulation, each joint's static part removed"
 
 
 def _keypoints(cameras, frames, people) -> tuple[list[int], np.ndarray]:
@@ -56,24 +76,6 @@ def _keypoints(cameras, frames, people) -> tuple[list[int], np.ndarray]:
     return timeline, out
 
 
-def _score(P, heights, points: np.ndarray, target: np.ndarray, v: int) -> tuple[float, int]:
-    """Median error (fraction of camera v's height) of ``points`` (N, T, 3) projected into v against ``target``
-    (N, T, 3) with confidence, and the number of pairs scored. Each frame's detection is taken as it is or with left
-    and right swapped, whichever lies nearer: detectors swap the sides of a person seen from the back."""
-
-    def errors_of(keypoints: np.ndarray) -> np.ndarray:
-        errors = relative_errors(P[v : v + 1], points, keypoints[..., None, :2], heights[v : v + 1])[..., 0]
-        return np.where((keypoints[..., 2] > 0) & np.isfinite(errors), errors, np.nan)
-
-    plain, swapped = errors_of(target), errors_of(target[:, MIRRORED])
-    with warnings.catch_warnings():  # frames with no scored joint give an all-NaN median
-        warnings.simplefilter("ignore", RuntimeWarning)
-        use_swapped = np.nanmedian(swapped, axis=1) < np.nanmedian(plain, axis=1)
-    errors = np.where(use_swapped[:, None], swapped, plain)
-    usable = np.isfinite(errors)
-    return (float(np.median(errors[usable])) if usable.sum() >= MIN_PAIRS else np.inf), int(usable.sum())
-
-
 def _shifted(points: np.ndarray, d: float) -> np.ndarray:
     """``points`` (N, T, 3) at times n + d (linear between frames; NaN outside the timeline)."""
     n = points.shape[0]
@@ -87,38 +89,218 @@ def _shifted(points: np.ndarray, d: float) -> np.ndarray:
     return out
 
 
-def estimate_offsets(cameras, frames, people, max_offset: int = MAX_OFFSET) -> dict[str, dict]:
-    """Per camera: ``offset_frames`` (below a frame), ``error_in_step_pct`` and ``error_at_offset_pct`` (median
-    reprojection of the others' triangulation, % of the height) and ``pairs``; a camera that cannot be scored (fewer
-    than three cameras, too few joints seen) gets offset 0 and a ``note``. Offsets are in frames of the timeline read
-    (every ``stride``-th source frame)."""
-    timeline, keypoints = _keypoints(cameras, frames, people)
-    P = np.stack([projection_matrix(c) for c in cameras])
-    heights = np.array([c.height for c in cameras], np.float64)
-    result = {}
-    for v, camera in enumerate(cameras):
-        others = [o for o in range(len(cameras)) if o != v]
-        if len(others) < 2:
-            result[camera.name] = {"offset_frames": 0.0, "note": "fewer than three cameras: not estimated"}
-            continue
-        xy = keypoints[others].transpose(1, 2, 0, 3)  # (N, T, V-1, 3)
-        points, _ = triangulate_robust(P[others], xy[..., :2], xy[..., 2], heights[others], TRIANGULATION_ERROR)
-        offsets = range(-max_offset, max_offset + 1)
-        scores = {d: _score(P, heights, _shifted(points, d), keypoints[v], v) for d in offsets}
+def shifted_keypoints(keypoints: np.ndarray, v: int, shift: int) -> np.ndarray:
+    """(V, N, T, 3) keypoints with camera v's frames renumbered from n to n + ``shift`` (as :func:`shift_camera` does
+    to its files); what leaves the timeline is dropped, what enters it is unseen."""
+    out = keypoints.copy()
+    out[v] = 0
+    n = keypoints.shape[1]
+    if abs(shift) < n:
+        if shift >= 0:
+            out[v, shift:] = keypoints[v, : n - shift]
+        else:
+            out[v, : n + shift] = keypoints[v, -shift:]
+    return out
+
+
+@dataclass
+class _Rig:
+    """The cameras' projections P (V, 3, 4) and heights (V,), and the keypoints (V, N, T, 3) being judged."""
+
+    P: np.ndarray
+    heights: np.ndarray
+    keypoints: np.ndarray
+
+    def others_points(self, v: int) -> np.ndarray:
+        """(N, T, 3) the triangulation of every camera but v (NaN where fewer than two see a joint)."""
+        others = [o for o in range(len(self.P)) if o != v]
+        xy = self.keypoints[others].transpose(1, 2, 0, 3)
+        return triangulate_robust(self.P[others], xy[..., :2], xy[..., 2], self.heights[others], TRIANGULATION_ERROR)[0]
+
+    def error(self, v: int, points: np.ndarray, d: float) -> tuple[float, int]:
+        """Camera v's score against ``points`` at offset d: the median over joints and frames of the residual's
+        length with each joint's static part (its median over the frames) removed, and the pairs scored (inf below
+        ``MIN_PAIRS``). Each frame's detection is taken as it is or with left and right swapped, whichever lies
+        nearer: detectors swap the sides of a person seen from the back."""
+        residual = _residuals(self.P[v], self.heights[v], _shifted(points, d), self.keypoints[v])
+        with warnings.catch_warnings():  # a joint never seen gives an all-NaN median
+            warnings.simplefilter("ignore", RuntimeWarning)
+            length = np.linalg.norm(residual - np.nanmedian(residual, axis=0, keepdims=True), axis=-1)
+        usable = np.isfinite(length)
+        return (float(np.median(length[usable])) if usable.sum() >= MIN_PAIRS else np.inf), int(usable.sum())
+
+    def capture_error(self) -> float:
+        """The mean over cameras of each one's score in step (a camera that cannot be scored counts as inf)."""
+        return float(np.mean([self.error(v, self.others_points(v), 0.0)[0] for v in range(len(self.P))]))
+
+    def estimate(self, v: int, max_offset: int) -> dict:
+        """Camera v's best offset (whole frames, then tenths) with its scores; {} when it cannot be scored."""
+        points = self.others_points(v)
+        scores = {d: self.error(v, points, d) for d in range(-max_offset, max_offset + 1)}
+        # an offset is judged on at least half the pairs that being in step is: a shift that leaves a few frames
+        # overlapping would be scored on them alone
+        enough = scores[0][1] / 2
+        scores = {d: (e, n) if n >= enough else (np.inf, n) for d, (e, n) in scores.items()}
         best = min(scores, key=lambda d: scores[d][0])
         if not np.isfinite(scores[best][0]):
-            result[camera.name] = {"offset_frames": 0.0, "note": "too few joints seen by it and two others"}
-            continue
-        tenths = [round(best + k / 10, 1) for k in range(-9, 10)]
-        fine = {d: _score(P, heights, _shifted(points, d), keypoints[v], v)[0] for d in tenths}
+            return {}
+        fine = {round(best + k / 10, 1): self.error(v, points, best + k / 10)[0] for k in range(-9, 10)}
         offset = min(fine, key=fine.get)
-        result[camera.name] = {
-            "offset_frames": float(offset),
-            "error_in_step_pct": 100 * scores[0][0],
-            "error_at_offset_pct": 100 * fine[offset],
-            "pairs": scores[best][1],
+        in_step, at = scores[0][0], fine[offset]
+        return {"offset": offset, "in_step": in_step, "at_offset": at, "pairs": scores[best][1]}
+
+
+def _residuals(P: np.ndarray, height: float, points: np.ndarray, keypoints: np.ndarray) -> np.ndarray:
+    """(N, T, 2) keypoints minus the projection of ``points`` (N, T, 3), over ``height``; NaN where either is
+    missing; per frame with the sides swapped where that lies nearer."""
+    projected = project(P[None], points)[..., 0, :]
+
+    def of(kp: np.ndarray) -> np.ndarray:
+        residual = (kp[..., :2] - projected) / height
+        return np.where(((kp[..., 2] > 0) & np.isfinite(residual).all(-1))[..., None], residual, np.nan)
+
+    plain, swapped = of(keypoints), of(keypoints[:, MIRRORED])
+    with warnings.catch_warnings():  # frames with no scored joint give an all-NaN median
+        warnings.simplefilter("ignore", RuntimeWarning)
+        nearer = np.nanmedian(np.linalg.norm(swapped, axis=-1), 1) < np.nanmedian(np.linalg.norm(plain, axis=-1), 1)
+    return np.where(nearer[:, None, None], swapped, plain)
+
+
+def speed_lags(keypoints: np.ndarray, heights: np.ndarray, max_offset: int = MAX_OFFSET) -> list[tuple]:
+    """Pose2Sim's calibration-free estimate of every camera's offset, from keypoint speeds alone: each camera's
+    speed curve s_v(t) (the median over joints of each joint's image step between frames, over the height, smoothed
+    over 5 frames, standardised); for each pair the lag L_vw that best correlates s_v(t) with s_w(t + L), below a
+    frame by a parabola through the peak; then the offsets d that best explain d_v - d_w = L_vw (least squares), the
+    median camera's set to 0. Returns per camera (d, the mean peak correlation of its pairs); (None, 0) for every
+    camera when one has too few steps to compare."""
+    steps = np.linalg.norm(np.diff(keypoints[..., :2], axis=1), axis=-1) / heights[:, None, None]
+    seen = (keypoints[:, 1:, :, 2] > 0) & (keypoints[:, :-1, :, 2] > 0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        speeds = np.nanmedian(np.where(seen, steps, np.nan), axis=2)  # (V, N-1)
+    curves = []
+    for curve in speeds:
+        known = np.flatnonzero(np.isfinite(curve))
+        if len(known) < 2 * max_offset + 3:
+            return [(None, 0.0)] * len(speeds)
+        curve = np.convolve(np.interp(np.arange(len(curve)), known, curve[known]), np.ones(5) / 5, mode="same")
+        curves.append((curve - curve.mean()) / max(curve.std(), 1e-12))
+    n_cameras = len(curves)
+    rows, lags, peaks = [], [], np.zeros((n_cameras, n_cameras))
+    for v in range(n_cameras):
+        for w in range(v + 1, n_cameras):
+            lag, peaks[v, w] = _correlation_peak(curves[v], curves[w], max_offset)
+            row = np.zeros(n_cameras)
+            row[v], row[w] = 1.0, -1.0
+            rows.append(row)
+            lags.append(lag)
+    offsets = np.linalg.lstsq(np.array(rows), np.array(lags), rcond=None)[0]
+    offsets -= np.median(offsets)
+    peaks = peaks + peaks.T
+    return [(round(float(d), 1), round(float(peaks[v].sum() / (n_cameras - 1)), 3)) for v, d in enumerate(offsets)]
+
+
+def _correlation_peak(own: np.ndarray, other: np.ndarray, max_offset: int) -> tuple[float, float]:
+    """The lag L in [-max_offset, max_offset] that maximises the mean of own(t) other(t + L), below a frame by a
+    parabola through the peak, and the peak."""
+    n = len(own)
+    scores = {
+        lag: float(np.mean(own[max(0, -lag) : n - max(0, lag)] * other[max(0, lag) : n + min(0, lag)]))
+        for lag in range(-max_offset, max_offset + 1)
+    }
+    best = max(scores, key=scores.get)
+    fraction = 0.0
+    if -max_offset < best < max_offset:
+        before, peak, after = scores[best - 1], scores[best], scores[best + 1]
+        curvature = before - 2 * peak + after
+        fraction = 0.5 * (before - after) / curvature if curvature < 0 else 0.0
+    return best + fraction, scores[best]
+
+
+def find_offsets(cameras, frames, people, max_offset: int = MAX_OFFSET) -> dict[str, dict]:
+    """Every camera's time offset and how sure it is (module docstring), in frames of the timeline read.
+
+    Returns, per camera: ``whole_frames`` (the whole-frame shift the capture asks for), ``offset_frames`` (that plus
+    what is left below a frame), ``status`` (``in step``, ``out of step``, or ``uncertain``: its own error asks for
+    an offset that the capture's does not confirm), ``confidence`` (``high`` or ``low``), ``evidence`` (the share of
+    the capture's error its shift takes off, or of its own error its remaining offset would), ``method``,
+    ``error_in_step_pct`` / ``error_at_offset_pct`` (its score, % of the height, after the shifts) and ``pairs``,
+    and Pose2Sim's ``speed_correlation`` (lag, peak) with whether it agrees; a camera that cannot be scored (fewer
+    than three cameras, too few joints seen) gets a ``note``."""
+    _, keypoints = _keypoints(cameras, frames, people)
+    rig = _Rig(
+        np.stack([projection_matrix(c) for c in cameras]), np.array([c.height for c in cameras], float), keypoints
+    )
+    names = [c.name for c in cameras]
+    if len(cameras) < 3:
+        return {
+            n: {"offset_frames": 0.0, "whole_frames": 0, "note": "fewer than three cameras: not estimated"}
+            for n in names
         }
-    return result
+    whole, drops = {n: 0 for n in names}, {}
+    current = rig.capture_error()
+    for _ in range(len(cameras)):
+        best = _best_shift(rig, max_offset)
+        if best is None or not np.isfinite(current) or best[0] > current * (1 - MIN_TOTAL_GAIN):
+            break
+        error, v, shift = best
+        rig.keypoints = shifted_keypoints(rig.keypoints, v, shift)
+        whole[names[v]] += shift
+        drops[names[v]] = drops.get(names[v], 0.0) + 1 - error / current
+        current = error
+    speed = speed_lags(keypoints, rig.heights, max_offset)
+    return {n: _entry(rig, speed[v], v, whole[n], drops.get(n), max_offset) for v, n in enumerate(names)}
+
+
+def _best_shift(rig: _Rig, max_offset: int) -> tuple[float, int, int] | None:
+    """(capture error after, camera, shift) of the whole-frame shift that lowers the capture's error most, among
+    each camera's best whole offset and its two neighbours; None when no camera has one."""
+    candidates = []
+    for v in range(len(rig.P)):
+        estimate = rig.estimate(v, max_offset)
+        if not estimate:
+            continue
+        for shift in {int(round(estimate["offset"])) + k for k in (-1, 0, 1)} - {0}:
+            candidates.append(
+                (_Rig(rig.P, rig.heights, shifted_keypoints(rig.keypoints, v, shift)).capture_error(), v, shift)
+            )
+    return min(candidates) if candidates else None
+
+
+def _entry(rig: _Rig, speed: tuple, v: int, whole: int, drop: float | None, max_offset: int) -> dict:
+    """Camera v's record (:func:`find_offsets`) after the shifts."""
+    estimate = rig.estimate(v, max_offset)
+    if not estimate:
+        return {
+            "offset_frames": float(whole),
+            "whole_frames": whole,
+            "note": "too few joints seen by it and two others",
+        }
+    rest = estimate["offset"]
+    own = 1 - estimate["at_offset"] / estimate["in_step"] if estimate["in_step"] > 0 else 0.0
+    if whole:
+        status, evidence = "out of step", drop
+        confidence = "high" if drop >= HIGH_TOTAL_GAIN else "low"
+    elif abs(rest) >= 0.5 and own >= MIN_GAIN:  # its own error asks for an offset the capture's does not confirm
+        status, evidence, confidence = "uncertain", own, "low"
+    else:
+        status, evidence = "in step", own
+        confidence = "high" if abs(rest) < 0.5 and own < MIN_GAIN else "low"
+    lag, peak = speed
+    offset = whole + rest
+    agrees = None if lag is None or peak < MIN_CORRELATION else bool(abs(lag - offset) <= 1.0)
+    return {
+        "offset_frames": float(offset),
+        "whole_frames": whole,
+        "status": status,
+        "confidence": confidence,
+        "evidence": round(float(evidence), 3),
+        "method": METHOD,
+        "error_in_step_pct": 100 * estimate["in_step"],
+        "error_at_offset_pct": 100 * estimate["at_offset"],
+        "pairs": estimate["pairs"],
+        "speed_correlation": {"offset_frames": lag, "peak": peak, "agrees": agrees},
+    }
 
 
 #: ``--sync`` words: estimate and apply, estimate and report only, neither
@@ -162,16 +344,10 @@ def shift_camera(seen, folder, v: int, shift: int, stride: int):
 
 
 def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
-    """Estimate every camera's offset (unless ``sync`` is ``off``), apply the whole frames (``auto``: the estimates
-    rounded; a dict: the user's, by camera name; ``report``: none), and return ``seen`` renumbered with
-    ``seen.sync`` its record.
-
-    ``auto`` shifts one camera at a time, the one whose shift lowers its error most (by ``MIN_GAIN`` of it at least),
-    then estimates again: a camera that is out of step spoils the triangulation that every other camera is judged
-    by, so the others' first estimates are not to be trusted until it is put right. The record gives, per camera,
-    ``offset_frames`` (the frames shifted plus what is left, below a frame), ``applied_frames``, the median error as
-    recorded (``error_as_recorded_pct``), in step after the shifts (``error_in_step_pct``) and at the estimate
-    (``error_at_offset_pct``)."""
+    """Estimate every camera's offset (unless ``sync`` is ``off``), apply whole frames (``auto``: the shifts
+    :func:`find_offsets` asks for; a dict: the user's, by camera name, then estimated again; ``report``: none), and
+    return ``seen`` renumbered with ``seen.sync`` its record: per camera :func:`find_offsets`' entry, with
+    ``applied_frames`` (the frames shifted)."""
     names = [c.name for c in seen.cameras]
     if isinstance(sync, dict):
         unknown = sorted(set(sync) - set(names))
@@ -182,28 +358,18 @@ def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
         seen = shift_camera(seen, folder, v, applied[name], stride)
     if sync == "off":
         return replace(seen, sync={"mode": "off", "cameras": {n: {"applied_frames": 0} for n in names}})
-    first = estimates = estimate_offsets(seen.cameras, seen.frames, seen.people)
-    for _ in range(len(names) if sync == "auto" else 0):
-        gains = {
-            n: 1 - e["error_at_offset_pct"] / e["error_in_step_pct"]
-            for n, e in estimates.items()
-            if "error_at_offset_pct" in e and round(e["offset_frames"]) != 0
-        }
-        gains = {n: gain for n, gain in gains.items() if gain >= MIN_GAIN}
-        if not gains:
-            break
-        name = max(gains, key=gains.get)
-        shift = int(round(estimates[name]["offset_frames"]))
-        seen = shift_camera(seen, folder, names.index(name), shift, stride)
-        applied[name] += shift
-        estimates = estimate_offsets(seen.cameras, seen.frames, seen.people)
+    estimates = find_offsets(seen.cameras, seen.frames, seen.people)
+    if sync == "auto":
+        for v, name in enumerate(names):
+            seen = shift_camera(seen, folder, v, estimates[name]["whole_frames"], stride)
+            applied[name] += estimates[name]["whole_frames"]
     record = {}
     for name in names:
         entry = dict(estimates[name])
-        entry["offset_frames"] = applied[name] + entry.get("offset_frames", 0.0)
+        entry["offset_frames"] = (
+            applied[name] - (entry["whole_frames"] if sync == "auto" else 0) + entry["offset_frames"]
+        )
         entry["applied_frames"] = applied[name]
-        if "error_in_step_pct" in first[name]:
-            entry["error_as_recorded_pct"] = first[name]["error_in_step_pct"]
         record[name] = entry
     return replace(seen, sync={"mode": sync if isinstance(sync, str) else "given", "cameras": record})
 
@@ -219,6 +385,6 @@ def report_followed(seen, found):
     for i, frame in enumerate(found.frames):
         for v in np.flatnonzero(found.used[i]):
             people[v][frame] = [found.distorted[i, v]]
-    estimates = estimate_offsets(seen.cameras, seen.frames, people)
+    estimates = find_offsets(seen.cameras, seen.frames, people)
     record = {name: dict(estimates[name], applied_frames=0) for name in estimates}
     return replace(seen, sync={"mode": "report", "cameras": record, "person": "the person followed"})

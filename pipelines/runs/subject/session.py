@@ -182,9 +182,12 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         refine = False  # (measured on a 1-view synthetic capture: 5.5 -> 9.0 cm of joint error)
         if progress:
             print("narf: one training camera: the bodies are not refined against the masks", file=sys.stderr)
-    if refine:  # deterministic: a resumed fit redoes it and gets the same bodies
-        settings = RefineSettings(iterations=config.train.mask_body_iterations)
-        source = RefinedCapture(capture, refine_to_masks(training, capture, body_model, frames, settings, progress))
+    if refine:  # a resumed fit trains on the bodies its checkpoint holds, never on a second refinement's
+        kept = None if state is None else saved_bodies(state, capture)
+        if kept is None:
+            settings = RefineSettings(iterations=config.train.mask_body_iterations)
+            kept = refine_to_masks(training, capture, body_model, frames, settings, progress)
+        source = RefinedCapture(capture, kept)
         poses = training_poses(source, body_model, frames)
         training.poses = poses.to(device)
     _, bodies, shapes = poses_for_frames(source, body_model, box_frames(frames, config.data.box_frames))
@@ -282,6 +285,18 @@ def refined_params(state: dict, capture: ZjuCapture, path: Path) -> dict[int, Sm
     except (KeyError, RuntimeError, TypeError, ValueError) as err:
         raise CheckpointError(f"{path}: its pose correction is unreadable ({err})") from None
     return {} if correction is None else corrected_frames(correction, capture)
+
+
+def saved_bodies(state: dict, capture: ZjuCapture) -> dict[int, SmplParams] | None:
+    """The training frames' bodies a checkpoint's pose correction starts from (the capture's, refined against the
+    masks), without its corrections: what a resumed fit trains on (None: the checkpoint has no pose correction)."""
+    correction = pose_correction_from_state(state)
+    if correction is None:
+        return None
+    with torch.no_grad():
+        for parameter in correction.parameters():
+            parameter.zero_()
+    return corrected_frames(correction, capture)
 
 
 def load_run(run: Path | SavedRun, device="cpu") -> LoadedRun:
