@@ -456,8 +456,8 @@ def test_a_camera_started_late_is_put_in_step(recording, prepared, tmp_path, cap
     assert all(report["sync"]["cameras"][n]["applied_frames"] == 0 for n in names if n != names[2]), report["sync"]
     assert "time offsets in frames (auto)" in capsys.readouterr().out
     in_step = json.loads((prepared / "report.json").read_text())
-    # the default estimates and reports, and shifts nothing: the in-step recording is found in step
-    assert in_step["sync"]["mode"] == "report"
+    # the default (auto) estimates, finds the in-step recording in step, and shifts nothing
+    assert in_step["sync"]["mode"] == "auto"
     in_step_cameras = in_step["sync"]["cameras"].values()
     assert all(e["status"] == "in step" and e["applied_frames"] == 0 for e in in_step_cameras), in_step["sync"]
     assert report["frames"]["source_frames"] == in_step["frames"]["source_frames"][3:]

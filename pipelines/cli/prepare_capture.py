@@ -121,13 +121,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--sync",
         type=_sync,
-        default="report",
-        metavar="report|auto|off|CAM=FRAMES,...",
-        help="cameras in step: report (the default) estimates each camera's time offset from the keypoints (the "
+        default="auto",
+        metavar="auto|report|off|CAM=FRAMES,...",
+        help="cameras in step: auto (the default) estimates each camera's time offset from the keypoints (the "
         "other cameras' triangulation reprojects best into it once each joint's static part, a calibration error's "
-        "mark, is taken off) and reports it with its confidence (report.json 'sync', the summary); auto also shifts "
-        "the cameras the capture's error asks to shift, by whole frames; off estimates nothing; CAM=FRAMES,... gives "
-        "the offsets (a camera's frame t shows the others' t + FRAMES: a camera started 3 frames late is CAM=3)",
+        "mark, is taken off), reports it with its confidence (report.json 'sync', the summary) and shifts by whole "
+        "frames the cameras the capture's error asks to shift with high confidence (with several people in view it "
+        "only reports); report estimates and reports only; off estimates nothing; CAM=FRAMES,... gives the offsets "
+        "(a camera's frame t shows the others' t + FRAMES: a camera started 3 frames late is CAM=3)",
     )
     _choices(parser)
     return parser
@@ -307,7 +308,8 @@ def _print_sync(sync: dict) -> None:
             continue
         shifted = f", shifted {entry['applied_frames']:+d}" if entry["applied_frames"] else ""
         parts.append(f"{name} {entry['offset_frames']:+.1f} {entry['status']} ({entry['confidence']}{shifted})")
-    print(f"  time offsets in frames ({sync.get('mode')}): " + ", ".join(parts))
+    note = f"; {sync['note']}" if sync.get("note") else ""
+    print(f"  time offsets in frames ({sync.get('mode')}{note}): " + ", ".join(parts))
 
 
 def entrypoint() -> None:

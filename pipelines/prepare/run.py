@@ -61,7 +61,7 @@ class PrepareRequest:
     smpl_params: Path | None = None  # bodies the user brings (EasyMocap smpl/*.json or ZJU params/), not fitted
     person: int | None = None  # the person's id in smpl_params (None: the only one)
     follow: str | tuple = "best-seen"  # whom to follow among several people (prepare.people.parse_person)
-    sync: str | dict[str, int] = "report"  # auto, report, off, or whole-frame offsets by camera (prepare.sync)
+    sync: str | dict[str, int] = "auto"  # auto, report, off, or whole-frame offsets by camera (prepare.sync)
     progress: bool = True
 
 

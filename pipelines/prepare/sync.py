@@ -52,6 +52,9 @@ HIGH_TOTAL_GAIN = 0.10
 #: the least share of a camera's own error that its remaining (sub-frame) offset must take off to be reported as an
 #: offset rather than "in step"
 MIN_GAIN = 0.1
+#: with several people in this share of the views or more, ``auto`` reports and applies nothing before the person
+#: is followed (each view's most confident detection may be somebody else)
+CROWDED = 0.2
 #: the correlation of keypoint speeds below which the second opinion has nothing to say
 MIN_CORRELATION = 0.3
 #: each target's left/right counterpart
@@ -240,7 +243,7 @@ def find_offsets(cameras, frames, people, max_offset: int = MAX_OFFSET) -> dict[
     whole, drops = {n: 0 for n in names}, {}
     current = rig.capture_error()
     for _ in range(len(cameras)):
-        best = _best_shift(rig, max_offset)
+        best = _best_shift(rig, max_offset, whole)
         if best is None or not np.isfinite(current) or best[0] > current * (1 - MIN_TOTAL_GAIN):
             break
         error, v, shift = best
@@ -252,15 +255,17 @@ def find_offsets(cameras, frames, people, max_offset: int = MAX_OFFSET) -> dict[
     return {n: _entry(rig, speed[v], v, whole[n], drops.get(n), max_offset) for v, n in enumerate(names)}
 
 
-def _best_shift(rig: _Rig, max_offset: int) -> tuple[float, int, int] | None:
+def _best_shift(rig: _Rig, max_offset: int, whole: dict[str, int]) -> tuple[float, int, int] | None:
     """(capture error after, camera, shift) of the whole-frame shift that lowers the capture's error most, among
-    each camera's best whole offset and its two neighbours; None when no camera has one."""
+    each camera's best whole offset and its two neighbours, none taking a camera further than ``max_offset`` in all
+    (``whole``: the shifts so far, by camera in order); None when no camera has one."""
     candidates = []
-    for v in range(len(rig.P)):
+    for v, so_far in enumerate(whole.values()):
         estimate = rig.estimate(v, max_offset)
         if not estimate:
             continue
-        for shift in {int(round(estimate["offset"])) + k for k in (-1, 0, 1)} - {0}:
+        shifts = {int(round(estimate["offset"])) + k for k in (-1, 0, 1)} - {0}
+        for shift in (s for s in shifts if abs(so_far + s) <= max_offset):
             candidates.append(
                 (_Rig(rig.P, rig.heights, shifted_keypoints(rig.keypoints, v, shift)).capture_error(), v, shift)
             )
@@ -345,33 +350,52 @@ def shift_camera(seen, folder, v: int, shift: int, stride: int):
 
 def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
     """Estimate every camera's offset (unless ``sync`` is ``off``), apply whole frames (``auto``: the shifts
-    :func:`find_offsets` asks for; a dict: the user's, by camera name, then estimated again; ``report``: none), and
-    return ``seen`` renumbered with ``seen.sync`` its record: per camera :func:`find_offsets`' entry, with
-    ``applied_frames`` (the frames shifted)."""
+    :func:`find_offsets` asks for with high confidence; a dict: the user's, by camera name, then estimated again;
+    ``report``: none), and return ``seen`` renumbered with ``seen.sync`` its record: per camera
+    :func:`find_offsets`' entry, ``offset_frames`` counted from the recording, with ``applied_frames`` (the frames
+    shifted). With several people in ``CROWDED`` of the views or more, or estimates that do not explain every camera
+    (:func:`_consistent`), ``auto`` reports instead (each view's most confident detection may be somebody else;
+    :func:`report_followed` estimates again on the followed person)."""
     names = [c.name for c in seen.cameras]
     if isinstance(sync, dict):
         unknown = sorted(set(sync) - set(names))
         if unknown:
             raise CaptureError(f"--sync: {', '.join(unknown)} not among the cameras {names}")
-    applied = {n: (sync.get(n, 0) if isinstance(sync, dict) else 0) for n in names}
+    given = {n: (sync.get(n, 0) if isinstance(sync, dict) else 0) for n in names}
     for v, name in enumerate(names):
-        seen = shift_camera(seen, folder, v, applied[name], stride)
+        seen = shift_camera(seen, folder, v, given[name], stride)
     if sync == "off":
         return replace(seen, sync={"mode": "off", "cameras": {n: {"applied_frames": 0} for n in names}})
     estimates = find_offsets(seen.cameras, seen.frames, seen.people)
-    if sync == "auto":
-        for v, name in enumerate(names):
-            seen = shift_camera(seen, folder, v, estimates[name]["whole_frames"], stride)
-            applied[name] += estimates[name]["whole_frames"]
-    record = {}
-    for name in names:
+    mode, record = (sync if isinstance(sync, str) else "given"), {}
+    crowded = crowded_share(seen.people)
+    if mode == "auto" and crowded >= CROWDED:
+        mode, record["note"] = "report", f"several people in {100 * crowded:.0f} % of the views: not applied"
+    elif mode == "auto" and not _consistent(estimates):
+        mode, record["note"] = "report", "the cameras' estimates do not agree (another person in view?): not applied"
+    cameras = {}
+    for v, name in enumerate(names):
         entry = dict(estimates[name])
-        entry["offset_frames"] = (
-            applied[name] - (entry["whole_frames"] if sync == "auto" else 0) + entry["offset_frames"]
-        )
-        entry["applied_frames"] = applied[name]
-        record[name] = entry
-    return replace(seen, sync={"mode": sync if isinstance(sync, str) else "given", "cameras": record})
+        shift = entry.get("whole_frames", 0) if mode == "auto" and entry.get("confidence") == "high" else 0
+        seen = shift_camera(seen, folder, v, shift, stride)
+        entry["offset_frames"] = given[name] + entry["offset_frames"]
+        entry["applied_frames"] = given[name] + shift
+        cameras[name] = entry
+    return replace(seen, sync={"mode": mode, "cameras": cameras, **record})
+
+
+def _consistent(estimates: dict[str, dict]) -> bool:
+    """Whether the shifts explain every camera: no camera ``uncertain`` (its own error asking for an offset the
+    capture's does not confirm) and every shift of high confidence. With another person in some views the
+    estimates scatter and fail this."""
+    statuses = [(e.get("status"), e.get("confidence")) for e in estimates.values() if "status" in e]
+    return all(status != "uncertain" and (status != "out of step" or level == "high") for status, level in statuses)
+
+
+def crowded_share(people: list[dict]) -> float:
+    """The share of the views (camera, frame) with two people or more detected."""
+    counts = [len(found) for by_frame in people for found in by_frame.values()]
+    return float(np.mean([n >= 2 for n in counts])) if counts else 0.0
 
 
 def report_followed(seen, found):
@@ -387,4 +411,5 @@ def report_followed(seen, found):
             people[v][frame] = [found.distorted[i, v]]
     estimates = find_offsets(seen.cameras, seen.frames, people)
     record = {name: dict(estimates[name], applied_frames=0) for name in estimates}
-    return replace(seen, sync={"mode": "report", "cameras": record, "person": "the person followed"})
+    note = {"note": seen.sync["note"]} if "note" in seen.sync else {}
+    return replace(seen, sync={"mode": "report", "cameras": record, "person": "the person followed", **note})
