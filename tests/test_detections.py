@@ -97,6 +97,5 @@ def test_a_killed_prepare_reuses_its_detections_and_writes_the_same_capture(
     second = json.loads((out / "report.json").read_text())
     assert second["detections"]["reused"] == 40 and detectors[2].calls == 0
     assert first["frames"] == second["frames"]
-    print("SUMMARIES", first["summary"], second["summary"])
     assert first["summary"] == pytest.approx(second["summary"], rel=0.15)  # the docstring says why
     assert detections_folder(out).is_dir()
