@@ -456,8 +456,12 @@ def test_a_resumed_fit_trains_on_the_bodies_it_started_with(data_root_64, tmp_pa
     that refined again: refine_to_masks was called.)"""
     from pipelines.runs.fit import resume_run
 
-    subject, run = data_root_64 / "synthetic" / "taichi", tmp_path / "run"
-    first = _tiny_fit(subject, run, "train.steps=2", "train.mask_body_iterations=5").views.poses.world_from_part
+    subject, run = tmp_path / "taichi", tmp_path / "run"
+    shutil.copytree(data_root_64 / "synthetic" / "taichi", subject)
+    _split(subject, [0, 1, 2])  # the refinement needs two training cameras or more
+    trainer = _tiny_fit(subject, run, "train.steps=2", "train.mask_body_iterations=5")
+    first, capture = trainer.views.poses.world_from_part, trainer.fit_data.capture_poses
+    assert capture is not None  # the bodies were refined (the run keeps them)
 
     def refined_again(*args, **kwargs):
         raise AssertionError("the resumed fit refined the bodies again")
