@@ -53,7 +53,7 @@ def main(argv: list[str] | None = None) -> int:
     from fitting.run_folder import auto_device, prepare_run_dir
     from pipelines.cli.eval import main as evaluate
     from pipelines.runs.fit import start_run
-    from pipelines.synthetic.capture import SynthConfig, generate_capture, is_complete
+    from pipelines.synthetic.capture import is_complete
 
     device = auto_device(args.device)
     figures = {"device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu"}
@@ -62,16 +62,11 @@ def main(argv: list[str] | None = None) -> int:
         tests = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "tests/test_cuda.py"])
         figures.update({"cuda_tests_exit": tests.returncode, "cuda_tests_s": round(time.perf_counter() - started, 1)})
     capture = args.work / f"taichi-{args.frames}x{args.cameras}-{args.resolution}"
-    if not is_complete(capture):
-        config = SynthConfig(
-            resolution=args.resolution,
-            frames=args.frames,
-            cameras=args.cameras,
-            calib_shots=0,
-            calib_close_ups=0,
-            workers=min(8, os.cpu_count() or 1),
-        )
-        generate_capture(capture, config, progress=False)
+    if not is_complete(capture):  # in a process of its own: its render pool forks a process without threads yet
+        synth = [str(Path(sys.executable).with_name("narf-synth")), "--out", str(capture)]
+        synth += ["--resolution", str(args.resolution), "--frames", str(args.frames), "--cameras", str(args.cameras)]
+        synth += ["--calib-shots", "0", "--calib-close-ups", "0", "--workers", str(min(8, os.cpu_count() or 1))]
+        subprocess.run(synth, check=True)
     config = load_config(args.preset, [f"data.subject={capture.resolve()}", "train.validate_every=0", *args.set])
     run = prepare_run_dir(args.work / "run", True)
     if device.type == "cuda":
