@@ -242,8 +242,9 @@ def find_offsets(cameras, frames, people, max_offset: int = MAX_OFFSET) -> dict[
         }
     whole, drops = {n: 0 for n in names}, {}
     current = rig.capture_error()
+    estimates = [rig.estimate(v, max_offset) for v in range(len(cameras))]  # always those of the current shifts
     for _ in range(len(cameras)):
-        best = _best_shift(rig, max_offset, whole)
+        best = _best_shift(rig, estimates, max_offset, whole)
         if best is None or not np.isfinite(current) or best[0] > current * (1 - MIN_TOTAL_GAIN):
             break
         error, v, shift = best
@@ -251,17 +252,18 @@ def find_offsets(cameras, frames, people, max_offset: int = MAX_OFFSET) -> dict[
         whole[names[v]] += shift
         drops[names[v]] = drops.get(names[v], 0.0) + 1 - error / current
         current = error
+        estimates = [rig.estimate(u, max_offset) for u in range(len(cameras))]
     speed = speed_lags(keypoints, rig.heights, max_offset)
-    return {n: _entry(rig, speed[v], v, whole[n], drops.get(n), max_offset) for v, n in enumerate(names)}
+    return {n: _entry(estimates[v], speed[v], whole[n], drops.get(n)) for v, n in enumerate(names)}
 
 
-def _best_shift(rig: _Rig, max_offset: int, whole: dict[str, int]) -> tuple[float, int, int] | None:
+def _best_shift(rig: _Rig, estimates: list[dict], max_offset: int, whole: dict[str, int]):
     """(capture error after, camera, shift) of the whole-frame shift that lowers the capture's error most, among
-    each camera's best whole offset and its two neighbours, none taking a camera further than ``max_offset`` in all
-    (``whole``: the shifts so far, by camera in order); None when no camera has one."""
+    each camera's best whole offset (``estimates``, :meth:`_Rig.estimate`) and its two neighbours, none taking a
+    camera further than ``max_offset`` in all (``whole``: the shifts so far, by camera in order); None when no
+    camera has one."""
     candidates = []
-    for v, so_far in enumerate(whole.values()):
-        estimate = rig.estimate(v, max_offset)
+    for v, (estimate, so_far) in enumerate(zip(estimates, whole.values())):
         if not estimate:
             continue
         shifts = {int(round(estimate["offset"])) + k for k in (-1, 0, 1)} - {0}
@@ -272,9 +274,9 @@ def _best_shift(rig: _Rig, max_offset: int, whole: dict[str, int]) -> tuple[floa
     return min(candidates) if candidates else None
 
 
-def _entry(rig: _Rig, speed: tuple, v: int, whole: int, drop: float | None, max_offset: int) -> dict:
-    """Camera v's record (:func:`find_offsets`) after the shifts."""
-    estimate = rig.estimate(v, max_offset)
+def _entry(estimate: dict, speed: tuple, whole: int, drop: float | None) -> dict:
+    """A camera's record (:func:`find_offsets`) from its estimate after the shifts (:meth:`_Rig.estimate`), its
+    speed-correlation lag and peak, its whole shift and the share of the capture's error that shift took off."""
     if not estimate:
         return {
             "offset_frames": float(whole),
@@ -367,12 +369,12 @@ def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
     if sync == "off":
         return replace(seen, sync={"mode": "off", "cameras": {n: {"applied_frames": 0} for n in names}})
     estimates = find_offsets(seen.cameras, seen.frames, seen.people)
-    mode, record = (sync if isinstance(sync, str) else "given"), {}
+    mode, note = (sync if isinstance(sync, str) else "given"), {}
     crowded = crowded_share(seen.people)
     if mode == "auto" and crowded >= CROWDED:
-        mode, record["note"] = "report", f"several people in {100 * crowded:.0f} % of the views: not applied"
+        mode, note["note"] = "report", f"several people in {100 * crowded:.0f} % of the views: not applied"
     elif mode == "auto" and not _consistent(estimates):
-        mode, record["note"] = "report", "the cameras' estimates do not agree (another person in view?): not applied"
+        mode, note["note"] = "report", "the cameras' estimates do not agree (another person in view?): not applied"
     cameras = {}
     for v, name in enumerate(names):
         entry = dict(estimates[name])
@@ -381,7 +383,7 @@ def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
         entry["offset_frames"] = given[name] + entry["offset_frames"]
         entry["applied_frames"] = given[name] + shift
         cameras[name] = entry
-    return replace(seen, sync={"mode": mode, "cameras": cameras, **record})
+    return replace(seen, sync={"mode": mode, "cameras": cameras, **note})
 
 
 def _consistent(estimates: dict[str, dict]) -> bool:
