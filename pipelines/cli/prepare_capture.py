@@ -174,6 +174,14 @@ def _choices(parser: argparse.ArgumentParser) -> None:
         "(docs/guides/real-captures.md); 0: keypoints only, the calibration as given",
     )
     parser.add_argument(
+        "--fit-window",
+        type=at_least(0),
+        default=100,
+        help="frames the body fit's last stage holds at once: a longer take is fitted in overlapping windows of "
+        "this many frames, after the shape and the cameras are fitted on as many frames spread over the take, so "
+        "that memory does not grow with the take's length (0: every frame at once)",
+    )
+    parser.add_argument(
         "--keep-flagged",
         action="store_true",
         help="write the capture even when every camera is flagged, for inspection (by default it is refused)",
@@ -234,6 +242,7 @@ def main(argv: list[str] | None = None) -> int:
         fit=FitSettings(
             iterations=args.fit_iterations,
             silhouette_iterations=args.silhouette_iterations,
+            window=args.fit_window,
             refine_cameras=not args.keep_calibration,
         ),
         floor=args.floor,

@@ -17,11 +17,18 @@ A last stage (``silhouette_iterations``) adds the person masks, ``w_s (E_out + E
 ``pipelines.prepare.silhouettes`` on the posed vertices, and corrects every camera's pose
 (:class:`CameraCorrection`) against a prior of ``camera_turn`` degrees and ``camera_shift`` metres: a calibration a
 few pixels off moves every view's silhouette the same way in every frame, which no body pose can absorb.
+
+A take longer than ``window`` frames goes through that stage in pieces, so that its memory (each view's distance map
+and the autograd graph of the posed vertices) does not grow with the take: first ``window`` frames spread over the
+take fit the shape, the offsets and the cameras (no smoothness: they are not neighbours); then overlapping windows of
+``window`` consecutive frames fit their own poses with those held, each window's smoothness reaching across its seam
+to the last frame the previous window keeps (docs/guides/real-captures.md, "Body fit").
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import copy
+from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
@@ -59,6 +66,27 @@ class FitSettings:
     refine_cameras: bool = True  # the last stage also corrects each camera's pose (CameraCorrection)
     camera_turn: float = 1.0  # degrees: the camera prior's scale of turns ...
     camera_shift: float = 0.01  # ... and of shifts (metres)
+    window: int = 100  # frames the silhouette stage holds at once (0: every frame, whatever the take's length)
+    window_overlap: int = 10  # frames a window fits again of the previous one's end (at most half a window)
+
+
+def fit_steps(settings: FitSettings, n_frames: int, silhouettes: bool = True) -> int:
+    """Adam steps :func:`fit_body` takes on ``n_frames`` frames (for a progress bar)."""
+    keypoints = settings.global_iterations + settings.iterations
+    return keypoints + (settings.silhouette_iterations * len(_passes(settings, n_frames)) if silhouettes else 0)
+
+
+def _passes(settings: FitSettings, n_frames: int) -> list[tuple[np.ndarray, bool]]:
+    """The silhouette stage's passes: (frame indices, whether the shape, offsets and cameras are fitted too). One
+    pass over every frame when the take fits in a window; else the spread frames, then the windows (module
+    docstring)."""
+    size = settings.window
+    if size <= 0 or n_frames <= size:
+        return [(np.arange(n_frames), True)]
+    stride = size - min(settings.window_overlap, size // 2)
+    starts = list(range(0, n_frames - size, stride)) + [n_frames - size]
+    spread = np.unique(np.linspace(0, n_frames - 1, size).round().astype(int))
+    return [(spread, True)] + [(np.arange(a, a + size), False) for a in starts]
 
 
 @dataclass
@@ -73,6 +101,18 @@ class BodyFit:
     offsets: np.ndarray
     targets: np.ndarray
     cam_from_world: np.ndarray | None = None  # (V, 3, 4) the corrected cameras, when the fit corrected them
+
+
+def fitted_vertices(body: BodyModel, fitted: BodyFit, chunk: int = 100) -> np.ndarray:
+    """(F, N, 3) float32 posed vertices of a fit, ``chunk`` frames at a time (the skinning's (chunk, N, 4, 4)
+    transforms are the largest thing it holds)."""
+    out = []
+    for a in range(0, len(fitted.poses), chunk):
+        part = slice(a, a + chunk)
+        shapes = np.repeat(fitted.shapes[None], len(fitted.poses[part]), 0)
+        with torch.no_grad():
+            out.append(body.pose_zju(fitted.poses[part], fitted.rh[part], fitted.th[part], shapes).vertices.numpy())
+    return np.concatenate(out).astype(np.float32)
 
 
 def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -130,9 +170,17 @@ class _Problem:
         prior[list(UNOBSERVED_JOINTS)] = settings.unobserved_prior
         self.prior = prior[1:].reshape(-1)
 
+    def subset(self, frames: np.ndarray, settings: FitSettings) -> _Problem:
+        """The problem of ``frames`` only (indices), with ``settings``."""
+        part = copy.copy(self)
+        part.settings = settings
+        part.xy, part.conf = self.xy[frames], self.conf[frames]
+        part.points, part.seen = self.points[frames], self.seen[frames]
+        return part
+
     def targets(self, poses, rh, th, shapes, offsets) -> torch.Tensor:
         """(F, T, 3) world positions of the targets."""
-        rest = self.body.rest_joints(shapes.expand(poses.shape[0], -1))
+        rest = self.body.rest_joints(shapes).expand(poses.shape[0], -1, -1)
         world_from_joint = world_from_joints(
             poses.reshape(-1, N_JOINTS, 3), rest, rigid_from_rotvec_translation(rh, th)
         )
@@ -140,8 +188,9 @@ class _Problem:
         local = offsets[self.offset_source] * self.offset_sign
         return frames[..., :3, 3] + (frames[..., :3, :3] @ local[..., None])[..., 0]
 
-    def energy(self, poses, rh, th, shapes, offsets, P: torch.Tensor | None = None) -> torch.Tensor:
-        """The energy of the module docstring; ``P`` (V, 3, 4): the projections to use (corrected cameras)."""
+    def energy(self, poses, rh, th, shapes, offsets, P: torch.Tensor | None = None, before=None) -> torch.Tensor:
+        """The energy of the module docstring; ``P`` (V, 3, 4): the projections to use (corrected cameras);
+        ``before``: (poses (1, 72), rh (1, 3), th (1, 3)) of a frame before the first, held, for the smoothness."""
         s = self.settings
         targets = self.targets(poses, rh, th, shapes, offsets)
         robust = lambda r: r**2 / (r**2 + 1)  # noqa: E731
@@ -155,9 +204,12 @@ class _Problem:
         body = poses[:, 3:]
         prior = (body**2 * self.prior).sum(-1).mean()
         smooth = torch.zeros(())
-        if len(poses) > 1:  # th in metres weighs 10x: 1 cm of jitter costs as much as 0.1 rad
+        chain = (body, rh, th)
+        if before is not None:  # the held frame first
+            chain = [torch.cat([b, x]) for b, x in zip((before[0][:, 3:], before[1], before[2]), chain)]
+        if len(chain[0]) > 1:  # th in metres weighs 10x: 1 cm of jitter costs as much as 0.1 rad
             step = lambda x: ((x[1:] - x[:-1]) ** 2).sum(-1).mean()  # noqa: E731
-            smooth = step(body) + step(rh) + 10 * step(th)
+            smooth = step(chain[0]) + step(chain[1]) + 10 * step(chain[2])
         return (
             s.weight_3d * e3
             + s.weight_2d * e2
@@ -198,25 +250,63 @@ class CameraCorrection:
         return ((self.turn / a).pow(2).sum(-1) + (self.shift / b).pow(2).sum(-1)).mean()
 
 
-def _silhouette_stage(problem, posed, silhouettes, every, mask, cameras, settings, tick):
-    """The last stage of :func:`fit_body`: keypoints plus ``settings.silhouette_weight`` times the silhouette term
-    built at the keypoint fit's vertices, over ``every`` variable (poses, rh, th, shapes, offsets) and, with
-    ``cameras`` and ``settings.refine_cameras``, the cameras' poses. Returns the :class:`CameraCorrection` or None."""
+def _silhouette_pass(problem, body, silhouettes, frames, every, mask, shared, settings, tick, before=None):
+    """One pass of the last stage of :func:`fit_body` over ``frames`` (indices; ``problem`` is theirs): keypoints
+    plus ``settings.silhouette_weight`` times the silhouette term built at the keypoint fit's vertices, seen by
+    ``problem.P``. ``every``: the fit's (poses, rh, th, shapes, offsets), of which the frames' poses, rh and th are
+    fitted (from their values) and returned. With ``shared`` (a (K, cam_from_world) pair, or True without cameras)
+    the shape and offsets are fitted too, in place, and with cameras and ``settings.refine_cameras`` the cameras'
+    poses (:class:`CameraCorrection`, returned; else None). ``before``: the held frame before, for the smoothness."""
     poses, rh, th, shapes, offsets = every
+    index = torch.as_tensor(frames)
+    own = [x[index].detach().clone().requires_grad_() for x in (poses, rh, th)]
+    posed = lambda: body.pose_zju(own[0] * mask, own[1], own[2], shapes.expand(len(frames), -1)).vertices  # noqa: E731
     with torch.no_grad():
-        term = silhouettes(posed().numpy())
-    correction, variables = None, every
-    if cameras is not None and settings.refine_cameras:
-        correction = CameraCorrection(*cameras, settings)
-        variables = [*every, correction.turn, correction.shift]
+        term = silhouettes(posed().numpy(), frames)
+    correction, variables = None, own
+    if shared is not None:
+        variables = [*own, shapes, offsets]
+        if shared is not True and settings.refine_cameras:
+            correction = CameraCorrection(*shared, settings)
+            variables = [*variables, correction.turn, correction.shift]
 
     def energy():
-        P = None if correction is None else correction.projections()
-        total = problem.energy(poses * mask, rh, th, shapes, offsets, P)
+        P = problem.P if correction is None else correction.projections()
+        total = problem.energy(own[0] * mask, own[1], own[2], shapes, offsets, P, before)
         total = total + settings.silhouette_weight * term(posed(), P)
         return total if correction is None else total + correction.penalty()
 
     adam_stage(energy, variables, settings.silhouette_iterations, settings.silhouette_lr, tick)
+    return [x.detach() for x in own], correction
+
+
+def _silhouette_stage(problem, body, silhouettes, every, mask, cameras, settings, tick):
+    """The last stage of :func:`fit_body`, in the passes of :func:`_passes` (module docstring); ``every``'s
+    tensors are updated in place. Returns the :class:`CameraCorrection` or None."""
+    poses, rh, th, shapes, offsets = every
+    passes = _passes(settings, len(poses))
+    frames, _ = passes[0]
+    alone = len(passes) == 1
+    part = problem.subset(frames, settings if alone else replace(settings, smooth=0.0))
+    shared = cameras if cameras is not None else True
+    fitted, correction = _silhouette_pass(part, body, silhouettes, frames, every, mask, shared, settings, tick)
+    if alone:
+        with torch.no_grad():
+            for x, y in zip((poses, rh, th), fitted):
+                x[torch.as_tensor(frames)] = y
+        return correction
+    if correction is not None:
+        problem = copy.copy(problem)
+        problem.P = correction.projections().detach()
+    held = [poses, rh, th, shapes.detach(), offsets.detach()]
+    for frames, _ in passes[1:]:
+        a = int(frames[0])
+        before = None if a == 0 else [x[a - 1 : a] for x in (poses, rh, th)]
+        part = problem.subset(frames, settings)
+        fitted, _ = _silhouette_pass(part, body, silhouettes, frames, held, mask, None, settings, tick, before)
+        with torch.no_grad():
+            for x, y in zip((poses, rh, th), fitted):
+                x[a : a + len(frames)] = y
     return correction
 
 
@@ -239,8 +329,9 @@ def fit_body(
         keypoints: (F, V, T, 3) undistorted target pixels and confidences (0: not used).
         points: (F, T, 3) triangulated targets (NaN: missing).
         progress: optional callable(step, total) for a progress bar.
-        silhouettes: optional ``(vertices (F, N, 3) of the keypoint fit) -> term``: a last stage adds
-            ``weight * term(vertices, P)`` (``pipelines.prepare.silhouettes``) to the energy.
+        silhouettes: optional ``(vertices (n, N, 3) of the keypoint fit, frames (n,) indices) -> term`` of those
+            frames: a last stage adds ``weight * term(vertices, P)`` (``pipelines.prepare.silhouettes``) to the
+            energy, over every frame or window by window (module docstring).
         cameras: (K (V, 3, 3), cam_from_world (V, 3 or 4, 4)) of the undistorted cameras: with ``silhouettes`` and
             ``settings.refine_cameras``, the last stage also corrects the cameras' poses (:class:`CameraCorrection`).
         start: bodies the user brought (poses (F, 72) with poses[:3] zero, rh (F, 3), th (F, 3), shapes (10,)) to start
@@ -262,7 +353,7 @@ def fit_body(
     mask[:3] = 0  # poses[:3] stays 0: the global rotation is Rh
     every = [poses, rh, th, shapes, offsets]
     keypoint_energy = lambda: problem.energy(poses * mask, rh, th, shapes, offsets)  # noqa: E731
-    total = settings.global_iterations + settings.iterations + (settings.silhouette_iterations if silhouettes else 0)
+    total = fit_steps(settings, n_frames, silhouettes is not None)
     done = [0]
 
     def tick():
@@ -274,8 +365,7 @@ def fit_body(
     adam_stage(keypoint_energy, every, settings.iterations, settings.lr, tick)
     correction = None
     if silhouettes is not None:
-        posed = lambda: body.pose_zju(poses * mask, rh, th, shapes.expand(n_frames, -1)).vertices  # noqa: E731
-        correction = _silhouette_stage(problem, posed, silhouettes, every, mask, cameras, settings, tick)
+        correction = _silhouette_stage(problem, body, silhouettes, every, mask, cameras, settings, tick)
     with torch.no_grad():
         final = poses * mask
         targets = problem.targets(final, rh, th, shapes, offsets)

@@ -13,7 +13,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
-import torch
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
@@ -22,7 +21,7 @@ from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.floor import Floor, camera_up, floor_from_feet, write_floor
 from pipelines.datasets.rig_files import read_rig
-from pipelines.prepare.body_fit import FitSettings, fit_body
+from pipelines.prepare.body_fit import FitSettings, fit_body, fit_steps, fitted_vertices
 from pipelines.prepare.layout import finish_capture, write_sequence
 from pipelines.prepare.observe import observe
 from pipelines.prepare.people import choose_track
@@ -182,8 +181,8 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
     if request.smpl_params is not None:  # the user's bodies, polished by the silhouette stage only
         start = brought_bodies(request.smpl_params, found.frames, request.person)
         settings = replace(settings, global_iterations=0, iterations=0)
-    steps = settings.global_iterations + settings.iterations + settings.silhouette_iterations
     inputs = _fit_inputs(seen.cameras, found)
+    steps = fit_steps(settings, len(found.frames), bool(settings.silhouette_iterations))
     masks = None
     if request.fit.silhouette_iterations:
         masks = silhouette_stage(staging, seen.cameras, found, body.faces, inputs[0])
@@ -192,9 +191,7 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
         fitted = fit_body(body, *inputs, settings, lambda done, total: bar.update(1), masks, rig, start)
     if fitted.cam_from_world is not None:  # the capture's cameras are the corrected ones (docs/guides/real-captures.md)
         seen = corrected_cameras(seen, fitted.cam_from_world)
-    shapes = np.repeat(fitted.shapes[None], len(fitted.poses), 0)
-    with torch.no_grad():
-        vertices = body.pose_zju(fitted.poses, fitted.rh, fitted.th, shapes).vertices.numpy()
+    vertices = fitted_vertices(body, fitted)
     write_sequence(staging, seen.cameras, found, fitted, vertices)
     floor = request.floor or floor_from_feet(vertices, camera_up(seen.cameras))
     write_floor(staging, floor)

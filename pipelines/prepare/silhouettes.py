@@ -28,15 +28,16 @@ def reduced_mask(camera: Camera, raw: np.ndarray, vertices: np.ndarray, faces: n
 
 def silhouette_stage(root, cameras: list[Camera], found, faces: np.ndarray, P: np.ndarray, settings=None):
     """The ``silhouettes`` argument of ``fit_body`` for a recording being prepared in ``root``: the raw masks
-    (``root/.frames/mask_raw/<camera>/<source frame>.png``) of the views that agreed on the person."""
+    (``root/.frames/mask_raw/<camera>/<source frame>.png``) of the views that agreed on the person, read for the
+    frames asked for (indices into ``found.frames``) when the term is built."""
     settings = settings or SilhouetteSettings()
 
-    def build(vertices: np.ndarray) -> SilhouetteTerm:
+    def build(vertices: np.ndarray, frames: np.ndarray) -> SilhouetteTerm:
         masks = []
-        for i, source in enumerate(found.frames):
-            row = []
+        for i, f in enumerate(frames):
+            source, row = found.frames[f], []
             for v, camera in enumerate(cameras):
-                if not found.used[i, v]:
+                if not found.used[f, v]:
                     row.append(None)
                     continue
                 raw = cv2.imread(str(root / ".frames" / "mask_raw" / camera.name / f"{source:06d}.png"), 0) > 0

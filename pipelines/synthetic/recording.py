@@ -28,6 +28,11 @@ def true_joints(capture: ZjuCapture, body: BodyModel) -> np.ndarray:
         return body.pose_zju(*stack).world_from_joint[..., :3, 3].numpy()
 
 
+def forth_and_back(n: int, frames: int) -> list[int]:
+    """The capture frame shown in each of ``frames`` recording frames: its ``n`` frames played forth, back, forth..."""
+    return [f % n if (f // n) % 2 == 0 else n - 1 - f % n for f in range(frames)]
+
+
 def write_recording(
     capture_root: Path,
     out: Path,
@@ -46,8 +51,7 @@ def write_recording(
     capture = ZjuCapture(capture_root, ratio=1.0, mask_source="mask")
     rng = np.random.default_rng(seed)
     joints = true_joints(capture, BodyModel())
-    n = capture.n_frames
-    order = [f % n if (f // n) % 2 == 0 else n - 1 - f % n for f in range(frames or n)]
+    order = forth_and_back(capture.n_frames, frames or capture.n_frames)
     chosen = np.linspace(0, len(capture.cameras) - 1, cameras or len(capture.cameras)).round().astype(int)
     write_qualisys(out / "calibration" / "Calib.qca.txt", [capture.cameras[c] for c in chosen])
 
@@ -67,6 +71,10 @@ def write_recording(
     return out
 
 
+#: where ``--people`` puts the others: from the first person's pelvis of frame 0 (metres, world)
+PASSERS_BY = ((1.2, 0.0, 0.0), (-1.2, 0.0, 0.0))
+
+
 def main(argv: list[str] | None = None) -> None:
     """``python -m pipelines.synthetic.recording CAPTURE OUT [--cameras N] [--frames N]``: a long recording to
     measure ``narf-prepare-capture`` on (docs/results/real-capture.md, *Long takes*)."""
@@ -77,8 +85,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("out", type=Path, help="the recording to write")
     parser.add_argument("--cameras", type=int, default=None, help="that many cameras, evenly spread (default: all)")
     parser.add_argument("--frames", type=int, default=None, help="that many frames, played forth and back")
+    parser.add_argument(
+        "--people", type=int, default=1, help="that many people: the others stand 1.2 m to either side (at most 3)"
+    )
     args = parser.parse_args(argv)
     print(write_recording(args.capture, args.out, cameras=args.cameras, frames=args.frames))
+    for i, side in enumerate(PASSERS_BY[: max(0, args.people - 1)]):
+        add_passer_by(args.capture, args.out, np.array(side), np.zeros(3), frame_shift=5 + 7 * i, seed=1 + i)
 
 
 def add_passer_by(
@@ -88,18 +101,21 @@ def add_passer_by(
     again, in the pose of frame ``f + frame_shift`` (modulo the frames), moved so that its pelvis stands at the first
     person's pelvis of frame 0 + ``offset + f * step`` (metres, world) in frame ``f``. The person is added to the
     keypoint files of the cameras that see six or more of its joints (first in the file, so that file order cannot
-    decide whom the capture follows) and to those cameras' masks; the videos' pixels are left as they are. Returns
-    its (F, 24, 3) world joints."""
+    decide whom the capture follows) and to those cameras' masks; the videos' pixels are left as they are. A
+    recording longer than the capture is followed as :func:`write_recording` played it (:func:`forth_and_back`).
+    Returns its (F, 24, 3) world joints."""
     capture = ZjuCapture(capture_root, ratio=1.0, mask_source="mask")
     body, rng = BodyModel(), np.random.default_rng(seed)
     n = capture.n_frames
-    params = [capture.params((f + frame_shift) % n) for f in range(n)]
+    count = max(len(list((recording / "keypoints").glob(f"{c.name}_json/*.json"))) for c in capture.cameras)
+    order = forth_and_back(n, count)  # the recording's frames, as write_recording played them
+    params = [capture.params((order[f] + frame_shift) % n) for f in range(count)]
     stack = [np.stack([getattr(p, k) for p in params]) for k in ("poses", "rh", "th", "shapes")]
     with torch.no_grad():
         posed = body.pose_zju(*stack)
     pelvis = posed.world_from_joint[:, 0, :3, 3].numpy()
     first = true_joints(capture, body)[0, 0]
-    moved = first + np.asarray(offset) + np.arange(n)[:, None] * np.asarray(step) - pelvis  # (F, 3)
+    moved = first + np.asarray(offset) + np.arange(count)[:, None] * np.asarray(step) - pelvis  # (F, 3)
     joints = posed.world_from_joint[..., :3, 3].numpy() + moved[:, None]
     vertices = posed.vertices.numpy() + moved[:, None]
     for camera in capture.cameras:
