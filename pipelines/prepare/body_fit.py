@@ -301,7 +301,7 @@ def _silhouette_stage(problem, body, silhouettes, every, mask, cameras, settings
     held = [poses, rh, th, shapes.detach(), offsets.detach()]
     for frames, _ in passes[1:]:
         a = int(frames[0])
-        before = None if a == 0 else [x[a - 1 : a] for x in (poses, rh, th)]
+        before = None if a == 0 else [x[a - 1 : a].detach() for x in (poses, rh, th)]
         part = problem.subset(frames, settings)
         fitted, _ = _silhouette_pass(part, body, silhouettes, frames, held, mask, None, settings, tick, before)
         with torch.no_grad():

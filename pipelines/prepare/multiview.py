@@ -7,6 +7,7 @@ All pixel coordinates here are undistorted (``undistort_points``), so that a cam
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 from itertools import combinations
 
@@ -37,13 +38,14 @@ def triangulate(P: np.ndarray, xy: np.ndarray, weights: np.ndarray) -> np.ndarra
     §12.2), solved by SVD of the stacked rows.
 
     Args:
-        P: (V, 3, 4) projections. xy: (..., V, 2) pixels. weights: (..., V) >= 0 (0 = view not used).
+        P: (V, 3, 4) projections, or (..., V, 3, 4) a set of them per point. xy: (..., V, 2) pixels.
+        weights: (..., V) >= 0 (0 = view not used).
 
     Returns:
         (..., 3) points; NaN where fewer than two views have weight > 0.
     """
-    rows_x = xy[..., 0, None] * P[:, 2] - P[:, 0]  # (..., V, 4)
-    rows_y = xy[..., 1, None] * P[:, 2] - P[:, 1]
+    rows_x = xy[..., 0, None] * P[..., 2, :] - P[..., 0, :]  # (..., V, 4)
+    rows_y = xy[..., 1, None] * P[..., 2, :] - P[..., 1, :]
     A = np.concatenate([rows_x, rows_y], axis=-2) * np.concatenate([weights, weights], axis=-1)[..., None]
     scale = np.linalg.norm(A, axis=-1, keepdims=True)
     A = A / np.where(scale > 0, scale, 1)  # row equilibration: DLT is badly conditioned in raw pixels
@@ -86,6 +88,94 @@ def consensus(
     radius: float = np.inf,
 ) -> Consensus:
     """The views that see one person, found as RANSAC does over pairs of detections from two views.
+
+    Each pair is triangulated; a view agrees when one of its detections reprojects within ``threshold`` (median
+    over the shared joints, fraction of the height). With ``previous`` (the followed person's targets in the last
+    kept frame, (T, 3)) only hypotheses within ``radius`` metres of it (median over the joints) count, so that the
+    same person is followed through the sequence; among those, the most agreeing views win, then the nearest, then
+    the smaller error, then the first pair. A view whose detections all disagree (nobody, or somebody else) keeps
+    none; no hypothesis at all gives every view -1. Every pair at once (``PAIRS_AT_ONCE`` at a time);
+    :func:`consensus_reference` is the same search one pair at a time.
+
+    Args:
+        P: (V, 3, 4). people: per view, a list of (T, 3) detections (x, y, confidence). heights: (V,) pixels.
+    """
+    candidates = [(v, p) for v, found in enumerate(people) for p in range(len(found))]
+    none = Consensus([-1] * len(people), np.inf)
+    pairs = np.array(
+        [(i, j) for i, j in combinations(range(len(candidates)), 2) if candidates[i][0] != candidates[j][0]]
+    )
+    if len(pairs) == 0:
+        return none
+    detections = np.stack([people[v][p] for v, p in candidates])  # (C, T, 3)
+    view = np.array([v for v, _ in candidates])
+    seen = detections[..., 2] > 0
+    pairs = pairs[(seen[pairs[:, 0]] & seen[pairs[:, 1]]).sum(-1) >= MIN_SHARED_JOINTS]
+    scored = [_score_pairs(P, detections, view, heights, threshold, chunk, previous) for chunk in _chunks(pairs)]
+    if not scored:
+        return none
+    choice, agreeing, distance, error = (np.concatenate(x) for x in zip(*scored))
+    near = np.flatnonzero(~(distance > radius))
+    if near.size == 0:
+        return none
+    best = near[np.lexsort((error[near], distance[near], -agreeing[near]))[0]]
+    return Consensus([int(c) for c in choice[best]], float(error[best]))
+
+
+#: hypotheses scored at once by :func:`consensus` (bounds its arrays: pairs x joints x detections)
+PAIRS_AT_ONCE = 512
+
+
+def _chunks(pairs: np.ndarray) -> list[np.ndarray]:
+    return [pairs[a : a + PAIRS_AT_ONCE] for a in range(0, len(pairs), PAIRS_AT_ONCE)]
+
+
+def _score_pairs(P, detections, view, heights, threshold, pairs, previous):
+    """Each pair's hypothesis (:func:`consensus`): per view the chosen detection's index in its view (-1: none),
+    (N, V); the agreeing views (N,); the median distance to ``previous`` (N,; 0 without one, inf if unknown); the
+    mean error of the chosen detections (N,; inf if none)."""
+    n_views, n, rows = len(P), len(pairs), np.arange(len(pairs))
+    first, second = pairs[:, 0], pairs[:, 1]
+    shared = (detections[first, :, 2] > 0) & (detections[second, :, 2] > 0)
+    # the two views' rows of triangulate's DLT only: the other views' rows are zero
+    xy = np.stack([detections[first, :, :2], detections[second, :, :2]], axis=2)  # (N, T, 2, 2)
+    weights = np.stack([detections[first, :, 2], detections[second, :, 2]], axis=2) * shared[..., None]
+    pair_P = np.stack([P[view[first]], P[view[second]]], axis=1)[:, None]  # (N, 1, 2, 3, 4)
+    points = triangulate(pair_P, xy, weights)  # (N, T, 3)
+    pixels = project(P, points)[:, :, view]  # (N, T, C, 2)
+    gap = np.linalg.norm(pixels - detections[None, ..., :2].transpose(0, 2, 1, 3), axis=-1)  # (N, T, C)
+    used = (detections[..., 2] > 0).T[None] & np.isfinite(points).all(-1)[..., None]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN slices: no joint seen
+        error = np.nanmedian(np.where(used, gap, np.nan), axis=1) / heights[view]  # (N, C)
+        behind = (used & np.isnan(gap)).any(1)  # a joint behind the camera: the median is NaN, never chosen
+        error = np.where(behind | (used.sum(1) < MIN_SHARED_JOINTS // 2), np.inf, error)
+        distance = np.zeros(n) if previous is None else np.nanmedian(np.linalg.norm(points - previous, axis=-1), -1)
+    choice, best = np.full((n, n_views), -1), np.full((n, n_views), np.inf)
+    for v in range(n_views):
+        mine = np.flatnonzero(view == v)
+        if mine.size:
+            index = np.argmin(error[:, mine], axis=1)  # the first of equals, as the reference's strict <
+            lowest = error[rows, mine[index]]
+            choice[:, v] = np.where(lowest < threshold, index, -1)
+            best[:, v] = np.where(lowest < threshold, lowest, np.inf)
+    agreeing = (choice >= 0).sum(1)
+    chosen = np.where(choice >= 0, best, 0.0).sum(1)
+    mean = np.where(agreeing > 0, chosen / np.maximum(agreeing, 1), np.inf)
+    return choice, agreeing, np.nan_to_num(distance, nan=np.inf), mean
+
+
+def consensus_reference(
+    P: np.ndarray,
+    people: list[list[np.ndarray]],
+    heights: np.ndarray,
+    threshold: float,
+    previous=None,
+    radius: float = np.inf,
+) -> Consensus:
+    """:func:`consensus` one hypothesis at a time, as the docstring there says it: the slow reference of the
+    vectorised search (tests/test_prepare_people.py). The views that see one person, found as RANSAC does over
+    pairs of detections from two views.
 
     Each pair is triangulated; a view agrees when one of its detections reprojects within ``threshold`` (median
     over the shared joints, fraction of the height). With ``previous`` (the followed person's targets in the last
