@@ -147,6 +147,23 @@ def initial_global(rest_targets: np.ndarray, points: np.ndarray) -> tuple[np.nda
     return rh[nearest], th[nearest]
 
 
+def continuous_rotvecs(rotvecs: np.ndarray) -> np.ndarray:
+    """(F, 3) rotation vectors, each replaced by the equivalent ``u (theta + 2 pi k)`` nearest the previous frame's.
+
+    A rotation vector's angle is taken in [0, pi], so a body turning through a half turn jumps from ``~pi u`` to
+    ``~-pi u`` between two frames: the fit's smoothness on Rh would then pull those frames through every rotation
+    between them. Unwrapped, consecutive vectors differ by the frames' own turn, however often the body turns."""
+    out = np.array(rotvecs, np.float64, copy=True)
+    for f in range(1, len(out)):
+        angle = np.linalg.norm(out[f])
+        if angle < 1e-8:
+            continue
+        axis = out[f] / angle
+        turns = np.round((axis @ out[f - 1] - angle) / (2 * np.pi))
+        out[f] = axis * (angle + 2 * np.pi * turns)
+    return out
+
+
 class _Problem:
     def __init__(self, body: BodyModel, P, heights, keypoints, points, settings: FitSettings):
         dtype = torch.float32
@@ -342,6 +359,7 @@ def fit_body(
     with torch.no_grad():
         rest = body.rest_joints(torch.zeros(1, 10))[0, list(TARGET_JOINTS)].numpy()
     poses0, rh0, th0, shapes0 = start if start is not None else (None, *initial_global(rest, points), None)
+    rh0 = continuous_rotvecs(rh0)  # a half turn between two frames is not a jump
     poses = torch.zeros(n_frames, N_JOINTS * 3) if poses0 is None else torch.as_tensor(poses0, dtype=torch.float32)
     poses = poses.clone().requires_grad_()
     rh = torch.as_tensor(rh0, dtype=torch.float32).clone().requires_grad_()
