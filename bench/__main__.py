@@ -32,6 +32,7 @@ BENCHMARKS = {
     "levers": "bench.bench_levers",
     "poses": "bench.bench_poses",
     "gap": "bench.bench_gap",
+    "consensus": "bench.bench_consensus",
 }
 #: Benchmarks that run only when named (hours of fitting: docs/results/real-capture.md).
 ON_REQUEST = ("levers", "poses", "gap")

@@ -8,50 +8,13 @@ import pytest
 
 from pipelines.prepare import multiview
 from pipelines.prepare.multiview import consensus, consensus_reference, project
-
-N_TARGETS = 20
-HEIGHT = 480.0
-
-
-def _cameras(rng, n_views: int) -> np.ndarray:
-    """(V, 3, 4) projections of cameras on a 4 m circle looking at the origin, f = 500 px."""
-    K = np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]])
-    out = []
-    for angle in np.linspace(0, 2 * np.pi, n_views, endpoint=False) + rng.uniform(0, 0.3):
-        centre = np.array([4 * np.cos(angle), 4 * np.sin(angle), 1.0])
-        forward = -centre / np.linalg.norm(centre)
-        right = np.cross(forward, [0, 0, 1.0])
-        right /= np.linalg.norm(right)
-        down = np.cross(forward, right)
-        R = np.stack([right, down, forward])
-        out.append(K @ np.c_[R, -R @ centre])
-    return np.array(out)
-
-
-def _scene(rng, n_views: int, n_people: int):
-    P = _cameras(rng, n_views)
-    people = [rng.normal([x, rng.uniform(-1, 1), 1.0], 0.3, (N_TARGETS, 3)) for x in rng.uniform(-1.5, 1.5, n_people)]
-    views = []
-    for v in range(n_views):
-        found = []
-        for person in people:
-            if rng.random() < 0.15:  # this view missed them
-                continue
-            pixels = project(P[v : v + 1], person)[:, 0] + rng.normal(0, 1.5, (N_TARGETS, 2))
-            confidence = rng.uniform(0.3, 1.0, N_TARGETS) * (rng.random(N_TARGETS) > 0.2)
-            detection = np.c_[np.nan_to_num(pixels), confidence]
-            found += [detection, detection[rng.permutation(N_TARGETS)]]  # and a mirror of sorts
-        if rng.random() < 0.3:  # a false person: a few joints, low confidence
-            false = np.c_[rng.uniform(0, 640, (N_TARGETS, 2)), 0.2 * (rng.random(N_TARGETS) < 0.4)]
-            found.insert(int(rng.integers(0, len(found) + 1)), false)
-        views.append(found)
-    return P, views, people
+from pipelines.synthetic.crowd import HEIGHT, N_TARGETS, cameras, crowded_scene
 
 
 @pytest.mark.parametrize("seed", range(12))
 def test_every_pair_at_once_chooses_as_one_pair_at_a_time(seed, monkeypatch):
     rng = np.random.default_rng(seed)
-    P, views, people = _scene(rng, int(rng.integers(2, 7)), int(rng.integers(1, 4)))
+    P, views, people = crowded_scene(rng, int(rng.integers(2, 7)), int(rng.integers(1, 4)))
     heights = np.full(len(P), HEIGHT)
     previous = people[0] + rng.normal(0, 0.05, people[0].shape) if seed % 2 else None
     radius = 0.5 if seed % 2 else np.inf
@@ -66,7 +29,7 @@ def test_every_pair_at_once_chooses_as_one_pair_at_a_time(seed, monkeypatch):
 
 
 def test_nobody_and_one_view_give_no_hypothesis():
-    P = _cameras(np.random.default_rng(0), 3)
+    P = cameras(np.random.default_rng(0), 3)
     heights = np.full(3, HEIGHT)
     assert consensus(P, [[], [], []], heights, 0.05).person == [-1, -1, -1]
     lonely = [[np.c_[np.full((N_TARGETS, 2), 100.0), np.ones(N_TARGETS)]], [], []]
@@ -79,7 +42,7 @@ def _exact_views(P, person, views):
 
 def test_a_view_with_too_few_joints_or_joints_behind_it_does_not_agree():
     rng = np.random.default_rng(3)
-    P = _cameras(rng, 4)
+    P = cameras(rng, 4)
     heights = np.full(4, HEIGHT)
     person = rng.normal([0, 0, 1.0], 0.3, (N_TARGETS, 3))
     first, second, third = _exact_views(P, person, (1, 2, 3))
