@@ -308,9 +308,7 @@ def _silhouette_stage(problem, body, silhouettes, every, mask, cameras, settings
     shared = cameras if cameras is not None else True
     fitted, correction = _silhouette_pass(part, body, silhouettes, frames, every, mask, shared, settings, tick)
     if alone:
-        with torch.no_grad():
-            for x, y in zip((poses, rh, th), fitted):
-                x[torch.as_tensor(frames)] = y
+        _write_back((poses, rh, th), frames, fitted)
         return correction
     if correction is not None:
         problem = copy.copy(problem)
@@ -321,10 +319,15 @@ def _silhouette_stage(problem, body, silhouettes, every, mask, cameras, settings
         before = None if a == 0 else [x[a - 1 : a].detach() for x in (poses, rh, th)]
         part = problem.subset(frames, settings)
         fitted, _ = _silhouette_pass(part, body, silhouettes, frames, held, mask, None, settings, tick, before)
-        with torch.no_grad():
-            for x, y in zip((poses, rh, th), fitted):
-                x[a : a + len(frames)] = y
+        _write_back((poses, rh, th), frames, fitted)
     return correction
+
+
+def _write_back(tensors, frames: np.ndarray, fitted) -> None:
+    """``tensors[i][frames] = fitted[i]``, outside autograd."""
+    with torch.no_grad():
+        for x, y in zip(tensors, fitted):
+            x[torch.as_tensor(frames)] = y
 
 
 def fit_body(
