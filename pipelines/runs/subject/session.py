@@ -174,6 +174,12 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
     capture = open_capture(config)
     protocol = capture.protocol(config.data.protocol)
     frames, held_back = split_holdout(list(protocol.train_frames[:: config.data.frame_stride]), config.train)
+    if config.train.holdout_every and not held_back and progress:
+        print(
+            f"narf: {len(frames)} training frames are too few to hold every {config.train.holdout_every}th back "
+            f"(at least {2 * config.train.holdout_every}): every frame trains and the last step is kept",
+            file=sys.stderr,
+        )
     body_model = fit_body_model(capture, state)
     poses = training_poses(capture, body_model, frames)
     training = camera_views(capture, protocol, frames, poses, device, progress)
@@ -214,13 +220,12 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
 
 def split_holdout(frames: list[int], train) -> tuple[list[int], list[int]]:
     """The training frames that train and those held back to choose the step kept (``train.holdout_every`` n: the
-    middle frame of every n, so that each held-back frame lies between trained ones; fitting.selection)."""
+    middle frame of every n, so that each held-back frame lies between trained ones; fitting.selection). Fewer than
+    2n frames hold none back (a short capture loses no frame to it; :func:`build_fit_data` says so)."""
     n = train.holdout_every
-    if n <= 0:
+    if n <= 0 or len(frames) < 2 * n:  # too few to hold two back: every frame trains, the last step is kept
         return frames, []
     held = set(frames[n // 2 :: n])
-    if len(held) == len(frames) or not held:
-        raise ValueError(f"train.holdout_every={n}: {len(frames)} training frame(s) leave nothing to train on or hold")
     return [f for f in frames if f not in held], sorted(held)
 
 
