@@ -73,7 +73,7 @@ def null_vectors(A: np.ndarray) -> np.ndarray:
     times (each normalised) raises those ratios to the power 2^k, and its largest column is then v. Elementwise
     arithmetic and 4 x 4 products over the batch, several times faster than a LAPACK SVD per system; a vector whose
     residual says it has not converged (two nearly equal smallest eigenvalues, or M = 0) is taken from the SVD, the
-    reference (tests/test_multiview.py compares the two).
+    reference (tests/test_consensus.py compares the two).
     """
     M = np.swapaxes(A, -1, -2) @ A
     B = _adjugate4(M)
@@ -104,48 +104,24 @@ def nanmedian(x: np.ndarray, axis: int) -> np.ndarray:
 
 
 def _adjugate4(M: np.ndarray) -> np.ndarray:
-    """(..., 4, 4) adjugates (transposed cofactor matrices) of ``M`` (..., 4, 4), by 2 x 2 minors (Laplace
-    expansion over the first two rows against the last two)."""
-    m = [[M[..., i, j] for j in range(4)] for i in range(4)]
-    s0 = m[0][0] * m[1][1] - m[1][0] * m[0][1]
-    s1 = m[0][0] * m[1][2] - m[1][0] * m[0][2]
-    s2 = m[0][0] * m[1][3] - m[1][0] * m[0][3]
-    s3 = m[0][1] * m[1][2] - m[1][1] * m[0][2]
-    s4 = m[0][1] * m[1][3] - m[1][1] * m[0][3]
-    s5 = m[0][2] * m[1][3] - m[1][2] * m[0][3]
-    c5 = m[2][2] * m[3][3] - m[3][2] * m[2][3]
-    c4 = m[2][1] * m[3][3] - m[3][1] * m[2][3]
-    c3 = m[2][1] * m[3][2] - m[3][1] * m[2][2]
-    c2 = m[2][0] * m[3][3] - m[3][0] * m[2][3]
-    c1 = m[2][0] * m[3][2] - m[3][0] * m[2][2]
-    c0 = m[2][0] * m[3][1] - m[3][0] * m[2][1]
-    rows = [
-        [
-            m[1][1] * c5 - m[1][2] * c4 + m[1][3] * c3,
-            -m[0][1] * c5 + m[0][2] * c4 - m[0][3] * c3,
-            m[3][1] * s5 - m[3][2] * s4 + m[3][3] * s3,
-            -m[2][1] * s5 + m[2][2] * s4 - m[2][3] * s3,
-        ],
-        [
-            -m[1][0] * c5 + m[1][2] * c2 - m[1][3] * c1,
-            m[0][0] * c5 - m[0][2] * c2 + m[0][3] * c1,
-            -m[3][0] * s5 + m[3][2] * s2 - m[3][3] * s1,
-            m[2][0] * s5 - m[2][2] * s2 + m[2][3] * s1,
-        ],
-        [
-            m[1][0] * c4 - m[1][1] * c2 + m[1][3] * c0,
-            -m[0][0] * c4 + m[0][1] * c2 - m[0][3] * c0,
-            m[3][0] * s4 - m[3][1] * s2 + m[3][3] * s0,
-            -m[2][0] * s4 + m[2][1] * s2 - m[2][3] * s0,
-        ],
-        [
-            -m[1][0] * c3 + m[1][1] * c1 - m[1][2] * c0,
-            m[0][0] * c3 - m[0][1] * c1 + m[0][2] * c0,
-            -m[3][0] * s3 + m[3][1] * s1 - m[3][2] * s0,
-            m[2][0] * s3 - m[2][1] * s1 + m[2][2] * s0,
-        ],
-    ]
-    return np.stack([np.stack(row, axis=-1) for row in rows], axis=-2)
+    """(..., 4, 4) adjugates of ``M`` (..., 4, 4): adj(M)[j, i] = (-1)^(i+j) det(M without row i and column j), each
+    3 x 3 minor by the rule of Sarrus (elementwise over the batch)."""
+    adjugate = np.empty_like(M)
+    for i in range(4):
+        for j in range(4):
+            minor = np.delete(np.delete(M, i, axis=-2), j, axis=-1)
+            adjugate[..., j, i] = (-1) ** (i + j) * _det3(minor)
+    return adjugate
+
+
+def _det3(m: np.ndarray) -> np.ndarray:
+    """(...,) determinants of (..., 3, 3) matrices."""
+    a, b, c = m[..., 0, 0], m[..., 0, 1], m[..., 0, 2]
+    return (
+        a * (m[..., 1, 1] * m[..., 2, 2] - m[..., 1, 2] * m[..., 2, 1])
+        - b * (m[..., 1, 0] * m[..., 2, 2] - m[..., 1, 2] * m[..., 2, 0])
+        + c * (m[..., 1, 0] * m[..., 2, 1] - m[..., 1, 1] * m[..., 2, 0])
+    )
 
 
 def project(P: np.ndarray, points: np.ndarray) -> np.ndarray:

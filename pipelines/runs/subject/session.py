@@ -176,7 +176,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
     frames, held_back = split_holdout(list(protocol.train_frames[:: config.data.frame_stride]), config.train)
     if config.train.holdout_every and not held_back and progress:
         print(
-            f"narf: {len(frames)} training frames are too few to hold every {config.train.holdout_every}th back "
+            f"narf: {len(frames)} training frames are too few to hold one in {config.train.holdout_every} back "
             f"(at least {2 * config.train.holdout_every}): every frame trains and the last step is kept",
             file=sys.stderr,
         )
