@@ -451,7 +451,8 @@ def test_a_fit_with_frame_appearance_learns_codes_and_resumes(data_root_64, tmp_
 @pytest.mark.slow
 def test_a_resumed_fit_trains_on_the_bodies_it_started_with(data_root_64, tmp_path, monkeypatch):
     """The bodies refined against the masks travel in the checkpoint: a resume trains on them and never refines
-    again (the refinement is not bit-reproducible across processes, docs/results/faults.md). Equal to float32
+    again (a refinement done again could give other bodies: another thread count sums in another order,
+    docs/results/faults.md). Equal to float32
     round-off of the axis-angle -> matrix -> axis-angle trip (1e-6 rad at 1 m: 1e-5). (Checked against the resume
     that refined again: refine_to_masks was called.)"""
     from pipelines.runs.fit import resume_run

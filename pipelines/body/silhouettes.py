@@ -51,6 +51,21 @@ class SilhouetteTargets:
     reduced: torch.Tensor
 
 
+def distance_to_mask(mask: np.ndarray) -> np.ndarray:
+    """(h, w) float32 Euclidean distance (px) from each pixel to the nearest pixel of the (h, w) bool ``mask`` (0 on
+    it; inf when the mask is empty), the same bits on every call.
+
+    OpenCV's exact transform (``DIST_L2``, ``DIST_MASK_PRECISE``) returns sqrt(k) for the integer squared distance k,
+    but to within an ulp that changes with where its buffers lie in memory (measured: docs/results/faults.md), and a
+    body fit carries an ulp to percents. Squaring and rounding recovers k exactly while its error, about
+    2 d^2 2^-23, stays below 0.5, i.e. for d < 1,448 px (farther distances keep at most that rounding); the square
+    root of k in float64 is then rounded once to float32 (``scipy.ndimage.distance_transform_edt``'s figures)."""
+    if not mask.any():
+        return np.full(mask.shape, np.inf, np.float32)
+    field = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return np.sqrt(np.rint(np.square(field, dtype=np.float64))).astype(np.float32)
+
+
 def mask_outline(mask: np.ndarray, count: int) -> np.ndarray:
     """Up to ``count`` points (x, y) evenly spaced along the mask's outer contours (reduced pixels)."""
     contours, _ = cv2.findContours(mask.astype(np.uint8), cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
@@ -76,8 +91,7 @@ def silhouette_targets(cameras, masks, settings: SilhouetteSettings) -> Silhouet
             if mask is None or not mask.any():
                 continue
             rows, cols = mask.shape
-            field = cv2.distanceTransform((~mask).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE) / rows
-            distance[f, v, :rows, :cols] = torch.as_tensor(field)
+            distance[f, v, :rows, :cols] = torch.as_tensor(distance_to_mask(mask) / rows)
             points = mask_outline(mask, settings.outline_points)
             ratio = cameras[v].height / rows  # reduced pixel centres to full-size pixels
             outline[f, v, : len(points)] = torch.as_tensor((points + 0.5) * ratio - 0.5)

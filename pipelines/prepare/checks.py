@@ -7,6 +7,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from pipelines.body.silhouettes import distance_to_mask
+
 #: a camera is flagged when its median reprojection error exceeds this fraction of the image height and stands this
 #: many times above the median of the other cameras (cameras that all agree at a poor figure are a warning about the
 #: capture, :func:`reprojection_notice`, not a fault of each) ...
@@ -27,8 +29,7 @@ def mask_near_body(mask: np.ndarray, body: np.ndarray, margin_fraction: float = 
     radius = max(1.0, margin_fraction * mask.shape[0])
     if not body.any():
         return np.zeros_like(mask)
-    distance = cv2.distanceTransform((~body).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
-    return mask & (distance <= radius)
+    return mask & (distance_to_mask(body) <= radius)
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:
