@@ -11,7 +11,8 @@ import torch
 
 from fitting.config import FitConfig
 from fitting.data import FitData, RayBatch
-from fitting.trainer import Trainer, ray_loss
+from fitting.losses import ray_loss
+from fitting.trainer import Trainer
 from narf.fields.encoder import ImageEncoder
 from narf.rays import image_pixels, rays_from_pixels
 

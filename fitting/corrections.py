@@ -340,7 +340,7 @@ class RowAdam(torch.optim.Optimizer):
 
 
 def corrected_colour_error(out, batch, background, camera_colour, backgrounds, colour_count, mask_count):
-    """The colour term of ``fitting.trainer.ray_loss`` with a camera colour transform (:class:`CameraColour`) and / or
+    """The colour term of ``fitting.losses.ray_loss`` with a camera colour transform (:class:`CameraColour`) and / or
     random backgrounds (R, 3): ``out`` was rendered on black, so C = T_c(sum w c) + (1 - M) bg, against the mask's
     colour inside it and bg outside; the band's rays leave the term when the backgrounds are random.
     ``colour_count`` / ``mask_count``: the normalisers of ``ray_loss``."""

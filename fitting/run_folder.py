@@ -1,8 +1,10 @@
 """The run folder and the device: what a run folder may hold, how one is created or taken up again, where its
-config is written, and which device a device name means (docs/guides/fitting.md, "The run folder")."""
+config is written, how its log is cut back to a resumed step, and which device a device name means
+(docs/guides/fitting.md, "The run folder")."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import torch
@@ -66,3 +68,21 @@ def prepare_run_dir(out: Path, resume: bool, write: bool = True) -> Path:
 def write_config(run_dir: Path, config: FitConfig) -> None:
     """``run_dir/config.yaml``: the config as run, atomically."""
     atomic_write_text(Path(run_dir) / "config.yaml", yaml.safe_dump(config.to_dict(), sort_keys=False))
+
+
+def trim_log(path: Path, step: int) -> None:
+    """Drop the rows of a ``log.jsonl`` past ``step`` and a last row cut short, rewriting it atomically: a fit
+    resumed from its checkpoint at ``step`` logs those steps again, and each step must appear once, in order."""
+    if not path.is_file():
+        return
+    lines = path.read_text().splitlines()
+    kept = []
+    for line in lines:
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:  # a row the killed process was writing
+            continue
+        if isinstance(row, dict) and row.get("step", 0) <= step:
+            kept.append(line)
+    if len(kept) != len(lines):
+        atomic_write_text(path, "".join(f"{line}\n" for line in kept))

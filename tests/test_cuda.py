@@ -26,7 +26,7 @@ def test_a_step_gives_the_cpu_loss_and_gradients(tiny_capture, sets):
     apart (relative), the gradient 1.7 % of its norm, about evenly over the tensors; the bounds are 2e-3 and 5 %, so a
     wrong kernel (a sign, a transposed rotation), which moves them by tens of percent, fails."""
     from fitting.data import RayBatch
-    from fitting.trainer import ray_loss
+    from fitting.losses import ray_loss
 
     cpu = _trainer(tiny_capture, "cpu", *sets)
     gpu = _trainer(tiny_capture, "cuda", *sets)

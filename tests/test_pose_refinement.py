@@ -163,7 +163,7 @@ def test_the_photometric_gradient_points_to_the_true_poses(exact_field, perturbe
     1e-5 rad (docs/results/real-capture.md). So the bounds are signs, and signs are what fail: a cut path gives a
     slope of exactly 0, a reversed one a positive slope, and a field that did not learn the exact poses a truth no
     better than the start."""
-    from fitting.trainer import ray_loss
+    from fitting.losses import ray_loss
     from pipelines.runs.subject.pose_check import field_fixed_trainer
     from pipelines.synthetic.degrade import Degradation, pose_noise
 
