@@ -177,7 +177,8 @@ def test_keypoint_files_with_people_in_any_order_and_a_false_one(recording, crow
         people = read_openpose(path)
         if rng.random() < 0.5:
             false = np.zeros_like(people[0])
-            false[rng.choice(len(false), 4, replace=False)] = [*rng.uniform(0, 256, 2), 0.2]
+            points = np.column_stack([rng.uniform(0, 256, (4, 2)), np.full(4, 0.2)])
+            false[rng.choice(len(false), 4, replace=False)] = points  # four scattered points
             people.append(false)
         write_openpose(path, [people[i] for i in rng.permutation(len(people))])
     if not (root / "out" / "report.json").is_file():
