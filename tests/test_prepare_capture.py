@@ -379,7 +379,8 @@ def test_bodies_users_bring_are_taken_as_given(recording, tmp_path, capsys):
 
 def test_keypoint_files_without_masks_take_the_segmenters_mask(tmp_path):
     """--keypoints without --masks: the keypoints come from the files and the masks from the segmenter (an empty
-    mask would flag every camera), also for a frame that has no keypoint file."""
+    mask would flag every camera), also for a frame that has no keypoint file; the detector's person comes with the
+    mask as its owner (``follow_person`` checks whose mask it is)."""
     from pipelines.prepare.observe import _Keypoints
 
     write_openpose(tmp_path / "cam01_json" / "cam01.0000.json", [np.ones((25, 3))])
@@ -387,16 +388,26 @@ def test_keypoint_files_without_masks_take_the_segmenters_mask(tmp_path):
     mask[1:3, 2:4] = True
     calls = []
 
+    detected = np.zeros((33, 3))
+    detected[11] = (5.0, 2.0, 0.9)  # BlazePose's left shoulder: the l_shoulder target
+
     def segmenter(rgb):
         calls.append(rgb.shape)
-        return None, mask
+        return detected, mask
 
     found = _Keypoints(tmp_path, "cam01", lambda frame, rgb: segmenter(rgb), "body25", need_mask=True)
-    targets, got = found(0, np.zeros((4, 6, 3), np.uint8), 1.0)
+    targets, got, owner = found(0, np.zeros((4, 6, 3), np.uint8), 1.0)
     assert len(targets) == 1 and got is mask
-    assert found(1, np.zeros((4, 6, 3), np.uint8), 1.0) == ([], mask) and len(calls) == 2
+    np.testing.assert_array_equal(owner, to_targets(detected, "blazepose"))
+    again = found(1, np.zeros((4, 6, 3), np.uint8), 1.0)
+    assert again[0] == [] and again[1] is mask and again[2] is not None and len(calls) == 2
     plain = _Keypoints(tmp_path, "cam01", lambda frame, rgb: segmenter(rgb), "body25")
-    assert plain(0, np.zeros((4, 6, 3), np.uint8), 1.0)[1] is None
+    assert plain(0, np.zeros((4, 6, 3), np.uint8), 1.0)[1:] == (None, None)
+    nobody = _Keypoints(tmp_path, "cam01", lambda frame, rgb: (None, None), "body25", need_mask=True)
+    owner = nobody(0, np.zeros((4, 6, 3), np.uint8), 1.0)[2]  # nobody found: nobody's targets, all unseen
+    assert owner.shape == (len(TARGET_JOINTS), 3) and not owner.any()
+    alone = _Keypoints(tmp_path, "cam01", lambda frame, rgb: (None, mask), "body25", need_mask=True)
+    assert alone(0, np.zeros((4, 6, 3), np.uint8), 1.0)[2] is None  # a mask without a detection: whose is unknown
 
 
 def test_two_preparations_are_compared_frame_by_frame(prepared, tmp_path):

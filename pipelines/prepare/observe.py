@@ -21,6 +21,7 @@ from pipelines.datasets.keypoints import (
     LAYOUT_HINTS,
     LAYOUT_NAMES,
     LAYOUT_SIZES,
+    TARGETS,
     frame_number,
     layout_of_25,
     read_openpose,
@@ -51,6 +52,9 @@ class Observations:
         detections: views detected and reused from the detection cache (``pipelines.prepare.detections``); empty
             when no detector ran.
         person: whom the capture follows and how many people were seen (``pipelines.prepare.run.follow_person``).
+        mask_owners: with keypoints from files and masks from the segmenter, per camera and source frame, the
+            detector's person (targets) whose mask the view holds, all unseen (confidence 0) where it found nobody
+            and gave no mask, no entry where a mask came without a detection; else empty.
     """
 
     cameras: list[Camera]
@@ -64,6 +68,7 @@ class Observations:
     sync: dict = field(default_factory=dict)
     detections: dict = field(default_factory=dict)
     person: dict = field(default_factory=dict)
+    mask_owners: list[dict[int, np.ndarray]] = field(default_factory=list)
 
 
 def fit_camera_to_recording(camera: Camera, size: tuple[int, int], source: Source) -> tuple[Camera, str | None]:
@@ -120,14 +125,20 @@ class _Keypoints:
         if folder is not None:
             self.files = keypoint_files(folder, camera)
 
-    def __call__(self, frame: int, rgb: np.ndarray, scale: float) -> tuple[list[np.ndarray], np.ndarray | None]:
+    def __call__(self, frame: int, rgb: np.ndarray, scale: float):
+        """(the view's people (targets), its mask or None, the detector's person whose mask it is (targets) when
+        the keypoints come from files and the mask from the segmenter, else None)."""
         if self.files is None:
             keypoints, mask = self.detect(frame, rgb)
-            return ([] if keypoints is None else [to_targets(keypoints, "blazepose")]), mask
-        mask = self.detect(frame, rgb)[1] if self.need_mask else None  # keypoints from files, masks from the segmenter
+            return ([] if keypoints is None else [to_targets(keypoints, "blazepose")]), mask, None
+        owner, mask = self.detect(frame, rgb) if self.need_mask else (None, None)  # the segmenter's mask, and whose
+        if owner is not None:
+            owner = to_targets(owner, "blazepose")
+        elif mask is None and self.need_mask:  # the detector found nobody: no mask, and nobody's targets
+            owner = np.zeros((len(TARGETS), 3))
         path = self.files.get(frame)
         if path is None:
-            return [], mask
+            return [], mask, owner
         people = read_openpose(path)
         if people and len(people[0]) != LAYOUT_SIZES[self.layout]:
             raise CaptureError(
@@ -137,7 +148,7 @@ class _Keypoints:
         targets = [to_targets(p, self.layout) for p in people]
         for t in targets:
             t[:, :2] *= scale
-        return targets, mask
+        return targets, mask, owner
 
 
 def keypoint_files(folder: Path, camera: str) -> dict[int, Path]:
@@ -204,7 +215,7 @@ def observe(
 ) -> Observations:
     """Read every camera, write ``<camera>/<frame:06d>.jpg`` and ``mask_raw/<camera>/<frame:06d>.png`` under
     ``out`` (named by source frame index; renumbered later), and collect people (module docstring)."""
-    cameras, frames, people, notes = [], [], [], {}
+    cameras, frames, people, owners, notes = [], [], [], [], {}
     layout = "blazepose" if keypoints is None else file_layout(keypoints, [s.name for _, s in pairs], keypoint_layout)
     for camera, source in pairs:
         size = recording_size(source)
@@ -220,12 +231,14 @@ def observe(
         mask_files = _numbered_files(camera_folder(masks, source.name), IMAGE_SUFFIXES) if masks else None
         (out / camera.name).mkdir(parents=True, exist_ok=True)
         (out / "mask_raw" / camera.name).mkdir(parents=True, exist_ok=True)
-        seen, by_frame = [], {}
+        seen, by_frame, owned = [], {}, {}
         for index, bgr in read_frames(source, wanted):
             if scale < 1:
                 bgr = cv2.resize(bgr, (camera.width, camera.height), interpolation=cv2.INTER_AREA)
             rgb = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-            by_frame[index], mask = found(index, rgb, scale)
+            by_frame[index], mask, owner = found(index, rgb, scale)
+            if owner is not None:
+                owned[index] = owner
             if mask_files is not None:
                 mask = _given_mask(mask_files, index, camera, size)
             if mask is None:
@@ -237,7 +250,9 @@ def observe(
         cameras.append(camera)
         frames.append(seen)
         people.append(by_frame)
-    return Observations(cameras, frames, people, notes)
+        owners.append(owned)
+    from_segmenter = keypoints is not None and masks is None
+    return Observations(cameras, frames, people, notes, mask_owners=owners if from_segmenter else [])
 
 
 def _view_detector(detector, source: Source):

@@ -173,7 +173,7 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
     common = sorted(set.intersection(*(set(f) for f in seen.frames)))
     if not common:
         raise CaptureError(f"{request.recording}: the cameras share no frame in {wanted.start}:{request.stop or ''}")
-    found = follow_person(staging / ".frames", seen, common, detector if request.keypoints is None else None, request)
+    found = follow_person(staging / ".frames", seen, common, detector, request)
     seen = report_followed(seen, found)
     if detector is not None:  # the cache stays for the next run with this --out (docs/guides/real-captures.md)
         seen.detections = {"reused": detector.reused, "detected": detector.detected, "cache": str(detector.folder)}
@@ -205,11 +205,12 @@ CHOICE_STRIDE = 10
 
 def follow_person(folder: Path, seen, frames: list[int], detector, request: PrepareRequest):
     """The person ``request.follow`` picks, triangulated in ``frames`` (``pipelines.prepare.people``). With a
-    ``detector`` (keypoints from the detector), views that missed a person are detected again around them
-    (:func:`_look_again`). Every used view's mask is the person's (their crop's, or the whole image's when its
-    detection is theirs; a view with only somebody else's is no longer used), cut to them. ``seen.people`` gains the
-    crops' detections and ``seen.person`` says whom."""
-    from pipelines.prepare.crops import crop_masks, cut_masks
+    ``detector`` and keypoints from it, views that missed a person are detected again around them
+    (:func:`_look_again`); with keypoints from files and masks from the detector's segmenter, views whose mask came
+    with somebody else's detection are (``redetect_masks``). Every used view's mask is the person's (their crop's, or
+    the whole image's when its detection is theirs; a view with only somebody else's is no longer used), cut to them.
+    ``seen.people`` gains the crops' detections (keypoints from the detector) and ``seen.person`` says whom."""
+    from pipelines.prepare.crops import crop_masks, cut_masks, redetect_masks
     from pipelines.prepare.people import guide
 
     tracks = find_tracks(seen.cameras, seen.people, frames, request.threshold)
@@ -218,16 +219,23 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
             f"{request.recording}: no person is seen by two agreeing views in any of the {len(frames)} frames read"
         )
     detector = detector if len(seen.cameras) > 2 else None  # two views: a crop can add no third opinion
+    files = request.keypoints is not None
     # the detector's one person per view, whose mask the view holds until a crop of the followed person replaces it
-    whole = {(v, f): found[0] for v, by_frame in enumerate(seen.people) for f, found in by_frame.items() if found}
-    tracks, chosen, whom, crops, looked = _look_again(folder, seen, frames, tracks, detector, request)
-    route = guide(tracks[chosen], frames)
-    found = triangulate_people(
-        seen.cameras, seen.people, frames, request.threshold, route, _others(tracks, chosen, frames)
+    held = (
+        [{f: [o] for f, o in owners.items() if o[:, 2].any()} for owners in seen.mask_owners] if files else seen.people
     )
+    whole = {(v, f): found[0] for v, by_frame in enumerate(held) for f, found in by_frame.items() if found}
+    tracks, chosen, whom, crops, looked = _look_again(
+        folder, seen, frames, tracks, None if files else detector, request
+    )
+    route, others = guide(tracks[chosen], frames), _others(tracks, chosen, frames)
+    found = triangulate_people(seen.cameras, seen.people, frames, request.threshold, route, others)
     if not found.frames:
         raise CaptureError(f"{request.recording}: the person followed is never seen by two agreeing views")
-    without_mask = crop_masks(folder, seen, found, crops, whole if detector else {}, detector, request.threshold)
+    if files and detector is not None and seen.mask_owners:
+        looked = redetect_masks(folder, seen, found, crops, detector, request.threshold, others)
+    masks_checked = detector is not None and (not files or bool(seen.mask_owners))
+    without_mask = crop_masks(folder, seen, found, crops, whole if masks_checked else {}, detector, request.threshold)
     cut_masks(folder, seen.cameras, found)
     seen.person = {
         "choice": request.follow if isinstance(request.follow, str) else ":".join(map(str, request.follow)),

@@ -347,7 +347,10 @@ def shift_camera(seen, folder, v: int, shift: int, stride: int):
     people = list(seen.people)
     frames[v] = [f + step for f in seen.frames[v]]
     people[v] = {f + step: found for f, found in seen.people[v].items()}
-    return replace(seen, frames=frames, people=people)
+    owners = list(seen.mask_owners)
+    if owners:
+        owners[v] = {f + step: owner for f, owner in seen.mask_owners[v].items()}
+    return replace(seen, frames=frames, people=people, mask_owners=owners)
 
 
 def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
