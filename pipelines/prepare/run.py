@@ -221,10 +221,10 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
     detector = detector if len(seen.cameras) > 2 else None  # two views: a crop can add no third opinion
     files = request.keypoints is not None
     # the detector's one person per view, whose mask the view holds until a crop of the followed person replaces it
-    held = (
-        [{f: [o] for f, o in owners.items() if o[:, 2].any()} for owners in seen.mask_owners] if files else seen.people
-    )
-    whole = {(v, f): found[0] for v, by_frame in enumerate(held) for f, found in by_frame.items() if found}
+    if files:
+        whole = {(v, f): o for v, by_frame in enumerate(seen.mask_owners) for f, o in by_frame.items() if o[:, 2].any()}
+    else:
+        whole = {(v, f): found[0] for v, by_frame in enumerate(seen.people) for f, found in by_frame.items() if found}
     tracks, chosen, whom, crops, looked = _look_again(
         folder, seen, frames, tracks, None if files else detector, request
     )
@@ -232,10 +232,9 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
     found = triangulate_people(seen.cameras, seen.people, frames, request.threshold, route, others)
     if not found.frames:
         raise CaptureError(f"{request.recording}: the person followed is never seen by two agreeing views")
-    if files and detector is not None and seen.mask_owners:
+    if files and detector is not None:  # a detector with keypoint files: the masks are the segmenter's
         looked = redetect_masks(folder, seen, found, crops, detector, request.threshold, others)
-    masks_checked = detector is not None and (not files or bool(seen.mask_owners))
-    without_mask = crop_masks(folder, seen, found, crops, whole if masks_checked else {}, detector, request.threshold)
+    without_mask = crop_masks(folder, seen, found, crops, whole if detector else {}, detector, request.threshold)
     cut_masks(folder, seen.cameras, found)
     seen.person = {
         "choice": request.follow if isinstance(request.follow, str) else ":".join(map(str, request.follow)),
