@@ -51,7 +51,7 @@ def test_the_capture_follows_the_person_seen_best(recording, crowded):
     # as the one-person capture (tests/test_prepare_capture.py): 1 px of noise is about 1 cm at these cameras
     error_cm = _error_cm(root / "out", true_joints(truth, BodyModel()))
     assert np.median(error_cm) < 2.0 and error_cm.max() < 6.0, error_cm
-    out, apart_views = ZjuCapture(root / "out", mask_source="mask"), 0
+    out, apart_views, near, near_kept = ZjuCapture(root / "out", mask_source="mask"), 0, 0, 0
     for f in range(out.n_frames):
         for camera in out.cameras:
             given = cv2.imread(str(root / "rec" / "masks" / camera.name / f"{f:06d}.png"), 0) > 0
@@ -59,13 +59,22 @@ def test_the_capture_follows_the_person_seen_best(recording, crowded):
             true = cv2.imread(str(recording / "truth" / "mask" / camera.name / f"{f:06d}.png"), 0) > 0
             # where the passer-by stands apart from the first person in the image (farther than the neighbourhood
             # the capture's masks keep around the fitted body, checks.mask_near_body: 4 % of the height, plus 2 px
-            # of the fit's error), none of them is kept; where the two overlap, no mask can tell them apart
+            # of the fit's error), none of them is kept
             distance = cv2.distanceTransform((~true).astype(np.uint8), cv2.DIST_L2, 5)
             passer = given & ~true
             if passer.any() and distance[passer].min() > 0.04 * camera.height + 2:
                 apart_views += 1
                 assert not (kept & passer).any(), (f, camera.name)
+            close = passer & (distance <= 0.04 * camera.height + 2)
+            near, near_kept = near + close.sum(), near_kept + (kept & close).sum()
     assert apart_views >= 5  # 7 of the 40 views, by the passer-by's path (OFFSET, STEP)
+    # near the person, the passer-by's pixels leave the masks but where the fitted body covers them (it may be either
+    # person there) or where the capsules drawn for the passer-by miss their silhouette (pipelines.prepare.occlusion):
+    # 11 % of them stay (93 % with the cut removed, which this bound, between the two, tells apart)
+    assert near_kept < 0.25 * near, (near_kept, near)
+    # views where the passer-by covers over a quarter of the person (4 of 40 measured; a share near the threshold may
+    # tip either way with the triangulation's rounding on another CPU): some, not most
+    assert 1 <= report["person"]["views_overlapped_by_others"] <= 10
 
 
 @pytest.mark.parametrize("how", ["near", "pixel"])
@@ -236,6 +245,10 @@ def test_keypoint_files_with_the_segmenters_mask_of_somebody_else(recording, cro
     argv = [str(root / "rec"), "--out", str(tmp_path / "out"), "--keypoints", str(root / "rec" / "keypoints")]
     assert run_cli("narf-prepare-capture", prepare_capture.main, [*argv, "--quiet"]) == 0
     report = json.loads((tmp_path / "out" / "report.json").read_text())
-    assert report["person"]["views_detected_again"] == 5 and report["person"]["views_without_their_mask"] == 5
-    assert not report["flagged_cameras"] and report["cameras"]["Camera_B1"]["views_used"] == 5
+    # each of the five is left out: for its mask, or before its mask is looked at where the passer-by overlaps the
+    # person in the image (pipelines.prepare.occlusion), which leaves out views of the camera's other five too
+    without, overlapped = report["person"]["views_without_their_mask"], report["cameras"]["Camera_B1"]
+    overlapped = overlapped["views_overlapped_by_others"]
+    assert report["person"]["views_detected_again"] == 5 and without <= 5 <= without + overlapped
+    assert not report["flagged_cameras"] and report["cameras"]["Camera_B1"]["views_used"] == 10 - without - overlapped
     assert report["cameras"]["Camera_B1"]["iou_min"] > 0.9

@@ -23,6 +23,7 @@ from pipelines.datasets.keypoints import TARGET_NAMES
 from pipelines.datasets.zju_mocap import SmplParams, write_annots, write_params
 from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, mask_near_body, reprojection_notice
 from pipelines.prepare.multiview import projection_matrix, relative_errors
+from pipelines.prepare.occlusion import without_others
 
 OVERLAY_HEIGHT = 480  # rows of each camera's tile in overlay.mp4
 
@@ -59,9 +60,9 @@ def splits(n_frames: int, names: list[str], holdout: str | None, novel_fraction:
 
 
 def _check_pass(root: Path, seen, found, fitted, vertices, faces, ious: dict, progress=None):
-    """Final masks (the raw ones limited to the body's neighbourhood), overlays and IoU per (frame, view), a frame at
-    a time: fills ``ious`` (camera -> list) and yields each frame of overlay.mp4 (RGB), so that nothing is held for
-    the whole recording."""
+    """Final masks (the raw ones limited to the body's neighbourhood, less the other people outside the body),
+    overlays and IoU per (frame, view), a frame at a time: fills ``ious`` (camera -> list) and yields each frame of
+    overlay.mp4 (RGB), so that nothing is held for the whole recording."""
     cameras = seen.cameras
     for cam in cameras:
         ious.setdefault(cam.name, [])
@@ -72,7 +73,7 @@ def _check_pass(root: Path, seen, found, fitted, vertices, faces, ious: dict, pr
         for v, cam in enumerate(cameras):
             raw = cv2.imread(str(root / ".frames" / "mask_raw" / cam.name / f"{source:06d}.png"), cv2.IMREAD_GRAYSCALE)
             body = silhouette(cam, vertices[i], faces)
-            mask = mask_near_body(raw > 0, body)
+            mask = without_others(mask_near_body(raw > 0, body), body, cam, found.others.get(source, []))
             for folder in ("mask", "mask_cihp"):
                 write_image(root / folder / cam.name / f"{i:06d}.png", mask.astype(np.uint8))
             if found.used[i, v]:
@@ -121,6 +122,7 @@ def _camera_report(seen, found, triangulated, body, ious) -> dict:
             "views_without_person": found.view_notes[v]["no_person"],
             "views_showing_others": found.view_notes[v]["other_person"],
             "views_disagreeing": found.view_notes[v]["disagreed"],
+            "views_overlapped_by_others": found.view_notes[v]["overlapped"],
             "triangulation_reprojection_px": _median(triangulated[..., v]) * height,
             "body_reprojection_px": _median(body[..., v]) * height,
             "body_reprojection_pct_height": 100 * _median(body[..., v]),

@@ -3,7 +3,7 @@ Frames where fewer than two views agree on a person, or the torso cannot be plac
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -32,7 +32,9 @@ class Triangulated:
             disagreed the detection nearest to the triangulated one (the report measures every camera on it).
         dropped: source frame -> reason.
         view_notes: per view, counts of views with nobody seen, views showing somebody else (another person the
-            views agree on) and views that disagreed.
+            views agree on), views that disagreed, and views left out since other people overlapped the person
+            (``pipelines.prepare.occlusion``; counted by the caller).
+        others: source frame -> the other people's (T, 3) targets in it (``triangulate_people``'s ``others``).
     """
 
     frames: list[int]
@@ -43,6 +45,7 @@ class Triangulated:
     detected: np.ndarray
     dropped: dict[int, str]
     view_notes: list[dict[str, int]]
+    others: dict[int, list[np.ndarray]] = field(default_factory=dict)
 
 
 def _undistorted_people(cameras: list[Camera], people: list[list[np.ndarray]]) -> list[list[np.ndarray]]:
@@ -110,7 +113,7 @@ def triangulate_people(
     heights = np.array([c.height for c in cameras], np.float64)
     n_views, n_targets = len(cameras), len(TARGETS)
     kept, points, keypoints, used, distorted, detected, dropped = [], [], [], [], [], [], {}
-    notes = [{"no_person": 0, "other_person": 0, "disagreed": 0} for _ in cameras]
+    notes = [{"no_person": 0, "other_person": 0, "disagreed": 0, "overlapped": 0} for _ in cameras]
     previous, previous_frame = None, 0
     for frame in frames:
         raw = [_with_mirrored(people[v].get(frame, [])) for v in range(n_views)]
@@ -159,6 +162,7 @@ def triangulate_people(
         np.array(detected).reshape(shape),
         dropped,
         notes,
+        {f: (others or {})[f] for f in kept if (others or {}).get(f)},
     )
 
 

@@ -207,10 +207,12 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
     """The person ``request.follow`` picks, triangulated in ``frames`` (``pipelines.prepare.people``). With a
     ``detector`` and keypoints from it, views that missed a person are detected again around them
     (:func:`_look_again`); with keypoints from files and masks from the detector's segmenter, views whose mask came
-    with somebody else's detection are (``redetect_masks``). Every used view's mask is the person's (their crop's, or
+    with somebody else's detection are (``redetect_masks``). Views where other people overlap the person are left
+    out (``pipelines.prepare.occlusion``). Every used view's mask is the person's (their crop's, or
     the whole image's when its detection is theirs; a view with only somebody else's is no longer used), cut to them.
     ``seen.people`` gains the crops' detections (keypoints from the detector) and ``seen.person`` says whom."""
     from pipelines.prepare.crops import crop_masks, cut_masks, redetect_masks
+    from pipelines.prepare.occlusion import leave_out_overlapped
     from pipelines.prepare.people import guide
 
     tracks = find_tracks(seen.cameras, seen.people, frames, request.threshold)
@@ -232,6 +234,9 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
     found = triangulate_people(seen.cameras, seen.people, frames, request.threshold, route, others)
     if not found.frames:
         raise CaptureError(f"{request.recording}: the person followed is never seen by two agreeing views")
+    overlapped = leave_out_overlapped(seen.cameras, found)
+    for v, count in enumerate(overlapped):
+        found.view_notes[v]["overlapped"] = count
     if files and detector is not None:  # a detector with keypoint files: the masks are the segmenter's
         looked = redetect_masks(folder, seen, found, crops, detector, request.threshold, others)
     without_mask = crop_masks(folder, seen, found, crops, whole if detector else {}, detector, request.threshold)
@@ -243,6 +248,7 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
         "frames_per_person": sorted((len(t.points) for t in tracks), reverse=True),
         "views_detected_again": looked,
         "views_without_their_mask": without_mask,
+        "views_overlapped_by_others": sum(overlapped),
     }
     return found
 

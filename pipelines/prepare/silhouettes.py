@@ -1,6 +1,7 @@
 """The person masks of a recording being prepared, as the silhouette term of its body fit
 (``pipelines.body.silhouettes``; docs/guides/real-captures.md, "Body fit"): each raw mask limited to the body's
-neighbourhood (as the capture's final masks are: ``pipelines.prepare.checks.mask_near_body``), undistorted and
+neighbourhood and without the other people around it (as the capture's final masks are:
+``pipelines.prepare.checks.mask_near_body``, ``pipelines.prepare.occlusion.without_others``), undistorted and
 reduced."""
 
 from __future__ import annotations
@@ -11,15 +12,20 @@ import numpy as np
 from pipelines.body.silhouettes import SilhouetteSettings, SilhouetteTerm, silhouette_targets
 from pipelines.datasets.camera import Camera, silhouette
 from pipelines.prepare.checks import mask_near_body
+from pipelines.prepare.occlusion import without_others
 
 
-def reduced_mask(camera: Camera, raw: np.ndarray, vertices: np.ndarray, faces: np.ndarray, height: int) -> np.ndarray:
-    """The raw mask near the body (``mask_near_body``), undistorted and reduced to ``height`` rows: (h, w) bool."""
+def reduced_mask(
+    camera: Camera, raw: np.ndarray, vertices: np.ndarray, faces: np.ndarray, height: int, others=()
+) -> np.ndarray:
+    """The raw mask near the body (``mask_near_body``) less the ``others`` ((T, 3) targets of other people) outside
+    it (``pipelines.prepare.occlusion.without_others``), undistorted and reduced to ``height`` rows: (h, w) bool."""
     scale = min(1.0, height / camera.height)
     small = camera.scaled(scale)
     size = (small.width, small.height)
     mask = cv2.resize(raw.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
-    mask = mask_near_body(mask, silhouette(small, vertices, faces))
+    body = silhouette(small, vertices, faces)
+    mask = without_others(mask_near_body(mask, body), body, small, list(others))
     if np.any(small.dist != 0):
         maps = cv2.initUndistortRectifyMap(small.K, small.dist, None, small.K, size, cv2.CV_32FC1)
         mask = cv2.remap(mask.astype(np.uint8), *maps, cv2.INTER_NEAREST) > 0
@@ -41,7 +47,8 @@ def silhouette_stage(root, cameras: list[Camera], found, faces: np.ndarray, P: n
                     row.append(None)
                     continue
                 raw = cv2.imread(str(root / ".frames" / "mask_raw" / camera.name / f"{source:06d}.png"), 0) > 0
-                row.append(reduced_mask(camera, raw, vertices[i], faces, settings.height))
+                others = found.others.get(source, [])
+                row.append(reduced_mask(camera, raw, vertices[i], faces, settings.height, others))
             masks.append(row)
         return SilhouetteTerm(silhouette_targets(cameras, masks, settings), P, settings)
 

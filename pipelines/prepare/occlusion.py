@@ -1,0 +1,110 @@
+"""People who overlap the followed person in a view (docs/guides/real-captures.md, *Other people in view*).
+
+The segmenter gives one mask for everybody in view, and where two people overlap in the image the detector finds
+whichever is more prominent, in a crop too. Both people are triangulated in every frame, so the overlap can be told
+from geometry: each person's region in a view is drawn as capsules around the bones between their projected targets
+(radii in metres, ``BONE_RADII``, scaled by focal length over depth) and a filled torso.
+
+* A view where other people's regions cover more than ``OVERLAP_SHARE`` of the followed person's is left out of the
+  body fit, the training and the evaluation, as views showing only somebody else are: in front, they hide the
+  person; behind, the one mask covers both and the view's detection and mask may be theirs (measured on
+  Demo_MultiPerson: docs/results/real-capture.md).
+* In the views kept, the mask loses the other people's regions outside the followed person's fitted body
+  (:func:`without_others`): what lies there is somebody else.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from pipelines.datasets.camera import Camera, project_distorted
+from pipelines.datasets.keypoints import TARGET_NAMES
+
+#: a view is left out when other people's regions cover more than this share of the followed person's region
+OVERLAP_SHARE = 0.25
+#: (target, target, radius in metres) of each capsule drawn for a person: limbs, the torso's sides, the head
+BONE_RADII = (
+    ("l_hip", "l_knee", 0.08),
+    ("l_knee", "l_ankle", 0.06),
+    ("l_ankle", "l_foot", 0.05),
+    ("r_hip", "r_knee", 0.08),
+    ("r_knee", "r_ankle", 0.06),
+    ("r_ankle", "r_foot", 0.05),
+    ("l_shoulder", "l_elbow", 0.06),
+    ("l_elbow", "l_wrist", 0.05),
+    ("r_shoulder", "r_elbow", 0.06),
+    ("r_elbow", "r_wrist", 0.05),
+    ("l_shoulder", "l_hip", 0.08),
+    ("r_shoulder", "r_hip", 0.08),
+    ("l_shoulder", "r_shoulder", 0.06),
+    ("l_hip", "r_hip", 0.08),
+    ("pelvis", "neck", 0.12),
+    ("neck", "head", 0.1),
+)
+#: the torso's quadrilateral, filled between the capsules of its sides
+TORSO = ("l_shoulder", "r_shoulder", "r_hip", "l_hip")
+
+
+def _index(name: str) -> int:
+    return TARGET_NAMES.index(name)
+
+
+def body_region(camera: Camera, points: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the person ``points`` (T, 3 world targets, NaN where missing) drawn in ``camera``'s image as
+    capsules of ``BONE_RADII`` (a capsule's width in pixels is 2 r f_y / z at its joints' mean depth z) and the filled
+    torso, in distorted pixels (as the masks are). Targets behind the camera or missing leave their capsules out."""
+    region = np.zeros((camera.height, camera.width), np.uint8)
+    in_camera = points @ camera.cam_from_world[:3, :3].T + camera.cam_from_world[:3, 3]
+    depth = in_camera[:, 2]
+    ok = np.isfinite(in_camera).all(-1) & (depth > 1e-3)
+    pixels = np.full((len(points), 2), np.nan)
+    pixels[ok] = project_distorted(camera, points[ok])
+    ok &= (np.abs(pixels) < 1e5).all(-1)
+    fy = camera.K[1, 1]
+    for a, b, radius in BONE_RADII:
+        i, j = _index(a), _index(b)
+        if ok[i] and ok[j]:
+            width = max(1, int(round(2 * radius * fy / (0.5 * (depth[i] + depth[j])))))
+            ends = np.round(pixels[[i, j]]).astype(np.int32)
+            cv2.line(region, tuple(map(int, ends[0])), tuple(map(int, ends[1])), 1, width, cv2.LINE_8)
+    corners = [_index(n) for n in TORSO]
+    if ok[corners].all():
+        cv2.fillConvexPoly(region, np.round(pixels[corners]).astype(np.int32), 1)
+    return region > 0
+
+
+def overlap_share(camera: Camera, points: np.ndarray, others: list[np.ndarray]) -> float:
+    """Share of the person ``points``' :func:`body_region` in ``camera`` that the regions of ``others`` (each (T, 3)
+    targets) cover, whoever stands in front (0 when the person is not in the image)."""
+    region = body_region(camera, points)
+    area = int(region.sum())
+    if area == 0 or not others:
+        return 0.0
+    covered = np.logical_or.reduce([body_region(camera, o) for o in others])
+    return float((covered & region).sum() / area)
+
+
+def without_others(mask: np.ndarray, body: np.ndarray, camera: Camera, others: list[np.ndarray]) -> np.ndarray:
+    """(H, W) bool ``mask`` less the :func:`body_region` of each of ``others`` ((T, 3) targets) where it lies
+    outside ``body`` (H, W) bool, the followed person's fitted silhouette; ``camera`` of the mask's size."""
+    if not others:
+        return mask
+    covered = np.logical_or.reduce([body_region(camera, o) for o in others])
+    return mask & ~(covered & ~body)
+
+
+def leave_out_overlapped(cameras: list[Camera], found) -> list[int]:
+    """Mark as unused (``found.used``) each used view of ``found`` (``pipelines.prepare.person_targets.Triangulated``)
+    where the other people of its frame (``found.others``) cover more than ``OVERLAP_SHARE`` of the person
+    (:func:`overlap_share`); their keypoints' confidences become 0 (the detector may have found somebody else).
+    Returns the number of views left out per camera."""
+    count = [0] * len(cameras)
+    for i, frame in enumerate(found.frames):
+        others = found.others.get(frame, [])
+        for v, camera in enumerate(cameras):
+            if others and found.used[i, v] and overlap_share(camera, found.points[i], others) > OVERLAP_SHARE:
+                found.used[i, v] = False
+                found.keypoints[i, v, :, 2] = 0.0
+                count[v] += 1
+    return count

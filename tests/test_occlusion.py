@@ -1,0 +1,94 @@
+"""People who overlap the followed person in a view (``pipelines.prepare.occlusion``), on hand-placed people and
+cameras whose figures can be worked out by hand."""
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from pipelines.datasets.camera import Camera
+from pipelines.datasets.keypoints import TARGET_NAMES
+from pipelines.prepare.occlusion import body_region, leave_out_overlapped, overlap_share, without_others
+from pipelines.synthetic.scene import look_at
+
+#: a person standing at the origin, facing -y, z up (metres)
+STANDING = {
+    "pelvis": (0, 0, 1.0),
+    "l_hip": (0.1, 0, 0.95),
+    "r_hip": (-0.1, 0, 0.95),
+    "l_knee": (0.1, 0, 0.5),
+    "r_knee": (-0.1, 0, 0.5),
+    "l_ankle": (0.1, 0, 0.08),
+    "r_ankle": (-0.1, 0, 0.08),
+    "l_foot": (0.1, -0.1, 0.02),
+    "r_foot": (-0.1, -0.1, 0.02),
+    "neck": (0, 0, 1.5),
+    "head": (0, 0, 1.7),
+    "l_shoulder": (0.2, 0, 1.45),
+    "r_shoulder": (-0.2, 0, 1.45),
+    "l_elbow": (0.25, 0, 1.2),
+    "r_elbow": (-0.25, 0, 1.2),
+    "l_wrist": (0.25, 0, 0.95),
+    "r_wrist": (-0.25, 0, 0.95),
+}
+
+
+def _person(offset=(0.0, 0.0, 0.0)) -> np.ndarray:
+    return np.array([STANDING[name] for name in TARGET_NAMES], np.float64) + np.asarray(offset)
+
+
+def _camera(name: str, centre, target=(0.0, 0.0, 1.0)) -> Camera:
+    K = np.array([[1000.0, 0, 500], [0, 1000.0, 500], [0, 0, 1]])
+    return Camera(name, K, np.zeros(5), look_at(np.asarray(centre, float), np.asarray(target, float)), 1000, 1000)
+
+
+def test_a_bone_is_a_capsule_of_its_radius_at_its_depth():
+    # only the left forearm: from (0.25, 0, 1.2) to (0.25, 0, 0.95), 4 m in front of the camera, radius 0.05 m:
+    # 2 r f / z = 25 px wide and 0.25 f / z = 62.5 px long, with round caps: 25 x 62.5 + pi 12.5^2 = 2,053 px
+    points = np.full((len(TARGET_NAMES), 3), np.nan)
+    for name in ("l_elbow", "l_wrist"):
+        points[TARGET_NAMES.index(name)] = STANDING[name]
+    region = body_region(_camera("front", (0, -4, 1.0), (0, 0, 1.0)), points)
+    rows, cols = np.nonzero(region)
+    # a 25-px band gains or loses up to a pixel along each edge (2 of 25 px, 8 %), its caps a pixel around
+    assert abs(region.sum() - 2053) < 0.08 * 2053
+    assert abs((cols.max() - cols.min() + 1) - 25) <= 2 and abs((rows.max() - rows.min() + 1) - (62.5 + 25)) <= 2
+
+
+def test_the_share_covered_by_somebody_in_front_or_behind():
+    camera = _camera("front", (0, -5, 1.0))
+    person = _person()
+    # the same body 2 m nearer the camera covers the person's (it projects 5/3 as large about the image centre) but
+    # for the tips of the feet, whose bones point at the camera and so do not grow like the rest (1.5 % measured)
+    assert overlap_share(camera, person, [_person((0, -2, 0))]) > 0.95
+    # 2 m behind, it projects 5/7 as large about the image centre, inside the person: the share is its own area
+    behind = body_region(camera, _person((0, 2, 0)))
+    expected = (behind & body_region(camera, person)).sum() / body_region(camera, person).sum()
+    assert overlap_share(camera, person, [_person((0, 2, 0))]) == expected and 0.3 < expected < 0.7
+    assert overlap_share(camera, person, [_person((2, -2, 0))]) == 0.0  # in front, 2 m aside
+    assert overlap_share(camera, person, []) == 0.0
+
+
+def test_the_mask_loses_the_others_outside_the_body_only():
+    camera = _camera("front", (0, -5, 1.0))
+    body = body_region(camera, _person())
+    other = body_region(camera, _person((0.6, 0, 0)))  # beside the person, overlapping an arm's width
+    mask = body | other
+    cut = without_others(mask, body, camera, [_person((0.6, 0, 0))])
+    assert (cut == body).all() and (body & other).any()  # what the body covers stays, whoever else is there
+    assert (without_others(mask, body, camera, []) == mask).all()
+
+
+def test_overlapped_views_are_left_out_with_their_keypoints():
+    cameras = [_camera("front", (0, -5, 1.0)), _camera("side", (-5, 0, 1.0))]
+    person, other = _person(), _person((0, 2, 0))  # behind the person for the front camera, 2 m aside for the side
+    found = SimpleNamespace(
+        frames=[7, 8],
+        points=np.stack([person, person]),
+        used=np.ones((2, 2), bool),
+        keypoints=np.ones((2, 2, len(TARGET_NAMES), 3)),
+        others={7: [other]},
+    )
+    counts = leave_out_overlapped(cameras, found)
+    assert counts == [1, 0]
+    assert found.used.tolist() == [[False, True], [True, True]]
+    assert (found.keypoints[0, 0, :, 2] == 0).all() and (found.keypoints[found.used][..., 2] == 1).all()
