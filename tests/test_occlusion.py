@@ -87,8 +87,9 @@ def test_overlapped_views_are_left_out_with_their_keypoints():
         used=np.ones((2, 2), bool),
         keypoints=np.ones((2, 2, len(TARGET_NAMES), 3)),
         others={7: [other]},
+        view_notes=[{"overlapped": 0}, {"overlapped": 0}],
     )
     counts = leave_out_overlapped(cameras, found)
-    assert counts == [1, 0]
+    assert counts == [1, 0] and [n["overlapped"] for n in found.view_notes] == [1, 0]
     assert found.used.tolist() == [[False, True], [True, True]]
     assert (found.keypoints[0, 0, :, 2] == 0).all() and (found.keypoints[found.used][..., 2] == 1).all()

@@ -78,18 +78,19 @@ def redetect(folder: Path, seen, route: dict, crops: dict, detector, threshold: 
     return count
 
 
-def redetect_masks(folder: Path, seen, found, crops: dict, detector, threshold: float, others=None) -> int:
+def redetect_masks(
+    folder: Path, seen, found, crops: dict, detector, threshold: float, others=None, progress=None
+) -> int:
     """With keypoints from files and masks from the segmenter: each view of ``found``'s frames
     (``pipelines.prepare.person_targets.Triangulated``) whose mask came with a detection of somebody else, or that
     has no mask since the detector found nobody (``seen.mask_owners``), is detected again around the person
     (:func:`redetect`), so that :func:`crop_masks` gives it the crop's mask or leaves it out; a mask that came with
-    no detection (a segmenter alone) is kept. The files' people are left as they are. Returns the number of views
-    detected again."""
+    no detection (a segmenter alone) is kept. The files' people are left as they are. ``progress()`` is called once
+    per view looked at. Returns the number of views detected again."""
     people = [{f: [owner] for f, owner in by_frame.items()} for by_frame in seen.mask_owners]
     route = {frame: found.points[i] for i, frame in enumerate(found.frames)}
-    return redetect(
-        folder, SimpleNamespace(cameras=seen.cameras, people=people), route, crops, detector, threshold, others
-    )
+    seen_masks = SimpleNamespace(cameras=seen.cameras, people=people)
+    return redetect(folder, seen_masks, route, crops, detector, threshold, others, progress)
 
 
 def painted_crop(rgb: np.ndarray, box, camera: Camera, points: np.ndarray, others: list[np.ndarray]) -> np.ndarray:

@@ -98,7 +98,7 @@ def leave_out_overlapped(cameras: list[Camera], found) -> list[int]:
     """Mark as unused (``found.used``) each used view of ``found`` (``pipelines.prepare.person_targets.Triangulated``)
     where the other people of its frame (``found.others``) cover more than ``OVERLAP_SHARE`` of the person
     (:func:`overlap_share`); their keypoints' confidences become 0 (the detector may have found somebody else).
-    Returns the number of views left out per camera."""
+    Returns the number of views left out per camera, also added to ``found.view_notes[v]["overlapped"]``."""
     count = [0] * len(cameras)
     for i, frame in enumerate(found.frames):
         others = found.others.get(frame, [])
@@ -107,4 +107,6 @@ def leave_out_overlapped(cameras: list[Camera], found) -> list[int]:
                 found.used[i, v] = False
                 found.keypoints[i, v, :, 2] = 0.0
                 count[v] += 1
+    for v, n in enumerate(count):
+        found.view_notes[v]["overlapped"] += n
     return count

@@ -235,10 +235,10 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
     if not found.frames:
         raise CaptureError(f"{request.recording}: the person followed is never seen by two agreeing views")
     overlapped = leave_out_overlapped(seen.cameras, found)
-    for v, count in enumerate(overlapped):
-        found.view_notes[v]["overlapped"] = count
     if files and detector is not None:  # a detector with keypoint files: the masks are the segmenter's
-        looked = redetect_masks(folder, seen, found, crops, detector, request.threshold, others)
+        total = len(seen.cameras) * len(found.frames)
+        with tqdm(total=total, desc="looking at the masks", unit="view", disable=not request.progress) as bar:
+            looked = redetect_masks(folder, seen, found, crops, detector, request.threshold, others, bar.update)
     without_mask = crop_masks(folder, seen, found, crops, whole if detector else {}, detector, request.threshold)
     cut_masks(folder, seen.cameras, found)
     seen.person = {
