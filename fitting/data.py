@@ -42,8 +42,8 @@ class TrainingSet:
 
     Args:
         views: loaded views, consumed one at a time (a generator will do): ``image`` (H, W, 3) float in [0, 1],
-            ``mask`` (H, W), ``band`` (H, W) bool and ``camera`` (``K``, ``cam_from_world``), e.g.
-            ``pipelines.datasets.zju_mocap.Frame``. Views may differ in size.
+            ``mask`` (H, W), ``band`` (H, W) bool, optionally ``unknown`` (H, W) bool or None, and ``camera`` (``K``,
+            ``cam_from_world``), e.g. ``pipelines.datasets.zju_mocap.Frame``. Views may differ in size.
         frame_of_view: index of each view's frame in ``poses``.
         poses: PoseBatch of the training frames.
         device: where rays and targets are sent.
@@ -58,7 +58,8 @@ class TrainingSet:
         Ks, cam_from_world = [], []
         for view in views:
             image = (view.image * 255 + 0.5).astype(np.uint8)
-            self.store.add(image, np.asarray(view.mask) > 0.5, np.asarray(view.band, bool))
+            unknown = getattr(view, "unknown", None)  # pixels whose owner is unknown: no ray is drawn there
+            self.store.add(image, np.asarray(view.mask) > 0.5, np.asarray(view.band, bool), unknown)
             Ks.append(view.camera.K)
             cam_from_world.append(view.camera.cam_from_world)
         if not Ks:

@@ -4,7 +4,8 @@ once; a training step reads back only the views it draws, so memory does not gro
 
 A record is the crop's RGB (h, w, 3) followed by its label map (h, w): the sampling pool of each pixel in the low
 two bits (``POOL_BODY``, ``POOL_BORDER``, ``POOL_BACKGROUND``; 0 outside every pool) and ``BAND_BIT`` on the
-5-px boundary band that the mask loss skips."""
+5-px boundary band that the mask loss skips. Pixels of unknown owner (somebody else in front of the person,
+docs/formats.md §1.5) are in no pool, so no ray is drawn there, and carry ``BAND_BIT``."""
 
 from __future__ import annotations
 
@@ -25,7 +26,9 @@ POOL_BITS = 3
 BAND_BIT = 4
 
 
-def sampling_labels(mask: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, tuple[int, int, int, int]]:
+def sampling_labels(
+    mask: np.ndarray, band: np.ndarray, unknown: np.ndarray | None = None
+) -> tuple[np.ndarray, tuple[int, int, int, int]]:
     """Pool labels of one view and its sampling box.
 
     Body = the silhouette; border = the dilation ring (``BORDER_PX``) outside it; background = the rest of the box,
@@ -35,6 +38,7 @@ def sampling_labels(mask: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, tup
     Args:
         mask: (H, W) bool silhouette.
         band: (H, W) bool boundary band (mask loss weight 0).
+        unknown: (H, W) bool pixels of unknown owner (no pool, ``BAND_BIT``), or None.
 
     Returns:
         labels (H, W) uint8, and the box (y0, y1, x0, x1), end-exclusive.
@@ -52,6 +56,8 @@ def sampling_labels(mask: np.ndarray, band: np.ndarray) -> tuple[np.ndarray, tup
     labels[dilated] = POOL_BORDER
     labels[mask] = POOL_BODY
     labels[band] |= BAND_BIT
+    if unknown is not None:
+        labels[unknown] = BAND_BIT
     return labels, (y0, y1, x0, x1)
 
 
@@ -75,12 +81,12 @@ class ViewStore:
     def __len__(self) -> int:
         return len(self._records)
 
-    def add(self, image: np.ndarray, mask: np.ndarray, band: np.ndarray) -> None:
-        """Store a view: ``image`` (H, W, 3) uint8, ``mask`` and ``band`` (H, W) bool."""
+    def add(self, image: np.ndarray, mask: np.ndarray, band: np.ndarray, unknown: np.ndarray | None = None) -> None:
+        """Store a view: ``image`` (H, W, 3) uint8, ``mask``, ``band`` and ``unknown`` (or None) (H, W) bool."""
         height, width = mask.shape
         if image.shape != (height, width, 3) or image.dtype != np.uint8 or band.shape != mask.shape:
             raise ValueError(f"a view needs image (H, W, 3) uint8 and mask, band (H, W); got {image.shape}")
-        labels, (y0, y1, x0, x1) = sampling_labels(mask, band)
+        labels, (y0, y1, x0, x1) = sampling_labels(mask, band, unknown)
         fill = image[0, 0] if y0 > 0 or x0 > 0 else image[-1, -1]
         outside = (image[:y0], image[y1:], image[y0:y1, :x0], image[y0:y1, x1:])
         if any((part != fill).any() for part in outside):

@@ -7,7 +7,14 @@ import numpy as np
 
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.keypoints import TARGET_NAMES
-from pipelines.prepare.occlusion import body_region, leave_out_overlapped, overlap_share, without_others
+from pipelines.prepare.occlusion import (
+    body_region,
+    hidden_region,
+    leave_out_overlapped,
+    overlap_share,
+    person_mask,
+    without_others,
+)
 from pipelines.synthetic.scene import look_at
 
 #: a person standing at the origin, facing -y, z up (metres)
@@ -76,6 +83,25 @@ def test_the_mask_loses_the_others_outside_the_body_only():
     cut = without_others(mask, body, camera, [_person((0.6, 0, 0))])
     assert (cut == body).all() and (body & other).any()  # what the body covers stays, whoever else is there
     assert (without_others(mask, body, camera, []) == mask).all()
+
+
+def test_somebody_in_front_makes_the_owner_unknown_and_somebody_behind_does_not():
+    camera = _camera("front", (0, -5, 1.0))
+    person, body = _person(), body_region(camera, _person())
+    near = np.ones_like(body)
+    in_front, behind = _person((0.4, -1, 0)), _person((0.4, 1, 0))  # 40 cm aside, 1 m nearer or farther
+    hidden = hidden_region(camera, person, [in_front], near)
+    assert (hidden == body_region(camera, in_front)).all() and (hidden & body).any()
+    assert not hidden_region(camera, person, [behind], near).any()
+    assert not hidden_region(camera, person, [in_front], np.zeros_like(near)).any()  # only within ``near``
+    # the segmenter's one mask for both: the person keeps their own pixels that nobody hides, the one in front is
+    # either unknown (near the person) or cut (farther than the neighbourhood, 4 % of the height = 40 px)
+    raw = body | body_region(camera, in_front)
+    mask, unknown = person_mask(raw, body, camera, person, [in_front])
+    assert not (mask & unknown).any() and (mask | unknown | ~raw).sum() < raw.size
+    assert (mask == (body & ~unknown)).all() and unknown.any()
+    mask, unknown = person_mask(body | body_region(camera, behind), body, camera, person, [behind])
+    assert (mask == body).all() and not unknown.any()
 
 
 def test_overlapped_views_are_left_out_with_their_keypoints():

@@ -58,7 +58,7 @@ def test_the_capture_follows_the_person_seen_best(recording, crowded):
             kept = cv2.imread(str(root / "out" / "mask" / camera.name / f"{f:06d}.png"), 0) > 0
             true = cv2.imread(str(recording / "truth" / "mask" / camera.name / f"{f:06d}.png"), 0) > 0
             # where the passer-by stands apart from the first person in the image (farther than the neighbourhood
-            # the capture's masks keep around the fitted body, checks.mask_near_body: 4 % of the height, plus 2 px
+            # the capture's masks keep around the fitted body, checks.body_neighbourhood: 4 % of the height, plus 2 px
             # of the fit's error), none of them is kept
             distance = cv2.distanceTransform((~true).astype(np.uint8), cv2.DIST_L2, 5)
             passer = given & ~true

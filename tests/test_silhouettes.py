@@ -160,3 +160,21 @@ def test_a_slightly_turned_camera_is_corrected(tmp_path):
         angle(fixed, turned), abs=1e-3
     )
     np.testing.assert_allclose(ZjuCapture(tmp_path / "kept").cameras[2].cam_from_world, turned, atol=1e-9)
+
+
+def test_pixels_of_unknown_owner_hold_the_body_and_give_no_outline():
+    """A person whose lower half is hidden by somebody in front: the outside term lets the body lie on the hidden
+    pixels (distance 0 there, as on the mask), and the inside term takes no outline point along them (the hidden
+    region's edge is somebody else's outline); the rest of the outline is the mask's."""
+    camera = _camera()
+    mask, hidden = np.zeros((64, 64), bool), np.zeros((64, 64), bool)
+    mask[10:32, 20:44] = True
+    hidden[32:56, 16:48] = True
+    settings = SilhouetteSettings(height=64, outline_points=400)
+    plain = silhouette_targets([camera], [[mask]], settings)
+    targets = silhouette_targets([camera], [[mask]], settings, [[hidden]])
+    assert (targets.distance[0, 0][torch.as_tensor(hidden)] == 0).all()
+    assert (plain.distance[0, 0][torch.as_tensor(hidden)] > 0).all()
+    kept = targets.outline[0, 0][targets.outline_valid[0, 0]]
+    every = plain.outline[0, 0][plain.outline_valid[0, 0]]
+    assert len(kept) < len(every) and (kept[:, 1] < 31).all() and (every[:, 1] >= 31).any()

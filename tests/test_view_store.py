@@ -140,3 +140,20 @@ def test_views_per_frame_draws_several_views_of_each_frame(tmp_path):
         assert groups == 2
     plain = training.choose_images(5, 1, torch.Generator().manual_seed(1))
     assert plain == torch.randint(0, 7, (5,), generator=torch.Generator().manual_seed(1)).tolist()
+
+
+def test_no_ray_is_drawn_where_the_owner_is_unknown(tmp_path):
+    """Pixels of unknown owner (a prepared capture's ``mask_unknown/``: somebody in front of the person) lie in no
+    pool: painted pure red here, over half the body and its border, no drawn ray has their colour."""
+    rng = np.random.default_rng(3)
+    view = _view(rng, 48, 40, (10, 30, 12, 20))
+    view.image = np.minimum(view.image, 0.9).astype(np.float32)  # nothing else is pure red
+    view.unknown = np.zeros((48, 40), bool)
+    view.unknown[20:34, 8:24] = True
+    view.image[view.unknown] = (1.0, 0.0, 0.0)
+    view.mask[view.unknown] = 0.0
+    training = TrainingSet([view], [0], SimpleNamespace(to=lambda device: None), "cpu", store_dir=tmp_path)
+    batch = training.sample(8, 200, 0.5, 0.25, torch.Generator().manual_seed(0))
+    assert len(batch.rgb) == 1600 and batch.mask.any() and not (batch.rgb == torch.tensor([1.0, 0, 0])).all(-1).any()
+    image, mask, band = training.full_view(0)
+    assert not mask[view.unknown].any() and band[view.unknown].all()  # the evaluation's band, the mask loss's skip

@@ -132,3 +132,28 @@ class TestBadInput:
     def test_out_of_range(self, tiny_capture):
         with pytest.raises(CaptureError, match="frame 9 out of range"):
             ZjuCapture(tiny_capture).load_frame(9, 0)
+
+
+def test_pixels_of_unknown_owner_leave_the_mask_for_the_band(capture_copy):
+    """A prepared capture's ``mask_unknown/`` (somebody in front of the person): those pixels are neither the
+    person's nor background: out of the mask and its CIHP labels, in the band (which the losses and the evaluation's
+    person pixels skip), in the background's colour; a view without the file has no such pixels."""
+    cap = ZjuCapture(capture_copy, ratio=1.0)
+    before = cap.load_frame(0, 0)
+    raw = cv2.imread(str(capture_copy / "mask_cihp" / cap.ims[0][0].replace(".jpg", ".png")), 0) > 0
+    unknown = np.zeros_like(raw)
+    rows = np.nonzero(raw.any(1))[0]
+    unknown[rows.min() : (rows.min() + rows.max()) // 2] = True  # the upper half of the person and the background
+    path = capture_copy / "mask_unknown" / cap.ims[0][0].replace(".jpg", ".png")
+    path.parent.mkdir(parents=True)
+    cv2.imwrite(str(path), unknown.astype(np.uint8))
+    after = ZjuCapture(capture_copy, ratio=1.0).load_frame(0, 0)
+    assert before.unknown is None and after.unknown is not None and after.unknown.any()
+    assert not after.mask[after.unknown].any() and after.band[after.unknown].all()
+    assert not after.labels[after.unknown].any() and after.mask[~after.unknown].sum() > 100
+    # the person's pixels with a known owner are those of before (undistortion moves both masks alike)
+    assert np.array_equal(after.mask.astype(bool), before.mask.astype(bool) & ~after.unknown)
+    # somebody else's colours are not kept: the background's, where the person was before
+    was_person = after.unknown & (before.mask > 0)
+    assert before.image[was_person].any() and not after.image[after.unknown].any()
+    assert ZjuCapture(capture_copy, ratio=1.0).load_frame(0, 1).unknown is None

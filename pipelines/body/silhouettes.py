@@ -75,10 +75,12 @@ def mask_outline(mask: np.ndarray, count: int) -> np.ndarray:
     return points.astype(np.float32)
 
 
-def silhouette_targets(cameras, masks, settings: SilhouetteSettings) -> SilhouetteTargets:
+def silhouette_targets(cameras, masks, settings: SilhouetteSettings, unknown=None) -> SilhouetteTargets:
     """Targets of :class:`SilhouetteTargets` from ``masks[f][v]``: undistorted masks reduced to at most
     ``settings.height`` rows (``(h, w)`` bool), or None; ``cameras[v]``: anything with the full-size ``width`` and
-    ``height`` of view v's pixels (a ``Camera``)."""
+    ``height`` of view v's pixels (a ``Camera``). ``unknown[f][v]`` (the masks' shapes, or None): pixels whose owner
+    is unknown (somebody in front of the person): the body may lie there (the outside term counts them as mask),
+    and the mask's outline along them is no outline of the person (the inside term leaves those points out)."""
     n_frames, n_views = len(masks), len(cameras)
     shapes = [next((m[v].shape for m in masks if m[v] is not None), (1, 1)) for v in range(n_views)]
     h, w = max(s[0] for s in shapes), max(s[1] for s in shapes)
@@ -91,8 +93,13 @@ def silhouette_targets(cameras, masks, settings: SilhouetteSettings) -> Silhouet
             if mask is None or not mask.any():
                 continue
             rows, cols = mask.shape
-            distance[f, v, :rows, :cols] = torch.as_tensor(distance_to_mask(mask) / rows)
+            hidden = None if unknown is None else unknown[f][v]
+            covered = mask if hidden is None else mask | hidden
+            distance[f, v, :rows, :cols] = torch.as_tensor(distance_to_mask(covered) / rows)
             points = mask_outline(mask, settings.outline_points)
+            if hidden is not None and hidden.any():  # outline points next to unknown pixels are left out
+                beside = cv2.dilate(hidden.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0
+                points = points[~beside[points[:, 1].astype(int), points[:, 0].astype(int)]]
             ratio = cameras[v].height / rows  # reduced pixel centres to full-size pixels
             outline[f, v, : len(points)] = torch.as_tensor((points + 0.5) * ratio - 0.5)
             outline_valid[f, v, : len(points)] = True

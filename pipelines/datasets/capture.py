@@ -248,6 +248,16 @@ class ZjuCapture:
                 labels = raw.astype(np.uint8)
         return np.logical_or.reduce(masks), labels
 
+    def _read_unknown(self, frame: int, cam: int, shape: tuple[int, int]) -> np.ndarray | None:
+        """The view's ``mask_unknown/`` image as (H, W) bool (docs/formats.md §1.5), or None where there is none."""
+        path = self.root / "mask_unknown" / Path(self.ims[frame][cam]).with_suffix(".png")
+        if not path.is_file():
+            return None
+        raw = read_image(path, cv2.IMREAD_GRAYSCALE, "mask")
+        if raw.shape != shape:
+            raise CaptureError(f"{path}: mask is {raw.shape[1]}x{raw.shape[0]} but the image is {shape[1]}x{shape[0]}")
+        return raw != 0
+
     def _undistort_maps(self, cam: int) -> tuple:
         """Camera ``cam``'s undistortion maps, computed on first use: fixed-point ones (those ``cv2.undistort``
         builds, for the image) and float ones (for masks and labels, nearest neighbour)."""
@@ -273,20 +283,29 @@ class ZjuCapture:
             )
         image = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB).astype(np.float32) / 255.0
         mask, labels = self._read_mask(frame, cam, image.shape[:2])
+        unknown = self._read_unknown(frame, cam, image.shape[:2])
+        if unknown is not None:
+            mask, labels = mask & ~unknown, np.where(unknown, 0, labels).astype(np.uint8)
         if np.any(camera.dist != 0):
             image_maps, maps = self._undistort_maps(cam)
             image = cv2.remap(image, *image_maps, cv2.INTER_LINEAR)  # exactly cv2.undistort, maps computed once
             mask = cv2.remap(mask.astype(np.uint8), *maps, cv2.INTER_NEAREST) > 0
             labels = cv2.remap(labels, *maps, cv2.INTER_NEAREST)
-        band = boundary_band(mask)
+            if unknown is not None:
+                unknown = cv2.remap(unknown.astype(np.uint8), *maps, cv2.INTER_NEAREST) > 0
+        band = boundary_band(mask) if unknown is None else boundary_band(mask) | unknown
         if self.ratio != 1:
             size = (int(round(camera.width * self.ratio)), int(round(camera.height * self.ratio)))
             image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
             mask = cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
             band = cv2.resize(band.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
             labels = cv2.resize(labels, size, interpolation=cv2.INTER_NEAREST)
+            if unknown is not None:
+                unknown = cv2.resize(unknown.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
         background = 1.0 if self.white_background else 0.0
         image[~mask & ~band] = background
+        if unknown is not None:  # somebody else's colours: compared with nothing, trained on nowhere
+            image[unknown] = background
         return Frame(
             frame_index=self._frame_of_entry[frame][0],
             camera_index=cam,
@@ -297,4 +316,5 @@ class ZjuCapture:
             camera=camera.undistorted().scaled(self.ratio),
             params=self.params(frame),
             image_path=path,
+            unknown=unknown,
         )

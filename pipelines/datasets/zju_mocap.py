@@ -48,6 +48,8 @@ class Frame:
         camera: the camera of this image (undistorted, resized).
         params: the frame's SMPL parameters.
         image_path: source image.
+        unknown: (H, W) bool pixels whose owner is unknown (another person in front of this one: a prepared
+            capture's ``mask_unknown/``), outside ``mask`` and inside ``band``; no loss draws them. None: no such file.
     """
 
     frame_index: int
@@ -59,6 +61,7 @@ class Frame:
     camera: Camera
     params: SmplParams
     image_path: Path = field(default=Path())
+    unknown: np.ndarray | None = None
 
 
 _313_PATTERN = re.compile(r"^(?P<prefix>.+?)_(?P<index>\d{4})_[^_]*$")

@@ -23,13 +23,11 @@ FLAG_DISAGREED = 0.2
 FLAG_TURN, FLAG_SHIFT = 2.0, 3.0
 
 
-def mask_near_body(mask: np.ndarray, body: np.ndarray, margin_fraction: float = 0.04) -> np.ndarray:
-    """The person mask limited to the fitted body's neighbourhood (a dilation by a fraction of the image height),
-    which removes other people and clutter that the segmenter took for a person."""
-    radius = max(1.0, margin_fraction * mask.shape[0])
+def body_neighbourhood(body: np.ndarray, margin_fraction: float = 0.04) -> np.ndarray:
+    """(H, W) bool: the pixels within ``margin_fraction`` of the image height of the (H, W) bool ``body``."""
     if not body.any():
-        return np.zeros_like(mask)
-    return mask & (distance_to_mask(body) <= radius)
+        return np.zeros_like(body)
+    return distance_to_mask(body) <= max(1.0, margin_fraction * body.shape[0])
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:

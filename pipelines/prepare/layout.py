@@ -21,9 +21,9 @@ from pipelines.datasets.easymocap import write_easymocap_cameras
 from pipelines.datasets.floor import feet_against_floor
 from pipelines.datasets.keypoints import TARGET_NAMES
 from pipelines.datasets.zju_mocap import SmplParams, write_annots, write_params
-from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, mask_near_body, reprojection_notice
+from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, reprojection_notice
 from pipelines.prepare.multiview import projection_matrix, relative_errors
-from pipelines.prepare.occlusion import without_others
+from pipelines.prepare.occlusion import person_mask
 
 OVERLAY_HEIGHT = 480  # rows of each camera's tile in overlay.mp4
 
@@ -60,8 +60,9 @@ def splits(n_frames: int, names: list[str], holdout: str | None, novel_fraction:
 
 
 def _check_pass(root: Path, seen, found, fitted, vertices, faces, ious: dict, progress=None):
-    """Final masks (the raw ones limited to the body's neighbourhood, less the other people outside the body),
-    overlays and IoU per (frame, view), a frame at a time: fills ``ious`` (camera -> list) and yields each frame of
+    """Final masks (``pipelines.prepare.occlusion.person_mask``: the raw ones limited to the body's neighbourhood,
+    less the other people; the pixels of unknown owner in ``mask_unknown/``), overlays and IoU (of the known pixels)
+    per (frame, view), a frame at a time: fills ``ious`` (camera -> list) and yields each frame of
     overlay.mp4 (RGB), so that nothing is held for the whole recording."""
     cameras = seen.cameras
     for cam in cameras:
@@ -73,11 +74,14 @@ def _check_pass(root: Path, seen, found, fitted, vertices, faces, ious: dict, pr
         for v, cam in enumerate(cameras):
             raw = cv2.imread(str(root / ".frames" / "mask_raw" / cam.name / f"{source:06d}.png"), cv2.IMREAD_GRAYSCALE)
             body = silhouette(cam, vertices[i], faces)
-            mask = without_others(mask_near_body(raw > 0, body), body, cam, found.others.get(source, []))
+            mask, unknown = person_mask(raw > 0, body, cam, found.points[i], found.others.get(source, []))
             for folder in ("mask", "mask_cihp"):
                 write_image(root / folder / cam.name / f"{i:06d}.png", mask.astype(np.uint8))
+            if unknown.any():  # somebody in front of the person (docs/formats.md §1.5)
+                (root / "mask_unknown" / cam.name).mkdir(parents=True, exist_ok=True)
+                write_image(root / "mask_unknown" / cam.name / f"{i:06d}.png", unknown.astype(np.uint8))
             if found.used[i, v]:
-                ious[cam.name].append(iou(body, mask))
+                ious[cam.name].append(iou(body & ~unknown, mask))
             image = cv2.imread(str(root / cam.name / f"{i:06d}.jpg"))
             targets = project_distorted(cam, fitted.targets[i])
             overlay = draw_overlay(image, body, found.distorted[i, v], targets, bool(found.used[i, v]))

@@ -11,6 +11,9 @@ from geometry: each person's region in a view is drawn as capsules around the bo
   Demo_MultiPerson: docs/results/real-capture.md).
 * In the views kept, the mask loses the other people's regions outside the followed person's fitted body
   (:func:`without_others`): what lies there is somebody else.
+* Where people nearer the camera (by the depth of their centres) cover the followed person's neighbourhood, the
+  pixels' owner is unknown (:func:`hidden_region`): the capture marks them in ``mask_unknown/`` (docs/formats.md
+  §1.5), no loss draws them, and the evaluation counts them with the boundary band.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ import numpy as np
 
 from pipelines.datasets.camera import Camera, project_distorted
 from pipelines.datasets.keypoints import TARGET_NAMES
+from pipelines.prepare.checks import body_neighbourhood
 
 #: a view is left out when other people's regions cover more than this share of the followed person's region
 OVERLAP_SHARE = 0.25
@@ -92,6 +96,36 @@ def without_others(mask: np.ndarray, body: np.ndarray, camera: Camera, others: l
         return mask
     covered = np.logical_or.reduce([body_region(camera, o) for o in others])
     return mask & ~(covered & ~body)
+
+
+def _centre_depth(camera: Camera, points: np.ndarray) -> float:
+    """Depth along ``camera``'s axis of the median of the finite ``points`` (inf when none is finite)."""
+    finite = points[np.isfinite(points).all(-1)]
+    if not len(finite):
+        return np.inf
+    return float(camera.cam_from_world[2, :3] @ np.median(finite, axis=0) + camera.cam_from_world[2, 3])
+
+
+def hidden_region(camera: Camera, points: np.ndarray, others: list[np.ndarray], near: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the :func:`body_region` of each of ``others`` ((T, 3) targets) whose centre is nearer ``camera``
+    than the person ``points``' centre, within ``near`` (H, W) bool (the person's neighbourhood)."""
+    depth = _centre_depth(camera, points)
+    front = [o for o in others if _centre_depth(camera, o) < depth]
+    if not front:
+        return np.zeros_like(near)
+    return np.logical_or.reduce([body_region(camera, o) for o in front]) & near
+
+
+def person_mask(
+    raw: np.ndarray, body: np.ndarray, camera: Camera, points: np.ndarray, others: list[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """The followed person's mask and the pixels of unknown owner, both (H, W) bool, from a view's ``raw`` segmenter
+    mask: the raw mask within the fitted ``body``'s neighbourhood (``checks.body_neighbourhood``), less the others
+    outside the body (:func:`without_others`) and less the unknown pixels (:func:`hidden_region`). ``points``: the
+    person's (T, 3) targets; ``others``: the other people's; ``camera`` of the masks' size."""
+    near = body_neighbourhood(body)
+    unknown = hidden_region(camera, points, others, near)
+    return without_others(raw & near, body, camera, others) & ~unknown, unknown
 
 
 def leave_out_overlapped(cameras: list[Camera], found) -> list[int]:
