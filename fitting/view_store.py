@@ -126,6 +126,14 @@ class ViewStore:
         raw = np.frombuffer(data, np.uint8)
         return raw[: 3 * h * w].reshape(h, w, 3), raw[3 * h * w :].reshape(h, w)
 
+    def unknown(self, index: int) -> np.ndarray:
+        """(H, W) bool: view ``index``'s pixels of unknown owner, as added (in no pool, with ``BAND_BIT``)."""
+        _, labels = self.read(index)
+        y0, x0, h, w = self.box(index)
+        out = np.zeros(self.size(index), bool)
+        out[y0 : y0 + h, x0 : x0 + w] = (labels & (POOL_BITS | BAND_BIT)) == BAND_BIT
+        return out
+
     def full(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """View ``index`` as it was added: image (H, W, 3) uint8, mask and band (H, W) bool."""
         rgb, labels = self.read(index)

@@ -63,10 +63,12 @@ def corrected_frames(correction, capture) -> dict[int, SmplParams]:
 
 
 def _view_masks(training: TrainingSet, n_frames: int, height: int):
-    """Per training frame and camera: the view's mask reduced to at most ``height`` rows (or None), the views' full
-    sizes (SimpleNamespace width / height per camera) and projections P (C, 3, 4) ``K [R | t]``."""
+    """Per training frame and camera: the view's mask and its pixels of unknown owner (docs/formats.md §1.5), each
+    reduced to at most ``height`` rows (or None), the views' full sizes (SimpleNamespace width / height per camera)
+    and projections P (C, 3, 4) ``K [R | t]``."""
     n_cameras = training.n_cameras
     masks = [[None] * n_cameras for _ in range(n_frames)]
+    unknown = [[None] * n_cameras for _ in range(n_frames)]
     sizes, P = [None] * n_cameras, torch.zeros(n_cameras, 3, 4)
     for view in range(len(training)):
         frame, camera = int(training.frame_of_image[view]), int(training.camera_of_image[view])
@@ -77,8 +79,11 @@ def _view_masks(training: TrainingSet, n_frames: int, height: int):
             P[camera] = (training.Ks[view] @ training.cam_from_world[view, :3]).cpu()
         scale = min(1.0, height / rows)
         size = (max(1, round(cols * scale)), max(1, round(rows * scale)))
-        masks[frame][camera] = cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
-    return masks, sizes, P
+        masks[frame][camera], unknown[frame][camera] = (
+            cv2.resize(m.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
+            for m in (mask, training.store.unknown(view))
+        )
+    return masks, unknown, sizes, P
 
 
 def refine_to_masks(
@@ -97,10 +102,10 @@ def refine_to_masks(
         torch.as_tensor(np.stack([getattr(p, k) for p in params]), dtype=torch.float32)
         for k in ("poses", "rh", "th", "shapes")
     )
-    masks, sizes, P = _view_masks(training, len(frames), settings.silhouette.height)
+    masks, unknown, sizes, P = _view_masks(training, len(frames), settings.silhouette.height)
     stride = settings.silhouette.vertex_stride  # the vertices are posed strided, so the term takes them all
     seen = replace(settings.silhouette, vertex_stride=1)
-    term = SilhouetteTerm(silhouette_targets(sizes, masks, seen), P.numpy(), seen)
+    term = SilhouetteTerm(silhouette_targets(sizes, masks, seen, unknown), P.numpy(), seen)
     d_poses = torch.zeros(len(frames), 23, 3, requires_grad=True)
     d_rh = torch.zeros(len(frames), 3, requires_grad=True)
     d_th = torch.zeros(len(frames), 3, requires_grad=True)
