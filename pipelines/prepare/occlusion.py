@@ -13,7 +13,8 @@ from geometry: each person's region in a view is drawn as capsules around the bo
   (:func:`without_others`): what lies there is somebody else.
 * Where people nearer the camera (by the depth of their centres) cover the followed person's neighbourhood, the
   pixels' owner is unknown (:func:`hidden_region`): the capture marks them in ``mask_unknown/`` (docs/formats.md
-  §1.5), no loss draws them, and the evaluation counts them with the boundary band.
+  §1.5), no loss draws them, the body fits let the body lie there, and the evaluation counts them with the
+  boundary band, in the background's colour.
 """
 
 from __future__ import annotations
