@@ -126,22 +126,25 @@ class ViewStore:
         raw = np.frombuffer(data, np.uint8)
         return raw[: 3 * h * w].reshape(h, w, 3), raw[3 * h * w :].reshape(h, w)
 
-    def unknown(self, index: int) -> np.ndarray:
-        """(H, W) bool: view ``index``'s pixels of unknown owner, as added (in no pool, with ``BAND_BIT``)."""
-        _, labels = self.read(index)
+    def _full_labels(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """View ``index``'s stored crop (h, w, 3) and its labels at full size (H, W), 0 outside the crop."""
+        rgb, labels = self.read(index)
         y0, x0, h, w = self.box(index)
-        out = np.zeros(self.size(index), bool)
-        out[y0 : y0 + h, x0 : x0 + w] = (labels & (POOL_BITS | BAND_BIT)) == BAND_BIT
-        return out
+        full_labels = np.zeros(self.size(index), np.uint8)
+        full_labels[y0 : y0 + h, x0 : x0 + w] = labels
+        return rgb, full_labels
+
+    def mask_and_unknown(self, index: int) -> tuple[np.ndarray, np.ndarray]:
+        """View ``index``'s mask and its pixels of unknown owner (in no pool, with ``BAND_BIT``), (H, W) bool each,
+        as added; one read of the store."""
+        _, labels = self._full_labels(index)
+        return (labels & POOL_BITS) == POOL_BODY, (labels & (POOL_BITS | BAND_BIT)) == BAND_BIT
 
     def full(self, index: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """View ``index`` as it was added: image (H, W, 3) uint8, mask and band (H, W) bool."""
-        rgb, labels = self.read(index)
+        rgb, labels = self._full_labels(index)
         y0, x0, h, w = self.box(index)
-        height, width = self.size(index)
-        image = np.empty((height, width, 3), np.uint8)
+        image = np.empty((*labels.shape, 3), np.uint8)
         image[:] = self._fill[index]
         image[y0 : y0 + h, x0 : x0 + w] = rgb
-        full_labels = np.zeros((height, width), np.uint8)
-        full_labels[y0 : y0 + h, x0 : x0 + w] = labels
-        return image, (full_labels & POOL_BITS) == POOL_BODY, (full_labels & BAND_BIT) > 0
+        return image, (labels & POOL_BITS) == POOL_BODY, (labels & BAND_BIT) > 0

@@ -157,7 +157,11 @@ def test_no_ray_is_drawn_where_the_owner_is_unknown(tmp_path):
     assert len(batch.rgb) == 1600 and batch.mask.any() and not (batch.rgb == torch.tensor([1.0, 0, 0])).all(-1).any()
     image, mask, band = training.full_view(0)
     assert not mask[view.unknown].any() and band[view.unknown].all()  # the evaluation's band, the mask loss's skip
-    assert np.array_equal(training.store.unknown(0), view.unknown)  # the subject fit's body refinement reads them
+    assert np.array_equal(
+        training.store.mask_and_unknown(0)[1], view.unknown
+    )  # the subject fit's body refinement reads them
     assert (
-        not TrainingSet(_views(), [0, 1, 2, 3], SimpleNamespace(to=lambda device: None), "cpu").store.unknown(1).any()
+        not TrainingSet(_views(), [0, 1, 2, 3], SimpleNamespace(to=lambda device: None), "cpu")
+        .store.mask_and_unknown(1)[1]
+        .any()
     )

@@ -293,7 +293,9 @@ class ZjuCapture:
             labels = cv2.remap(labels, *maps, cv2.INTER_NEAREST)
             if unknown is not None:
                 unknown = cv2.remap(unknown.astype(np.uint8), *maps, cv2.INTER_NEAREST) > 0
-        band = boundary_band(mask) if unknown is None else boundary_band(mask) | unknown
+        band = boundary_band(mask)
+        if unknown is not None:
+            band |= unknown
         if self.ratio != 1:
             size = (int(round(camera.width * self.ratio)), int(round(camera.height * self.ratio)))
             image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)

@@ -111,6 +111,7 @@ def triangulate_people(
     """
     P = np.stack([projection_matrix(c) for c in cameras])
     heights = np.array([c.height for c in cameras], np.float64)
+    others = others or {}
     n_views, n_targets = len(cameras), len(TARGETS)
     kept, points, keypoints, used, distorted, detected, dropped = [], [], [], [], [], [], {}
     notes = [{"no_person": 0, "other_person": 0, "disagreed": 0, "overlapped": 0} for _ in cameras]
@@ -128,7 +129,7 @@ def triangulate_people(
         choice = consensus(P, undistorted, heights, threshold, previous, radius)
         for v in range(n_views):
             if choice.person[v] < 0:
-                notes[v][_why_not(P[v], undistorted[v], (others or {}).get(frame, []), heights[v], threshold)] += 1
+                notes[v][_why_not(P[v], undistorted[v], others.get(frame, []), heights[v], threshold)] += 1
         frame_xy = np.zeros((n_views, n_targets, 3))
         frame_raw = np.zeros((n_views, n_targets, 3))
         for v, p in enumerate(choice.person):
@@ -162,7 +163,7 @@ def triangulate_people(
         np.array(detected).reshape(shape),
         dropped,
         notes,
-        {f: (others or {})[f] for f in kept if (others or {}).get(f)},
+        {f: others[f] for f in kept if others.get(f)},
     )
 
 

@@ -72,7 +72,7 @@ def _view_masks(training: TrainingSet, n_frames: int, height: int):
     sizes, P = [None] * n_cameras, torch.zeros(n_cameras, 3, 4)
     for view in range(len(training)):
         frame, camera = int(training.frame_of_image[view]), int(training.camera_of_image[view])
-        mask = training.store.full(view)[1]
+        mask, hidden = training.store.mask_and_unknown(view)
         rows, cols = mask.shape
         if sizes[camera] is None:
             sizes[camera] = SimpleNamespace(width=cols, height=rows)
@@ -80,8 +80,7 @@ def _view_masks(training: TrainingSet, n_frames: int, height: int):
         scale = min(1.0, height / rows)
         size = (max(1, round(cols * scale)), max(1, round(rows * scale)))
         masks[frame][camera], unknown[frame][camera] = (
-            cv2.resize(m.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
-            for m in (mask, training.store.unknown(view))
+            cv2.resize(m.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5 for m in (mask, hidden)
         )
     return masks, unknown, sizes, P
 
