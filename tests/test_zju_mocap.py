@@ -157,3 +157,12 @@ def test_pixels_of_unknown_owner_leave_the_mask_for_the_band(capture_copy):
     was_person = after.unknown & (before.mask > 0)
     assert before.image[was_person].any() and not after.image[after.unknown].any()
     assert ZjuCapture(capture_copy, ratio=1.0).load_frame(0, 1).unknown is None
+
+
+def test_an_unknown_mask_of_the_wrong_size_is_refused_naming_the_file(capture_copy):
+    cap = ZjuCapture(capture_copy, ratio=1.0)
+    path = capture_copy / "mask_unknown" / cap.ims[0][0].replace(".jpg", ".png")
+    path.parent.mkdir(parents=True)
+    cv2.imwrite(str(path), np.ones((7, 9), np.uint8))
+    with pytest.raises(CaptureError, match=r"mask_unknown.*: mask is 9x7 but the image is"):
+        cap.load_frame(0, 0)
