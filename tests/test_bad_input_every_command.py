@@ -13,7 +13,9 @@ from bad_input import (
 )
 
 
-@pytest.mark.parametrize("command", ["prepare_capture", "eval", "render_video", "export_mesh", "view", "fit"])
+@pytest.mark.parametrize(
+    "command", ["prepare_capture", "eval", "render_video", "export_mesh", "view", "fit", "camera_colour"]
+)
 def test_help_answers_without_importing_torch(command):
     """``--help`` reads no model code: torch (2-3 s to import on 2 cores) stays unloaded."""
 

@@ -279,6 +279,7 @@ def _print_summary(report: dict, out) -> None:
         d = report["detections"]
         print(f"  detections: {d['reused']} views reused, {d['detected']} detected (kept in {d['cache']})")
     _print_sync(report["sync"])
+    _print_colour(report.get("colour"))
     for name, camera in report["cameras"].items():
         error, share = camera["body_reprojection_px"], camera["body_reprojection_pct_height"]
         flag = f"  FLAGGED: {camera['flag']}" if "flag" in camera else ""
@@ -303,6 +304,14 @@ def _person(text: str):
         return parse_person(text)
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
+
+
+def _print_colour(colour: dict | None) -> None:
+    """One line of the cameras' colour gains (report.json 'colour', colour.json)."""
+    if colour:
+        from pipelines.prepare.colour import colour_summary
+
+        print(f"  camera colour, {colour_summary(colour)}")
 
 
 def _print_sync(sync: dict) -> None:

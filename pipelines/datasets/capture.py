@@ -204,6 +204,24 @@ class ZjuCapture:
         path = self.root / "floor.json"
         return read_floor(path) if path.is_file() else None
 
+    @cached_property
+    def camera_gains(self) -> np.ndarray | None:
+        """(C, 3) each camera's colour gain (``colour.json``: docs/formats.md §1.12), or None where there is none."""
+        from pipelines.datasets.camera_colour import read_camera_colour
+
+        path = self.root / "colour.json"
+        return read_camera_colour(path, [c.name for c in self.cameras]) if path.is_file() else None
+
+    def person_pixels(self, frame: int, cam: int) -> tuple[np.ndarray, np.ndarray]:
+        """The view as recorded: (H, W, 3) uint8 BGR image, not undistorted, and (H, W) bool of the pixels that are
+        the person's or of unknown owner (the mask and ``mask_unknown/``)."""
+        self._check_frame(frame)
+        path = self.root / self.ims[frame][cam]
+        bgr = read_image(path)
+        mask, _ = self._read_mask(frame, cam, bgr.shape[:2])
+        unknown = self._read_unknown(frame, cam, bgr.shape[:2])
+        return bgr, mask if unknown is None else mask | unknown
+
     def protocol(self, name: str = "neuralbody") -> Protocol:
         """The capture's own ``splits.json`` when it has one (written by narf-prepare-capture), else the named
         protocol."""

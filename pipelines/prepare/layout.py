@@ -144,6 +144,7 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
     from tqdm import tqdm
 
     from fitting.video import write_mp4
+    from pipelines.prepare.colour import write_capture_colour
 
     cameras, names = seen.cameras, [c.name for c in seen.cameras]
     ious = {}
@@ -201,6 +202,7 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
         report["detections"] = seen.detections
     if seen.person:
         report["person"] = seen.person
+    report["colour"] = write_capture_colour(root, progress=request.progress)
     (root / "report.json").write_text(json.dumps(_json_ready(report), indent=1, allow_nan=False))
     return report
 
