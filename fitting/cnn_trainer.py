@@ -14,6 +14,7 @@ import torch.nn.functional as F
 
 from fitting.autoencoder import AutoencoderTrainer, encode
 from fitting.config import FitConfig
+from fitting.corrections import camera_response
 from fitting.data import FitData
 from fitting.trainer import Trainer
 from narf.cnn_render import cnn_inputs
@@ -61,6 +62,10 @@ class CnnTrainer(Trainer):
             joints, data.cam_from_world[chosen], data.Ks[chosen], data.height, data.width, self.config.model.image_size
         )
         rgb, mask = self.field(maps, bones, latent)
+        if self.fit_data.camera_gains is not None:  # each training camera's measured colour (docs/model.md §6)
+            gains = self.fit_data.camera_gains.to(rgb)[data.camera_of_image[chosen]][:, :, None, None]
+            background = 1.0 if self.config.data.white_background else 0.0
+            rgb = camera_response(rgb.movedim(1, -1), mask, gains.movedim(1, -1), background).movedim(-1, 1)
         colour = (rgb - self.rgb[chosen].float()).pow(2).mean()
         weight = self.mask_weight[chosen].float()
         mask_term = (weight * (mask - self.mask[chosen].float()).pow(2)).sum() / weight.sum().clamp_min(1)

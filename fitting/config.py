@@ -44,6 +44,9 @@ class DataConfig:
     new_params: bool = True  #: new_params/ (pose blend shapes) instead of params/
     white_background: bool = False  #: composite onto white instead of black
     frame_stride: int = 1  #: use every n-th training frame
+    #: subject fits: the capture's measured camera colour gains (colour.json; docs/model.md §6) applied to renders for
+    #: a camera, in training and evaluation
+    camera_gains: bool = True
     box_frames: int = 100  #: training frames used to fit the part boxes
     train_meshes: int = 0  #: autoencoder: meshes that train (0: the set's synthetic.json, else NARF's 3545)
     renders_per_mesh: int = 10  #: autoencoder: train renders per mesh (NARF: 10)
@@ -297,6 +300,7 @@ KIND_ONLY = {
     "data.renders_per_mesh": "autoencoder",
     "train.pose_correction": "subject",
     "train.camera_colour": "subject",
+    "data.camera_gains": "subject",
     "train.random_background": "subject",
     "train.holdout_every": "subject",
     "train.entropy_weight": "subject",

@@ -252,6 +252,38 @@ class CameraColour(nn.Module):
         return weight * (gains.log().pow(2).sum(dim=1) + biases.pow(2).sum(dim=1)).mean()
 
 
+def camera_response(rgb: torch.Tensor, opacity: torch.Tensor, gains: torch.Tensor, background: float) -> torch.Tensor:
+    """What a camera of colour gains ``gains`` records of a render (docs/model.md §6, *Measured camera colour*):
+    ``C' = g (C - (1 - M) bg) + (1 - M) bg``, the gain on the person's light only, not on the background the render
+    was composited on.
+
+    Args:
+        rgb: (..., 3) rendered colour on ``background``. opacity: (...) M. gains: (3,) or broadcastable to ``rgb``.
+    """
+    behind = (1 - opacity)[..., None] * background
+    return gains * (rgb - behind) + behind
+
+
+class MeasuredColour(nn.Module):
+    """The training cameras' measured gains (``colour.json``), fixed, applied to the rendered colour of each ray's
+    camera in the training loss, optionally followed by a learned :class:`CameraColour`.
+
+    Args:
+        gains: (C, 3) gain of each training camera (indices 0..C-1 of the ray batch's ``cameras``).
+        learned: a CameraColour applied after the gains, or None.
+    """
+
+    def __init__(self, gains: torch.Tensor, learned: CameraColour | None = None):
+        super().__init__()
+        self.register_buffer("gains", torch.as_tensor(gains, dtype=torch.float32), persistent=False)
+        self.learned = learned
+
+    def forward(self, rgb_on_black: torch.Tensor, opacity: torch.Tensor, cameras: torch.Tensor) -> torch.Tensor:
+        """rgb_on_black (R, 3), opacity (R,), cameras (R,) -> the colour camera c records (R, 3)."""
+        rgb = self.gains[cameras] * rgb_on_black
+        return rgb if self.learned is None else self.learned(rgb, opacity, cameras)
+
+
 class FrameAppearance(nn.Module):
     """NeRF-W's appearance embedding (Martin-Brualla et al., CVPR 2021), one code per training frame, read by the
     colour branch in the place of the autoencoder's z_a (docs/model.md §4, *Per-frame appearance*). The codes are

@@ -188,6 +188,8 @@ class FitData:
         provenance: what the fit depends on outside its config (the body model's record), saved in the checkpoint.
         selection: the views of the training frames held back to choose the step kept (``fitting.selection``), or
             None.
+        camera_gains: (C, 3) the measured colour gain of each training camera (``training``'s camera indices), or
+            None (docs/model.md §6, *Measured camera colour*).
     """
 
     training: TrainingSet
@@ -199,3 +201,4 @@ class FitData:
     validation_frame: int | None = None
     provenance: dict = field(default_factory=dict)
     selection: TrainingSet | None = None
+    camera_gains: torch.Tensor | None = None

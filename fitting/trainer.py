@@ -15,7 +15,7 @@ from tqdm import tqdm
 
 from fitting.checkpoint import save_checkpoint
 from fitting.config import FitConfig
-from fitting.corrections import CameraColour, FrameAppearance, PoseCorrection, PosePrior, RowAdam
+from fitting.corrections import CameraColour, FrameAppearance, MeasuredColour, PoseCorrection, PosePrior, RowAdam
 from fitting.data import FitData
 from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
 from fitting.files import named_errors
@@ -136,6 +136,9 @@ class Trainer:
             self.field.pose_gradient_freqs = t.pose_gradient_freqs
         if t.camera_colour:
             self.camera_colour = CameraColour(data.training.n_cameras).to(self.device)
+        self.colour_response = self.camera_colour  # the measured gains, then the learned transform (either or both)
+        if data.camera_gains is not None:
+            self.colour_response = MeasuredColour(data.camera_gains, self.camera_colour).to(self.device)
         self.frame_appearance = None
         if self.config.model.appearance_dim:
             n_frames = self.views.poses.reach.shape[0]
@@ -292,7 +295,7 @@ class Trainer:
                 r.train_fine,
                 uniforms=[u[share] for u in uniforms],
                 normalisers=(3 * n, batch.mask_weight.sum().clamp_min(1)),
-                camera_colour=self.camera_colour,
+                camera_colour=self.colour_response,
                 backgrounds=None if backgrounds is None else backgrounds[share],
             )
             # every process renders the same virtual rays (the same generator)
@@ -432,7 +435,15 @@ class Trainer:
             for start in range(0, rays.origins.shape[0], r.chunk):
                 part = rays.take(slice(start, start + r.chunk))
                 _, colour = ray_loss(
-                    self.config, self.field, part, poses, None, r.eval_coarse, r.eval_fine, randomized=False
+                    self.config,
+                    self.field,
+                    part,
+                    poses,
+                    None,
+                    r.eval_coarse,
+                    r.eval_fine,
+                    randomized=False,
+                    camera_colour=self.colour_response,
                 )
                 squared, count = squared + float(colour) * part.rgb.numel(), count + part.rgb.numel()
         self.field.train()

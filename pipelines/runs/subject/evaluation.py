@@ -4,9 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
+from fitting.corrections import camera_response
 from fitting.evaluate import (
     average_metrics,
     evaluate_splits,
@@ -36,12 +38,15 @@ def _view_metrics(run, split: str, items, out_dir: Path, request: EvalRequest) -
     poses, _, _ = poses_for_frames(run if split != "capture" else capture, run.body_model, frames)
     poses = poses.to(device)
     bg = 1.0 if config.data.white_background else 0.0
+    gains = capture.camera_gains if config.data.camera_gains else None  # each camera's colour (docs/model.md §6)
     records = []
     views = tqdm(items, desc=f"eval {split}", unit="view", disable=not request.progress)
     for index, (frame, cam) in enumerate(views):
         item = capture.load_frame(frame, cam)
         pose = poses.select(torch.tensor([frames.index(frame)], device=device))
         render = to_numpy(render_view(field, item.camera, pose, config))
+        if gains is not None:
+            render["rgb"] = np.clip(camera_response(render["rgb"], render["mask"], gains[cam], bg), 0.0, 1.0)
         region = nb_crop_region(item.camera, capture.vertices(frame))
         records.append(
             {"frame": frame, "camera": cam, **frame_metrics(render, item.image, item.mask, region, bg, item.band)}

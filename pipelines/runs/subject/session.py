@@ -213,9 +213,25 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         f"{capture.root}: {len(training)} training images ({len(frames)} frames x {len(protocol.train_views)} views)",
         capture_poses(source, body_model, frames) if config.train.pose_correction or refine else None,
         frames.index(held_frame),
-        {"body_model": body_model_record(body_model.path)},
+        {"body_model": body_model_record(body_model.path), **gains_record(capture, config)},
         held_back_views(capture, protocol, body_model, held_back, device, progress),
+        training_gains(capture, protocol, config),
     )
+
+
+def gains_record(capture, config: FitConfig) -> dict:
+    """The checkpoint's record of the camera gains the fit trained with (``camera_gains``: name -> [r, g, b])."""
+    gains = capture.camera_gains if config.data.camera_gains else None
+    if gains is None:
+        return {}
+    return {"camera_gains": {c.name: [float(v) for v in g] for c, g in zip(capture.cameras, gains)}}
+
+
+def training_gains(capture, protocol, config: FitConfig) -> torch.Tensor | None:
+    """(C, 3) the training cameras' measured colour gains (``colour.json``), or None where the capture has none or
+    ``data.camera_gains`` is off."""
+    gains = capture.camera_gains if config.data.camera_gains else None
+    return None if gains is None else torch.as_tensor(gains[list(protocol.train_views)])
 
 
 def split_holdout(frames: list[int], train) -> tuple[list[int], list[int]]:
