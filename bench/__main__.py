@@ -46,7 +46,9 @@ def _rows(name: str, saved: Path, reuse: bool, machine: str) -> list[dict]:
         if record.get("machine") == machine:
             print(f"bench: {name}: reusing the rows saved in {saved} on {record['date']}", file=sys.stderr)
             return record["rows"]
-    rows = importlib.import_module(BENCHMARKS[name]).run()
+    module = importlib.import_module(BENCHMARKS[name])
+    # a benchmark that keeps each finished configuration (the time-to-quality one) takes --reuse for those too
+    rows = module.run(reuse=reuse) if getattr(module, "KEEPS_CONFIGURATIONS", False) else module.run()
     record = {"machine": machine, "date": datetime.datetime.now().isoformat(timespec="minutes"), "rows": rows}
     atomic_write_text(saved, json.dumps(record, indent=1))
     return rows
@@ -67,11 +69,11 @@ def main() -> None:
     unknown = [name for name in args.names if name not in BENCHMARKS]
     if unknown:
         parser.error(f"unknown benchmark {unknown[0]!r} (choose from {names})")
-    if args.reuse:  # the time-to-quality benchmark also keeps each finished configuration's row (bench_quality)
-        os.environ["NARF_BENCH_REUSE"] = "1"
     # as every command does before its first torch operation (docs/design.md, "Subnormal numbers", "Memory allocator")
     flush_subnormals()
     keep_freed_memory()
+    # the benchmarks' own cache (runs, captures, rows) unless the user names one: the project's cache setting, read by
+    # this process's cache_dir() and inherited by the commands the benchmarks start
     os.environ.setdefault("NARF_CACHE", os.path.join(os.getcwd(), ".cache", "bench"))
     from bench.bench_models import machine
 

@@ -116,10 +116,16 @@ def _first(records: list[dict], key: str, level: float) -> str:
     return f"{reached[0]} min" if reached else f"> {records[-1]['minutes']} min"
 
 
-def run(configs: list[tuple[str, list[str], int | None]] | None = None) -> list[dict]:
+#: ``python -m bench --reuse`` also takes this benchmark's finished configurations back (``run(reuse=True)``)
+KEEPS_CONFIGURATIONS = True
+
+
+def run(configs: list[tuple[str, list[str], int | None]] | None = None, reuse: bool = False) -> list[dict]:
+    """One row per configuration (``CONFIGS`` by default); ``reuse``: a configuration's row saved on this machine is
+    taken instead of fitting it again."""
     cache = Path(os.environ.get("NARF_CACHE", ".cache/bench"))
     return [
-        _row(label, overrides, cache / "quality_runs", _capture_root(cache, frames))
+        _row(label, overrides, cache / "quality_runs", _capture_root(cache, frames), reuse)
         for label, overrides, frames in configs or CONFIGS
     ]
 
@@ -139,13 +145,13 @@ def _capture_root(cache: Path, frames: int | None) -> Path:
     return data_dir
 
 
-def _row(label: str, overrides: list[str], root: Path, data_dir: Path) -> dict:
-    """One configuration's row, saved as ``row.json`` in its run folder once complete; with ``NARF_BENCH_REUSE`` set
-    (``python -m bench --reuse``) a row saved on this machine is taken instead of fitting again."""
+def _row(label: str, overrides: list[str], root: Path, data_dir: Path, reuse: bool = False) -> dict:
+    """One configuration's row, saved as ``row.json`` in its run folder once complete; with ``reuse`` (``python -m
+    bench --reuse``) a row saved on this machine is taken instead of fitting again."""
     from bench.bench_models import machine
 
     saved = _run_dir(root, label) / "row.json"
-    if os.environ.get("NARF_BENCH_REUSE") and saved.exists():
+    if reuse and saved.exists():
         record = json.loads(saved.read_text())
         if record.get("machine") == machine():
             return record["row"]

@@ -53,3 +53,16 @@ def test_reference_comparison_sees_any_difference():
     a = {"run": "/a", "versions": {"torch": "1"}, "splits": {"x": {"psnr": 20.0, "elapsed_s": 1.0}}}
     b = {"run": "/b", "versions": {"torch": "2"}, "splits": {"x": {"psnr": 20.0, "elapsed_s": 9.0}}}
     assert _stable(a) == _stable(b) and _stable(a) != _stable({**b, "splits": {"x": {"psnr": 20.5}}})
+
+
+def test_reuse_reaches_a_benchmark_that_keeps_its_configurations(tmp_path, monkeypatch):
+    """``--reuse`` is passed to a benchmark that keeps each finished configuration (``KEEPS_CONFIGURATIONS``) as an
+    argument, and the others are called as before."""
+    module = tmp_path / "kept_bench.py"
+    module.write_text(
+        "KEEPS_CONFIGURATIONS = True\ndef run(reuse=False):\n    return [{'model': 'kept', 'reuse': reuse}]\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setitem(bench_main.BENCHMARKS, "kept", "kept_bench")
+    assert bench_main._rows("kept", tmp_path / "a.json", reuse=True, machine="m") == [{"model": "kept", "reuse": True}]
+    assert bench_main._rows("kept", tmp_path / "b.json", reuse=False, machine="m")[0]["reuse"] is False
