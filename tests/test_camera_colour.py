@@ -2,6 +2,7 @@
 the fit's loss and in evaluation (docs/model.md §6, *Measured camera colour*)."""
 
 import json
+import shutil
 from unittest import mock
 
 import cv2
@@ -261,3 +262,5 @@ def test_the_command_writes_the_file_and_refuses_in_one_line(capture, capsys):
     np.testing.assert_allclose(gains, 1.0, atol=0.01)
     assert run_cli("narf-camera-colour", main, [str(subject), "--quiet"]) == 2
     assert "colour.json: exists (--overwrite replaces it)" in capsys.readouterr().err
+    shutil.rmtree(subject / "mask")  # a capture with CIHP masks only, as some ZJU-MoCap subjects
+    assert run_cli("narf-camera-colour", main, [str(subject), "--quiet", "--frames", "4", "--overwrite"]) == 0

@@ -20,6 +20,7 @@ A camera that shares fewer than ``min_points`` points with every other keeps the
 from __future__ import annotations
 
 import warnings
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -144,12 +145,16 @@ def measure_camera_colour(capture, frames: list[int], pad: float = 1.0, spacing:
 
 
 def write_capture_colour(root, n_frames: int = 20, progress: bool = False) -> dict:
-    """Measure the gains of the prepared capture at ``root`` (its masks and ``floor.json``) on ``n_frames`` frames
-    spread over the take, write ``colour.json`` and return the report's ``colour`` entry."""
+    """Measure the gains of the capture at ``root`` (its masks: ``mask/``, ``mask_cihp/`` or both, and
+    ``floor.json``) on ``n_frames`` frames spread over the take, write ``colour.json`` and return the report's
+    ``colour`` entry."""
     from pipelines.datasets.camera_colour import write_camera_colour
     from pipelines.datasets.capture import ZjuCapture
 
-    capture = ZjuCapture(root, ratio=1.0, mask_source="mask")
+    root = Path(root)
+    sources = [source for source, folder in (("mask", "mask"), ("cihp", "mask_cihp")) if (root / folder).is_dir()]
+    source = "union" if len(sources) == 2 else sources[0] if sources else "mask"  # none: the reader names the file
+    capture = ZjuCapture(root, ratio=1.0, mask_source=source)
     frames = sorted({round(i) for i in np.linspace(0, capture.n_frames - 1, min(n_frames, capture.n_frames))})
     measured = measure_camera_colour(capture, frames, progress=progress)
     names = [c.name for c in capture.cameras]
