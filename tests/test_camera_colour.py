@@ -16,20 +16,10 @@ from pipelines.datasets.camera import Camera
 from pipelines.datasets.camera_colour import read_camera_colour, write_camera_colour
 from pipelines.datasets.errors import CaptureError
 from pipelines.prepare.colour import background_image, floor_colours, floor_grid, solve_gains
+from pipelines.synthetic.scene import look_at
 
 #: BGR gains of the three test cameras (a white balance and exposure spread of about 10 %)
 GAINS_BGR = np.array([[1.10, 0.95, 1.00], [0.90, 1.05, 1.10], [1.00, 1.00, 0.92]])
-
-
-def _look_at(centre: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """cam_from_world (4, 4) of a camera at ``centre`` looking at ``target``, world z up (image y down)."""
-    z = (target - centre) / np.linalg.norm(target - centre)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    R = np.stack([x, np.cross(z, x), z])
-    out = np.eye(4)
-    out[:3, :3], out[:3, 3] = R, -R @ centre
-    return out
 
 
 def _cameras() -> list[Camera]:
@@ -38,7 +28,7 @@ def _cameras() -> list[Camera]:
     for i, azimuth in enumerate(np.radians([0, 120, 240])):
         centre = np.array([3 * np.cos(azimuth), 3 * np.sin(azimuth), 2.0])
         dist = np.array([-0.1, 0, 0, 0, 0]) if i == 1 else np.zeros(5)  # one camera with radial distortion
-        cameras.append(Camera(f"cam{i}", K, dist, _look_at(centre, np.zeros(3)), 320, 240))
+        cameras.append(Camera(f"cam{i}", K, dist, look_at(centre, np.zeros(3), down=(0.0, 0.0, -1.0)), 320, 240))
     return cameras
 
 

@@ -91,28 +91,26 @@ def solve_gains(colours: np.ndarray, min_points: int = 50) -> dict:
     units: 0.01 is 1 %) and ``measured`` (False: it kept the gain 1)."""
     n = len(colours)
     logs = np.log(colours[..., ::-1])  # RGB
-    rows, targets, shared = [], [], np.zeros(n, int)
+    pairs, targets, shared = [], [], np.zeros(n, int)
     for a in range(n):
         for b in range(a + 1, n):
             both = np.isfinite(logs[a]).all(-1) & np.isfinite(logs[b]).all(-1)
             shared[a], shared[b] = max(shared[a], both.sum()), max(shared[b], both.sum())
             if both.sum() >= min_points:
-                row = np.zeros(n)
-                row[a], row[b] = 1.0, -1.0
-                rows.append(row)
+                pairs.append((a, b))
                 targets.append(np.median(logs[a, both] - logs[b, both], axis=0))
     linked = np.zeros(n, bool)
-    for row in rows:
-        linked |= row != 0
+    linked[[c for pair in pairs for c in pair]] = True
     log_gains = np.zeros((n, 3))
-    if rows:
-        system = np.vstack([*rows, linked.astype(float)])  # the last row: the measured gains' logs sum to 0
+    if pairs:
+        system = np.zeros((len(pairs) + 1, n))
+        for row, (a, b) in enumerate(pairs):
+            system[row, a], system[row, b] = 1.0, -1.0
+        system[-1] = linked  # the last row: the measured gains' logs sum to 0
         rhs = np.vstack([*targets, np.zeros(3)])
-        system[:, ~linked] = 0
         log_gains[linked] = np.linalg.lstsq(system[:, linked], rhs, rcond=None)[0]
     misfit = [[] for _ in range(n)]
-    for row, target in zip(rows, targets):
-        a, b = np.flatnonzero(row == 1)[0], np.flatnonzero(row == -1)[0]
+    for (a, b), target in zip(pairs, targets):
         error = float(np.abs(target - (log_gains[a] - log_gains[b])).max())
         misfit[a].append(error)
         misfit[b].append(error)

@@ -24,7 +24,7 @@ from pipelines.body.locate import file_sha256
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.errors import CaptureError
 from pipelines.runs.requests import EvalRequest, refuse_options
-from pipelines.runs.subject.session import capture_body_record, load_run, poses_for_frames
+from pipelines.runs.subject.session import capture_body_record, capture_gains, load_run, poses_for_frames
 
 
 def _view_metrics(run, split: str, items, out_dir: Path, request: EvalRequest) -> list[dict]:
@@ -38,7 +38,7 @@ def _view_metrics(run, split: str, items, out_dir: Path, request: EvalRequest) -
     poses, _, _ = poses_for_frames(run if split != "capture" else capture, run.body_model, frames)
     poses = poses.to(device)
     bg = 1.0 if config.data.white_background else 0.0
-    gains = capture.camera_gains if config.data.camera_gains else None  # each camera's colour (docs/model.md §6)
+    gains = capture_gains(capture, config)  # each camera's colour (docs/model.md §6)
     records = []
     views = tqdm(items, desc=f"eval {split}", unit="view", disable=not request.progress)
     for index, (frame, cam) in enumerate(views):

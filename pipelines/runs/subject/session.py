@@ -199,6 +199,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
     _, bodies, shapes = poses_for_frames(source, body_model, box_frames(frames, config.data.box_frames))
     boxes = fit_boxes(body_model, bodies, shapes, config.model.box_scale_pad, config.model.box_abs_pad)
     held_frame = frames[len(frames) // 2]
+    gains = capture_gains(capture, config)
     held_view = protocol.test_views[0] if protocol.test_views else protocol.train_views[0]
 
     def validation():
@@ -213,25 +214,23 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         f"{capture.root}: {len(training)} training images ({len(frames)} frames x {len(protocol.train_views)} views)",
         capture_poses(source, body_model, frames) if config.train.pose_correction or refine else None,
         frames.index(held_frame),
-        {"body_model": body_model_record(body_model.path), **gains_record(capture, config)},
+        {"body_model": body_model_record(body_model.path), **gains_record(capture, gains)},
         held_back_views(capture, protocol, body_model, held_back, device, progress),
-        training_gains(capture, protocol, config),
+        None if gains is None else torch.as_tensor(gains[list(protocol.train_views)]),
     )
 
 
-def gains_record(capture, config: FitConfig) -> dict:
+def capture_gains(capture, config: FitConfig) -> np.ndarray | None:
+    """(C, 3) the capture's measured colour gain per camera (``colour.json``), or None where it has none or
+    ``data.camera_gains`` is off: what a fit trains and is evaluated with (docs/model.md §6)."""
+    return capture.camera_gains if config.data.camera_gains else None
+
+
+def gains_record(capture, gains: np.ndarray | None) -> dict:
     """The checkpoint's record of the camera gains the fit trained with (``camera_gains``: name -> [r, g, b])."""
-    gains = capture.camera_gains if config.data.camera_gains else None
     if gains is None:
         return {}
     return {"camera_gains": {c.name: [float(v) for v in g] for c, g in zip(capture.cameras, gains)}}
-
-
-def training_gains(capture, protocol, config: FitConfig) -> torch.Tensor | None:
-    """(C, 3) the training cameras' measured colour gains (``colour.json``), or None where the capture has none or
-    ``data.camera_gains`` is off."""
-    gains = capture.camera_gains if config.data.camera_gains else None
-    return None if gains is None else torch.as_tensor(gains[list(protocol.train_views)])
 
 
 def split_holdout(frames: list[int], train) -> tuple[list[int], list[int]]:
