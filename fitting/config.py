@@ -103,6 +103,8 @@ class TrainConfig:
     colour_jitter: float = 0.0  #: autoencoder: per-image channel gains in [1-j, 1+j] on input and target (0: off)
     lr_decay: float = 0.99995  #: multiplicative decay per step (upstream)
     lr_min: float = 0.0  #: floor of the decayed learning rate
+    lr_anneal: float = 0.0  #: the last fraction of the budget (steps or minutes) over which the rate falls (0: off)
+    lr_anneal_to: float = 0.1  #: with lr_anneal: the rate's multiplier at the end of the budget
     adam_eps: float = 1e-12  #: Adam epsilon (upstream)
     mask_weight: float = 1.0  #: lambda_mask (0: ablation)
     checkpoint_minutes: float = 3.0  #: write a checkpoint at least this often
@@ -346,6 +348,8 @@ RANGES = {
     "train.colour_jitter": (lambda v: 0 <= v < 1, "in [0, 1)"),
     "train.lr_decay": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "train.lr_min": (lambda v: v >= 0, ">= 0"),
+    "train.lr_anneal": (lambda v: 0 <= v <= 1, "in [0, 1]"),
+    "train.lr_anneal_to": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "train.adam_eps": (lambda v: v > 0, "> 0"),
     "train.mask_weight": (lambda v: v >= 0, ">= 0"),
     "train.checkpoint_minutes": (lambda v: v >= 0, ">= 0 (0: after every step)"),

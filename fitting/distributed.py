@@ -75,13 +75,18 @@ def sum_gradients(parameters, processes: Processes) -> None:
         offset += p.numel()
 
 
-def any_process(flag: bool, processes: Processes, device: torch.device) -> bool:
-    """True on every process if ``flag`` is true on any (time budgets and stops are agreed, never diverge)."""
+def agreed_max(value: float, processes: Processes, device: torch.device) -> float:
+    """The largest of every process's ``value``, on every process (time budgets are agreed, never diverge)."""
     if not processes.distributed:
-        return flag
-    value = torch.tensor([1.0 if flag else 0.0], device=device)
-    dist.all_reduce(value, op=dist.ReduceOp.MAX)
-    return bool(value.item() > 0)
+        return value
+    shared = torch.tensor([value], dtype=torch.float64, device=device)
+    dist.all_reduce(shared, op=dist.ReduceOp.MAX)
+    return float(shared.item())
+
+
+def any_process(flag: bool, processes: Processes, device: torch.device) -> bool:
+    """True on every process if ``flag`` is true on any (stops are agreed, never diverge)."""
+    return agreed_max(1.0 if flag else 0.0, processes, device) > 0
 
 
 def barrier(processes: Processes) -> None:

@@ -17,12 +17,13 @@ from fitting.checkpoint import save_checkpoint
 from fitting.config import FitConfig
 from fitting.corrections import CameraColour, FrameAppearance, MeasuredColour, PoseCorrection, PosePrior, RowAdam
 from fitting.data import FitData
-from fitting.distributed import SINGLE, Processes, any_process, sum_gradients
+from fitting.distributed import SINGLE, Processes, agreed_max, any_process, sum_gradients
 from fitting.files import named_errors
 from fitting.losses import ray_loss
 from fitting.model_setup import encoding_window, make_field
 from fitting.plots import write_curve, write_validation
 from fitting.run_folder import trim_log, write_config
+from fitting.schedule import Budget, lr_factor
 from fitting.selection import selection_set
 from fitting.unseen import unseen_views_loss
 from narf.fields.common import PoseBatch
@@ -101,13 +102,13 @@ class Trainer:
         self.optimiser = torch.optim.Adam(
             groups, lr=config.train.lr, betas=(0.9, 0.999), eps=config.train.adam_eps, fused=True
         )
-        decay, floor = config.train.lr_decay, config.train.lr_min / config.train.lr
-        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimiser, lambda step: max(decay**step, floor))
+        self.budget = Budget(config.train.steps)
+        self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimiser, lambda step: self._lr_factor(step))
         self.pose_optimiser = self.pose_scheduler = None
         if self.pose_correction is not None and config.train.pose_correction:  # per-knot moments (RowAdam)
             self.pose_optimiser = RowAdam(self._pose_groups(), lr=config.train.pose_lr, eps=config.train.adam_eps)
             self.pose_scheduler = torch.optim.lr_scheduler.LambdaLR(
-                self.pose_optimiser, lambda step: max(decay**step, floor)
+                self.pose_optimiser, lambda step: self._lr_factor(step)
             )
         self.generator = torch.Generator(device="cpu").manual_seed(config.train.seed + 1)
         self.step, self.elapsed = 0, 0.0
@@ -356,6 +357,12 @@ class Trainer:
         generator = torch.Generator().manual_seed(seed * 1_000_003 + self.step)
         refresh_cells(grid, density, poses, field.box_centres, field.box_half_extents, cells, generator)
 
+    def _lr_factor(self, step: int) -> float:
+        """The learning rate's multiplier at ``step`` (``fitting.schedule.lr_factor``; docs/model.md §6)."""
+        t = self.config.train
+        progress = self.budget.progress(step)
+        return lr_factor(step, progress, t.lr_decay, t.lr_min / t.lr, t.lr_anneal, t.lr_anneal_to)
+
     def _trained_parameters(self) -> list[torch.nn.Parameter]:
         optimisers = [self.optimiser] + ([] if self.pose_optimiser is None else [self.pose_optimiser])
         return [p for o in optimisers for group in o.param_groups for p in group["params"]]
@@ -367,12 +374,13 @@ class Trainer:
         start, last_save = time.perf_counter(), time.perf_counter()
         elapsed0, loss, score = self.elapsed, math.nan, math.nan
         bar = tqdm(total=t.steps, initial=self.step, desc="fit", unit="step", disable=not self.progress)
+        self.budget = Budget(t.steps, max_minutes)
         window_start, window_rays = time.perf_counter(), 0
         finished = self.step >= t.steps
         try:
             while self.step < t.steps:
-                out_of_time = max_minutes is not None and (time.perf_counter() - start) / 60 >= max_minutes
-                if any_process(out_of_time, self.processes, self.device):
+                self.budget.tick(lambda fraction: agreed_max(fraction, self.processes, self.device))
+                if self.budget.out_of_time:
                     break
                 loss, score = self.train_step()
                 self._check_finite(loss)

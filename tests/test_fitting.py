@@ -16,6 +16,7 @@ from fitting.checkpoint import CheckpointError, load_checkpoint
 from fitting.config import ConfigError, load_config
 from fitting.evaluate import average_metrics, frame_metrics
 from fitting.run_folder import prepare_run_dir
+from fitting.schedule import Budget, lr_factor
 from pipelines.cli import eval as cli_eval
 from pipelines.cli import fit as cli_fit
 from pipelines.cli.common import run_cli
@@ -289,6 +290,25 @@ def test_learning_rate_decays_to_its_floor(data_root_64, tmp_path):
     assert rates[0] == pytest.approx(0.005) and rates[-1] == pytest.approx(0.001) and min(rates) >= 0.001 - 1e-12
     with pytest.raises(ConfigError, match="train.lr_min"):
         load_config("tiny", ["train.lr_min=0.5"])
+
+
+def test_learning_rate_anneals_over_the_end_of_the_budget(data_root_64, tmp_path):
+    # 10 steps, the last 40 % annealed to 0.1: the factor is 1 through step 6, then 0.1^((k/10 - 0.6) / 0.4)
+    assert lr_factor(6, 0.6, 1.0, 0.0, 0.4, 0.1) == 1.0
+    assert lr_factor(8, 0.8, 1.0, 0.0, 0.4, 0.1) == pytest.approx(0.1**0.5, rel=1e-12)
+    assert lr_factor(3, 1.0, 0.5, 0.0, 0.4, 0.1) == pytest.approx(0.125 * 0.1, rel=1e-12)
+    assert lr_factor(3, 1.0, 0.5, 0.0, 0.0, 0.1) == 0.125  # off: upstream's decay alone
+    budget = Budget(steps=100, minutes=1.0)
+    budget.tick(lambda fraction: 0.75)  # the clock as agreed between processes
+    assert budget.progress(10) == 0.75 and not budget.out_of_time
+    budget.tick(lambda fraction: 1.0)
+    assert budget.out_of_time and budget.progress(10) == 1.0
+    trainer = _fit(data_root_64, tmp_path / "run", "train.steps=10", "train.log_every=1", "train.lr_anneal=0.4")
+    trainer.fit()
+    rates = [json.loads(line)["lr"] for line in (tmp_path / "run" / "log.jsonl").read_text().splitlines()]
+    # logged after each step k = 1..10: 0.01 · 0.99995^k · a(k / 10), float64 rounded once when logged
+    expected = [0.01 * 0.99995**k * 0.1 ** max((k / 10 - 0.6) / 0.4, 0.0) for k in range(1, 11)]
+    assert rates == pytest.approx(expected, rel=1e-9)
 
 
 def test_save_checkpoint_removes_stale_temporaries(tmp_path):

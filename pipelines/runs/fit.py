@@ -19,8 +19,16 @@ from pipelines.body.locate import chosen_smpl_dir
 from pipelines.runs.kinds import RUN_KINDS
 from pipelines.runs.requests import FitInterrupted, FitOutcome, FitRequest
 
-#: Settings that ``--resume`` may change (``--set``): how long to go on and how often to write.
-RESUMABLE = ("train.checkpoint_minutes", "train.log_every", "train.steps", "train.validate_every")
+#: Settings that ``--resume`` may change (``--set``): how long to go on, how the learning rate ends, how often to
+#: write.
+RESUMABLE = (
+    "train.checkpoint_minutes",
+    "train.log_every",
+    "train.lr_anneal",
+    "train.lr_anneal_to",
+    "train.steps",
+    "train.validate_every",
+)
 
 
 def start_run(run_dir: Path, device, config: FitConfig, progress: bool = True, processes: Processes = SINGLE):
