@@ -13,6 +13,13 @@ on joints that no target observes (wrists, hands, feet, head), and ``d`` the fra
 need no vertices (they are regressed from the shaped rest mesh, before pose blend shapes), so each step is one
 forward kinematics pass.
 
+*Graduated reach.* Every frame starts from the rest pose, and Geman-McClure stops pulling a target more than a few
+scales away: a limb far from rest in a fast movement (an arm overhead, a leg kicked back) then follows the priors and
+the neighbouring frames instead of its keypoints. The pose stage therefore starts with the kernel
+``rho_k(r) = r^2 / (1 + (r / k)^2)`` at ``k = robust_reach`` (as steep near zero, saturating k times further out) and
+shrinks k geometrically to 1 (Geman-McClure) over its first half, a graduated non-convexity (Black and Rangarajan
+1996); the global stage, where the limbs are still at rest, keeps k = 1.
+
 A last stage (``silhouette_iterations``) adds the person masks, ``w_s (E_out + E_in)`` of
 ``pipelines.prepare.silhouettes`` on the posed vertices, and corrects every camera's pose
 (:class:`CameraCorrection`) against a prior of ``camera_turn`` degrees and ``camera_shift`` metres: a calibration a
@@ -58,6 +65,7 @@ class FitSettings:
     pose_prior: float = 2e-3
     unobserved_prior: float = 0.1
     smooth: float = 0.5
+    robust_reach: float = 4.0  # the keypoint stage's robust kernel starts saturating this many times further out
     shape_prior: float = 1e-3
     offset_prior: float = 5.0
     silhouette_iterations: int = 400  # the last stage, when the masks take part (pipelines.prepare.silhouettes)
@@ -205,12 +213,16 @@ class _Problem:
         local = offsets[self.offset_source] * self.offset_sign
         return frames[..., :3, 3] + (frames[..., :3, :3] @ local[..., None])[..., 0]
 
-    def energy(self, poses, rh, th, shapes, offsets, P: torch.Tensor | None = None, before=None) -> torch.Tensor:
+    def energy(
+        self, poses, rh, th, shapes, offsets, P: torch.Tensor | None = None, before=None, reach: float = 1.0
+    ) -> torch.Tensor:
         """The energy of the module docstring; ``P`` (V, 3, 4): the projections to use (corrected cameras);
-        ``before``: (poses (1, 72), rh (1, 3), th (1, 3)) of a frame before the first, held, for the smoothness."""
+        ``before``: (poses (1, 72), rh (1, 3), th (1, 3)) of a frame before the first, held, for the smoothness;
+        ``reach`` >= 1: the robust kernel ``r^2 / (1 + (r / reach)^2)``, as near zero as Geman-McClure's but
+        saturating ``reach`` times further out (module docstring, *Graduated reach*)."""
         s = self.settings
         targets = self.targets(poses, rh, th, shapes, offsets)
-        robust = lambda r: r**2 / (r**2 + 1)  # noqa: E731
+        robust = lambda r: r**2 / ((r / reach) ** 2 + 1)  # noqa: E731
         r3 = (targets - self.points).norm(dim=-1) / s.scale_3d
         e3 = (self.seen * robust(r3)).sum() / self.seen.sum().clamp(min=1)
         homogeneous = torch.cat([targets, torch.ones_like(targets[..., :1])], dim=-1)
@@ -373,7 +385,8 @@ def fit_body(
     mask = torch.ones(N_JOINTS * 3)
     mask[:3] = 0  # poses[:3] stays 0: the global rotation is Rh
     every = [poses, rh, th, shapes, offsets]
-    keypoint_energy = lambda: problem.energy(poses * mask, rh, th, shapes, offsets)  # noqa: E731
+    reach = [1.0]  # the global stage leaves the limbs, still at rest, to saturate
+    keypoint_energy = lambda: problem.energy(poses * mask, rh, th, shapes, offsets, reach=reach[0])  # noqa: E731
     total = fit_steps(settings, n_frames, silhouettes is not None)
     done = [0]
 
@@ -383,7 +396,13 @@ def fit_body(
             progress(done[0], total)
 
     adam_stage(keypoint_energy, [rh, th], settings.global_iterations, settings.lr, tick)
-    adam_stage(keypoint_energy, every, settings.iterations, settings.lr, tick)
+    half, reach[0] = max(settings.iterations // 2, 1), settings.robust_reach  # shrinks to 1 over the first half
+
+    def tick_and_shrink():
+        reach[0] = max(reach[0] * (1.0 / settings.robust_reach) ** (1.0 / half), 1.0)
+        tick()
+
+    adam_stage(keypoint_energy, every, settings.iterations, settings.lr, tick_and_shrink)
     correction = None
     if silhouettes is not None:
         correction = _silhouette_stage(problem, body, silhouettes, every, mask, cameras, settings, tick)
