@@ -68,7 +68,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--resume",
         action="store_true",
-        help="continue the checkpoint in --out (--set may raise train.steps, change the anneal at its end or how often it writes)",
+        help="continue the checkpoint in --out (--set may raise train.steps, change its anneal or how often it writes)",
     )
     parser.add_argument(
         "--max-minutes", type=positive_number, default=None, help="stop (and checkpoint) after this many minutes"
