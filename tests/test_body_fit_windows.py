@@ -86,6 +86,19 @@ def test_rotation_vectors_are_unwrapped_through_half_and_whole_turns():
         np.testing.assert_allclose(cv2.Rodrigues(a)[0], cv2.Rodrigues(b)[0], atol=1e-9)
 
 
+def _four_cameras_seeing(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(4, 3, 4) projections of cameras 3 m around (0, 0, 3), facing it, and the (F, 4, T, 3) exact keypoints
+    (confidence 1) of the (F, T, 3) ``points`` in them."""
+    K = np.array([[800.0, 0, 500], [0, 800.0, 500], [0, 0, 1]])
+    P = []
+    for angle in (0, np.pi / 2, np.pi, 3 * np.pi / 2):
+        R = cv2.Rodrigues(np.array([0.0, angle, 0.0]))[0]
+        P.append(K @ np.c_[R, -R @ np.array([3 * np.sin(angle), 0, 3 - 3 * np.cos(angle)])])
+    P = np.array(P)
+    ones = np.ones((*points.shape[:1], 4, points.shape[1], 1))
+    return P, np.concatenate([np.moveaxis(project(P, points), 2, 1), ones], -1)
+
+
 def test_a_body_turning_through_a_half_turn_is_fitted_in_every_frame():
     """Keypoints of the rest body turning about its vertical by 2.9 to 3.6 rad (through pi) in 10 frames, seen by
     4 cameras: every frame's targets and turn fitted. Without unwrapping, the smoothness on Rh
@@ -95,13 +108,7 @@ def test_a_body_turning_through_a_half_turn_is_fitted_in_every_frame():
         rest = body.rest_joints(torch.zeros(1, 10))[0, list(TARGET_JOINTS)].numpy().astype(np.float64)
     turns = _turning(np.linspace(2.9, 3.6, 10))
     points = np.stack([rest @ cv2.Rodrigues(r)[0].T + [0, 0, 3.0] for r in turns])  # (F, T, 3)
-    K = np.array([[800.0, 0, 500], [0, 800.0, 500], [0, 0, 1]])
-    P = []
-    for angle in (0, np.pi / 2, np.pi, 3 * np.pi / 2):
-        R = cv2.Rodrigues(np.array([0.0, angle, 0.0]))[0]
-        P.append(K @ np.c_[R, -R @ np.array([3 * np.sin(angle), 0, 3 - 3 * np.cos(angle)])])  # facing the body
-    P = np.array(P)
-    keypoints = np.concatenate([np.moveaxis(project(P, points), 2, 1), np.ones((10, 4, len(rest), 1))], -1)
+    P, keypoints = _four_cameras_seeing(points)
     assert np.isfinite(keypoints).all()
     settings = FitSettings(global_iterations=100, iterations=200, silhouette_iterations=0)
     fitted = fit_body(body, P, np.full(4, 1000.0), keypoints, points, settings)
@@ -129,13 +136,7 @@ def test_limbs_far_from_rest_are_pulled_to_their_keypoints():
         rest = body.rest_joints(torch.zeros(1, 10)).expand(frames, -1, -1)
         at = rigid_from_rotvec_translation(torch.zeros(frames, 3), torch.tensor([[0, 0, 3.0]] * frames))
         points = world_from_joints(poses, rest, at)[:, list(TARGET_JOINTS), :3, 3].double().numpy()
-    K = np.array([[800.0, 0, 500], [0, 800.0, 500], [0, 0, 1]])
-    P = []
-    for angle in (0, np.pi / 2, np.pi, 3 * np.pi / 2):
-        R = cv2.Rodrigues(np.array([0.0, angle, 0.0]))[0]
-        P.append(K @ np.c_[R, -R @ np.array([3 * np.sin(angle), 0, 3 - 3 * np.cos(angle)])])  # facing the body
-    P = np.array(P)
-    keypoints = np.concatenate([np.moveaxis(project(P, points), 2, 1), np.ones((frames, 4, len(TARGET_JOINTS), 1))], -1)
+    P, keypoints = _four_cameras_seeing(points)
     fitted = fit_body(body, P, np.full(4, 1000.0), keypoints, points, FitSettings(silhouette_iterations=0))
     # the smoothness pulls each frame towards neighbours up to 0.37 rad away, and the priors hold joints no target
     # observes: a few cm at the fastest frames, far below the tens of cm of a limb left near rest
