@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 import random
@@ -102,7 +103,7 @@ class Trainer:
         self.optimiser = torch.optim.Adam(
             groups, lr=config.train.lr, betas=(0.9, 0.999), eps=config.train.adam_eps, fused=True
         )
-        self.budget = Budget(config.train.steps)
+        self.budget = Budget(config.train.steps)  # steps only until fit() gives it its minutes
         self.scheduler = torch.optim.lr_scheduler.LambdaLR(self.optimiser, lambda step: self._lr_factor(step))
         self.pose_optimiser = self.pose_scheduler = None
         if self.pose_correction is not None and config.train.pose_correction:  # per-knot moments (RowAdam)
@@ -375,11 +376,12 @@ class Trainer:
         elapsed0, loss, score = self.elapsed, math.nan, math.nan
         bar = tqdm(total=t.steps, initial=self.step, desc="fit", unit="step", disable=not self.progress)
         self.budget = Budget(t.steps, max_minutes)
+        agree = functools.partial(agreed_max, processes=self.processes, device=self.device)
         window_start, window_rays = time.perf_counter(), 0
         finished = self.step >= t.steps
         try:
             while self.step < t.steps:
-                self.budget.tick(lambda fraction: agreed_max(fraction, self.processes, self.device))
+                self.budget.tick(agree)
                 if self.budget.out_of_time:
                     break
                 loss, score = self.train_step()
