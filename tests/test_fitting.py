@@ -309,6 +309,9 @@ def test_learning_rate_anneals_over_the_end_of_the_budget(data_root_64, tmp_path
     # logged after each step k = 1..10: 0.01 · 0.99995^k · a(k / 10), float64 rounded once when logged
     expected = [0.01 * 0.99995**k * 0.1 ** max((k / 10 - 0.6) / 0.4, 0.0) for k in range(1, 11)]
     assert rates == pytest.approx(expected, rel=1e-9)
+    for bad in ("train.lr_anneal=1.5", "train.lr_anneal_to=0"):
+        with pytest.raises(ConfigError, match=bad.split("=")[0]):
+            load_config("tiny", [bad])
 
 
 def test_save_checkpoint_removes_stale_temporaries(tmp_path):
