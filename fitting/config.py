@@ -61,6 +61,10 @@ class ModelConfig:
     pose_in_color: bool = True  #: p_nerf only: pose into the colour branch (eq. D)
     box_scale_pad: float = 1.1  #: part boxes: h <- scale * h + abs
     box_abs_pad: float = 0.03  #: part boxes: additive padding (body units)
+    #: subject fits: each part holds density only within this many metres of the body (inside it too), on a
+    #: shell_resolution^3 grid per box (docs/model.md §1, *Body shells*); 0: the whole box, as the paper
+    body_shell: float = 0.0
+    shell_resolution: int = 32
     image_size: int = 128  #: cnn only: side of its square bone maps and output images (paper: 128)
     latent_dim: int = 0  #: autoencoder: size of z_s and of z_a (paper 256); 0 for a per-subject fit
     encoder_channels: int = 32  #: autoencoder: image encoder base width c (paper 32: 32..512 channels)
@@ -301,6 +305,7 @@ KIND_ONLY = {
     "data.train_meshes": "autoencoder",
     "data.renders_per_mesh": "autoencoder",
     "train.pose_correction": "subject",
+    "model.body_shell": "subject",
     "train.camera_colour": "subject",
     "data.camera_gains": "subject",
     "train.random_background": "subject",
@@ -321,6 +326,8 @@ RANGES = {
     "model.temperature": (lambda v: v > 0, "> 0"),
     "model.box_scale_pad": (lambda v: v > 0, "> 0"),
     "model.box_abs_pad": (lambda v: v >= 0, ">= 0"),
+    "model.body_shell": (lambda v: v >= 0, ">= 0 (metres; 0: whole boxes)"),
+    "model.shell_resolution": (lambda v: 2 <= v <= 128, "in [2, 128]"),
     "model.image_size": (lambda v: v >= 32 and v % 32 == 0, "a multiple of 32, >= 32"),
     "model.latent_dim": (lambda v: v >= 0, ">= 0"),
     "model.encoder_channels": (lambda v: v >= 1, ">= 1"),
@@ -424,6 +431,8 @@ def validate_config(config: FitConfig) -> None:
     model_class = getattr(spec.build, "func", spec.build)  # a constructor or a functools.partial of one
     if config.model.pose_dropout and getattr(model_class, "pose_in_density", True):
         raise ConfigError(f"model.pose_dropout: {config.model.name}'s density reads the pose features; leave it at 0")
+    if config.model.body_shell and not spec.rays:
+        raise ConfigError("model.body_shell: the CNN baseline has no part boxes; leave it at 0")
     rays_only = ("pose_correction", "camera_colour", "random_background", "holdout_every", "entropy_weight")
     for key in (*rays_only, "smoothness_weight"):
         if getattr(config.train, key) and not spec.rays:

@@ -190,6 +190,7 @@ class FitData:
             None.
         camera_gains: (C, 3) the measured colour gain of each training camera (``training``'s camera indices), or
             None (docs/model.md §6, *Measured camera colour*).
+        shells: (P, N, N, N) bool, the part boxes' shells (docs/model.md §1, *Body shells*), or None: whole boxes.
     """
 
     training: TrainingSet
@@ -202,3 +203,4 @@ class FitData:
     provenance: dict = field(default_factory=dict)
     selection: TrainingSet | None = None
     camera_gains: torch.Tensor | None = None
+    shells: torch.Tensor | None = None

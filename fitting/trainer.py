@@ -91,6 +91,8 @@ class Trainer:
         self._cell_order = None if grid is None else torch.randperm(grid.density.numel(), generator=generator)
         if state is None and hasattr(self.field, "set_boxes"):
             self.field.set_boxes(data.boxes[0].to(device), data.boxes[1].to(device))
+            if data.shells is not None:
+                self.field.set_shells(data.shells)
         if config.train.compile:
             # compile the bound forward, not the module, so state_dict keys stay those of the eager field
             self.field.forward = torch.compile(self.field.forward, dynamic=True)

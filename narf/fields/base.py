@@ -1,4 +1,5 @@
-"""Base class of the NeRF-type fields: part boxes, box coordinates, outputs and cost accounting."""
+"""Base class of the NeRF-type fields: part boxes (and the body's shells within them), box coordinates, outputs and
+cost accounting."""
 
 from __future__ import annotations
 
@@ -14,6 +15,7 @@ from narf.encodings import POINT_FREQS, POSE_FREQS, point_encoding, positional_e
 from narf.fields.common import PoseBatch, RadianceHead, part_box_coordinates, part_directions, part_local
 from narf.geometry import check_shape
 from narf.layers import GroupedLinear
+from narf.occupancy import flat_cell_index
 
 
 @dataclass
@@ -87,6 +89,9 @@ class Field(nn.Module):
         self.n_parts, self.latent_dim, self.appearance_dim = n_parts, latent_dim, appearance_dim
         self.register_buffer("box_centres", torch.zeros(n_parts, 3))
         self.register_buffer("box_half_extents", torch.ones(n_parts, 3))
+        #: (P, N, N, N) bool over each box's coordinates: where the part may hold density (docs/model.md §1, *Body
+        #: shells*); one cell that is True (the default) is the whole box, the paper's model
+        self.register_buffer("part_shells", torch.ones(n_parts, 1, 1, 1, dtype=torch.bool))
         #: optional narf.occupancy.OccupancyGrid; renderers narrow their ray bounds with it (docs/model.md §5)
         self.occupancy: nn.Module | None = None
 
@@ -98,10 +103,36 @@ class Field(nn.Module):
         self.box_centres.copy_(centres)
         self.box_half_extents.copy_(half_extents)
 
+    def set_shells(self, shells: torch.Tensor) -> None:
+        """Limit each part to the cells of its box that ``shells`` (P, N, N, N) bool marks (docs/model.md §1)."""
+        check_shape("shells", shells, (self.n_parts, -1, -1, -1))
+        n = shells.shape[1]
+        if shells.shape[1:] != (n, n, n) or shells.dtype != torch.bool:
+            raise ValueError(f"shells: expected (P, N, N, N) bool, got {tuple(shells.shape)} {shells.dtype}")
+        self.part_shells = shells.to(self.box_centres.device)
+
+    def in_parts(self, u: torch.Tensor) -> torch.Tensor:
+        """Which part holds each point: box coordinates u (..., P, 3) -> (..., P) bool, ``max|u_i| <= 1`` and, with
+        shells set, the point's cell of part i's shell."""
+        in_box = u.abs().amax(dim=-1) <= 1
+        n = self.part_shells.shape[1]
+        if n == 1:
+            return in_box
+        part = torch.arange(self.n_parts, device=u.device)
+        return in_box & self.part_shells.reshape(-1)[flat_cell_index(u, part, n, self.n_parts)]
+
+    def _load_from_state_dict(self, state_dict, prefix, *args, **kwargs):
+        # the shells' resolution is the saved one; a checkpoint written before shells existed holds none: whole boxes
+        key = prefix + "part_shells"
+        if key not in state_dict:
+            state_dict[key] = torch.ones(self.n_parts, 1, 1, 1, dtype=torch.bool)
+        self.part_shells = torch.empty_like(state_dict[key], device=self.part_shells.device)
+        super()._load_from_state_dict(state_dict, prefix, *args, **kwargs)
+
     def box_coordinates(self, x_local: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """u_i = (x_i - c_i) / h_i and the in-box indicator ``max|u_i| <= 1``: (R, S, P, 3), (R, S, P)."""
+        """u_i = (x_i - c_i) / h_i and :meth:`in_parts` of it: (R, S, P, 3), (R, S, P)."""
         u = (x_local - self.box_centres) / self.box_half_extents
-        return u, u.abs().amax(dim=-1) <= 1
+        return u, self.in_parts(u)
 
     def encode_points(self, values: torch.Tensor, without_pose: torch.Tensor | None = None) -> torch.Tensor:
         """gamma_10 of part-local points or box coordinates (..., 3) -> (..., 60), through the coarse-to-fine
@@ -163,7 +194,7 @@ class Field(nn.Module):
             dirs, pose = self._perturbed_colour_inputs(dirs, pose)
         d_local = part_directions(dirs, pose)
         u = part_box_coordinates(points, pose, self.box_centres, self.box_half_extents)
-        in_box = u.abs().amax(dim=-1) <= 1
+        in_box = self.in_parts(u)
         z_s = z_a = None
         if latent is not None and self.latent_dim:
             check_shape("latent", latent, (points.shape[0], 2 * self.latent_dim))

@@ -35,6 +35,7 @@ from pipelines.body.locate import (
     recorded_body_file,
 )
 from pipelines.body.model import BodyModel, capture_poses, pose_batch
+from pipelines.body.shells import part_shells
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.smpl_files import cache_dir
@@ -113,6 +114,16 @@ def fit_boxes(body_model: BodyModel, bodies, shapes: torch.Tensor, scale_pad: fl
     with torch.no_grad():
         rest = body_model.rest_body(shapes[:1])
         return body_model.part_boxes([rest, bodies], scale_pad, abs_pad)
+
+
+def fit_shells(body_model: BodyModel, bodies, shapes: torch.Tensor, boxes, model) -> torch.Tensor | None:
+    """The part boxes' shells over the rest pose and the posed ``bodies`` (docs/model.md §1, *Body shells*), or None
+    where ``model.body_shell`` is 0 (whole boxes, as the paper)."""
+    if not model.body_shell:
+        return None
+    with torch.no_grad():
+        rest = body_model.rest_body(shapes[:1])
+    return part_shells([rest, bodies], body_model.faces, *boxes, model.shell_resolution, model.body_shell)
 
 
 def box_frames(frames: list[int], count: int) -> list[int]:
@@ -198,6 +209,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         training.poses = poses.to(device)
     _, bodies, shapes = poses_for_frames(source, body_model, box_frames(frames, config.data.box_frames))
     boxes = fit_boxes(body_model, bodies, shapes, config.model.box_scale_pad, config.model.box_abs_pad)
+    shells = fit_shells(body_model, bodies, shapes, boxes, config.model)
     held_frame = frames[len(frames) // 2]
     gains = capture_gains(capture, config)
     held_view = protocol.test_views[0] if protocol.test_views else protocol.train_views[0]
@@ -217,6 +229,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         {"body_model": body_model_record(body_model.path), **gains_record(capture, gains)},
         held_back_views(capture, protocol, body_model, held_back, device, progress),
         None if gains is None else torch.as_tensor(gains[list(protocol.train_views)]),
+        shells,
     )
 
 

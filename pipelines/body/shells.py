@@ -1,0 +1,109 @@
+"""Each part's shell: the cells of its box that lie inside the body or within a margin of its surface (docs/model.md
+§1, *Body shells*).
+
+A part box is the bounding box of the part's vertices, so it also holds empty space the body never fills (beside a
+thigh, between the legs, under an arm). Training cameras carve that space only where one of their rays sees past the
+body; with a few cameras, space that every training ray sees the body in front of or behind stays free to hold
+density, and a new camera sees it as a person too wide. The shells keep the field to the body's neighbourhood:
+
+* the cell centres of each part's N^3 grid over box coordinates ``u`` are posed with the part into the world, in the
+  rest pose and a few training frames;
+* a cell is in the shell when, in any of those frames, the signed distance of its centre to the body (from the
+  nearest vertex v: ``|x - v|`` outside, ``(x - v) . n_v`` inside, n_v the outward normal) is below the margin plus
+  half the cell's diagonal (the lookup takes the cell of a point, not its centre);
+* only vertices on the outside count as nearest: a vertex inside the body (the stand-in's tubes overlap where they
+  join; skin pressed against skin) would take a point deep inside for one outside it. Which vertices are inside is
+  decided once, on the first body given (the rest pose), by the winding number just outside each vertex.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+import trimesh
+from scipy.spatial import cKDTree
+
+from narf.kinematics import N_PARTS
+
+
+def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 256) -> np.ndarray:
+    """(N,) generalised winding number of a mesh (vertices (V, 3), faces (F, 3) wound outward) at points (N, 3):
+    the triangles' solid angles summed over 4 pi (Van Oosterom and Strackee 1983), tan(Omega / 2) = a . (b x c) /
+    (|a||b||c| + (a . b)|c| + (a . c)|b| + (b . c)|a|) with a, b, c the corners relative to the point. 1 inside a
+    closed surface, 0 outside, 2 where two overlapping closed pieces hold the point."""
+    corners = torch.as_tensor(vertices, dtype=torch.float64)[torch.as_tensor(faces)]  # (F, 3, 3)
+    query = torch.as_tensor(points, dtype=torch.float64)
+    out = torch.empty(len(points), dtype=torch.float64)
+    for start in range(0, len(points), chunk):
+        rel = corners[None] - query[start : start + chunk, None, None]  # (n, F, 3, 3)
+        a, b, c = rel.unbind(dim=2)
+        la, lb, lc = a.norm(dim=-1), b.norm(dim=-1), c.norm(dim=-1)
+        numerator = (a * torch.linalg.cross(b, c)).sum(-1)
+        denominator = la * lb * lc + (a * b).sum(-1) * lc + (a * c).sum(-1) * lb + (b * c).sum(-1) * la
+        out[start : start + chunk] = torch.atan2(numerator, denominator).sum(dim=1) / (2 * math.pi)
+    return out.numpy()
+
+
+def hidden_vertices(vertices: np.ndarray, faces: np.ndarray, offset: float = 0.002, stride: int = 4) -> np.ndarray:
+    """(V,) bool: vertices that lie inside the body, where a point ``offset`` out along the vertex normal has a
+    winding number above 1/2 (the stand-in's tubes overlap inside the body; skin pressed against skin). The winding
+    number is taken at every ``stride``-th vertex (it costs V x F solid angles); every other vertex takes the answer
+    of the nearest of those whose normal is within 60 degrees of its own (not one across a thin wall)."""
+    normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals
+    sampled = np.arange(0, len(vertices), stride)
+    inside = winding_numbers(vertices[sampled] + offset * normals[sampled], vertices, faces) > 0.5
+    neighbours = min(16, len(sampled))
+    _, near = cKDTree(vertices[sampled]).query(vertices, k=neighbours)
+    near = near.reshape(len(vertices), neighbours)
+    alike = np.einsum("vki,vi->vk", normals[sampled][near], normals) > 0.5
+    first = np.where(alike.any(axis=1), alike.argmax(axis=1), 0)
+    return inside[near[np.arange(len(vertices)), first]]
+
+
+def signed_distance_to_vertices(
+    points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, among: np.ndarray | None = None
+) -> np.ndarray:
+    """(N,) signed distance of each point x (N, 3) to a mesh (vertices (V, 3), faces (F, 3) wound outward), from its
+    nearest vertex v: ``|x - v|`` where ``(x - v) . n_v >= 0`` (n_v the vertex's area-weighted normal), else that
+    negative projection (inside). Outside, the distance to the nearest vertex never falls short of the distance to
+    the surface by more than the vertex spacing; inside, the projection is the depth below a smooth surface.
+    ``among`` (V,) bool: the vertices that may be nearest (default all)."""
+    normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals
+    ids = np.arange(len(vertices)) if among is None else np.flatnonzero(among)
+    distance, nearest = cKDTree(vertices[ids]).query(points)
+    nearest = ids[nearest]
+    projection = np.einsum("ni,ni->n", points - vertices[nearest], normals[nearest])
+    return np.where(projection < 0, projection, distance)
+
+
+def part_shells(
+    bodies: list,
+    faces: np.ndarray,
+    centres: torch.Tensor,
+    half_extents: torch.Tensor,
+    resolution: int,
+    margin: float,
+    frames: int = 8,
+) -> torch.Tensor:
+    """(P, N, N, N) bool shells of the part boxes (``centres``, ``half_extents`` (P, 3), body units) over up to
+    ``frames`` evenly spaced frames of each of ``bodies`` (``PosedBody`` batches: the rest pose first, then the
+    training frames), ``margin`` in world units."""
+    n = resolution
+    steps = (np.arange(n) + 0.5) * (2.0 / n) - 1.0
+    u = np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), axis=-1).reshape(-1, 3)  # (N^3, 3)
+    centres, half_extents = centres.double().cpu().numpy(), half_extents.double().cpu().numpy()
+    local = centres[:, None] + u[None] * half_extents[:, None]  # (P, N^3, 3) body units
+    half_diagonal = np.linalg.norm(half_extents, axis=1) / n  # (P,) body units
+    visible = ~hidden_vertices(bodies[0].vertices[0].double().cpu().numpy(), faces)
+    chosen = [(b, f) for b in bodies for f in np.unique(np.linspace(0, len(b.reach) - 1, frames).round().astype(int))]
+    inside = np.zeros((N_PARTS, n**3), bool)
+    for body, f in chosen:
+        reach = float(body.reach[f])
+        world_from_part = body.world_from_part[f].double().cpu().numpy()
+        world = np.einsum("pij,pnj->pni", world_from_part[:, :3, :3], local * reach) + world_from_part[:, None, :3, 3]
+        vertices = body.vertices[f].double().cpu().numpy()
+        distance = signed_distance_to_vertices(world.reshape(-1, 3), vertices, faces, visible).reshape(N_PARTS, -1)
+        inside |= distance < margin + half_diagonal[:, None] * reach
+    return torch.from_numpy(inside.reshape(N_PARTS, n, n, n))
