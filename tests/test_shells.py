@@ -130,6 +130,8 @@ def test_a_field_outside_its_shells_has_no_density(rest):
     body, boxes, shells, _ = rest
     field = build_field("narf_d", width=16)
     field.set_boxes(*boxes)
+    with torch.no_grad():  # an untrained field with density everywhere in its boxes
+        field.head.sigma_out.bias.fill_(5.0)
     pose = pose_batch(body)
     points = torch.rand(512, 8, 3, generator=torch.Generator().manual_seed(0)) * 1.6 - 0.8
     dirs = torch.nn.functional.normalize(torch.ones(512, 3), dim=-1)
@@ -141,7 +143,7 @@ def test_a_field_outside_its_shells_has_no_density(rest):
     u = part_box_coordinates(points, one, *boxes)
     in_box, in_shell = u.abs().amax(-1).le(1).any(-1), field.in_parts(u).any(-1)
     cut = in_box & ~in_shell
-    assert cut.sum() > 20 and (before[cut] > 0).sum() > 10
+    assert cut.sum() > 20 and (before[cut] > 0).all()
     assert (after[cut] == 0).all() and (after[~in_box] == 0).all()
 
 
