@@ -1,7 +1,9 @@
 """Meshes from a fitted field and their distance to a true surface (docs/design.md *Meshes out*).
 
-``extract_mesh`` samples the density over the union of the posed part boxes, runs scikit-image's marching cubes,
-and colours each vertex with the colour branch seen from outside along its normal, with a part label from the
+``extract_mesh`` samples the density over the union of the posed part boxes, fills every closed pocket of empty
+space inside the body (``filled_pockets``: the field's density inside the body is never seen by a camera, and a part
+held to its shell holds none deep inside, docs/model.md §1; a pocket would become a surface nobody sees), runs
+scikit-image's marching cubes, and colours each vertex with the colour branch seen from outside along its normal, with a part label from the
 part selector. ``surface_metrics`` compares two meshes: the symmetric surface distance (mean and 95th percentile
 over points sampled uniformly on both surfaces) and the normal consistency.
 
@@ -17,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 import trimesh
+from scipy.ndimage import binary_fill_holes
 from scipy.spatial import cKDTree
 from skimage.measure import marching_cubes
 from tqdm import tqdm
@@ -96,6 +99,13 @@ def density_grid(field, pose, resolution: int, chunk: int = 1 << 16, latent=None
     return sigma.reshape(shape), bounds[0], spacing
 
 
+def filled_pockets(volume: np.ndarray, level: float) -> np.ndarray:
+    """``volume`` (X, Y, Z) with every region below ``level`` that no face-connected path below it joins to the
+    grid's border raised to twice the level (scipy's ``binary_fill_holes``): no surface around a closed pocket."""
+    solid = volume > level
+    return np.where(binary_fill_holes(solid) & ~solid, np.float32(2 * level), volume).astype(volume.dtype)
+
+
 def extract_mesh(
     field, pose, resolution: int = 256, level: float = DEFAULT_LEVEL, latent=None, progress: bool = False
 ) -> ExtractedMesh:
@@ -107,7 +117,7 @@ def extract_mesh(
     volume, origin, spacing = density_grid(field, pose, resolution, latent=latent, progress=progress)
     if not volume.max() > level:
         raise ValueError(f"the density never reaches the level {level:g} (max {volume.max():.3g}); lower --level")
-    padded = np.pad(volume, 1)  # zero density outside the grid closes the surface
+    padded = np.pad(filled_pockets(volume, level), 1)  # zero density outside the grid closes the surface
     verts, faces, _, _ = marching_cubes(padded, level, spacing=(spacing,) * 3)
     verts, faces = verts + origin - spacing, np.ascontiguousarray(faces[:, ::-1])  # wind outward (density inside)
     # angle-weighted face normals of the mesh itself: the grid gradient of a sharp density is a poor normal

@@ -20,15 +20,19 @@ RADIUS, RAMP, PEAK = 0.5, 0.01, 200.0
 
 class Ball(Field):
     """One part: density PEAK * sigmoid((RADIUS - |x|) / RAMP) (level PEAK / 2 lies exactly at RADIUS), colour
-    (d + 1) / 2 of the viewing direction d."""
+    (d + 1) / 2 of the viewing direction d; ``hollow``: no density within RADIUS / 2 of the centre (a closed
+    pocket)."""
 
-    def __init__(self):
+    def __init__(self, hollow: bool = False):
         super().__init__(n_parts=1)
         self.anchor = torch.nn.Parameter(torch.zeros(1))
+        self.hollow = hollow
 
     def _forward(self, inputs):
         points, dirs = inputs.points, inputs.dirs
         sigma = PEAK * torch.sigmoid((RADIUS - points.norm(dim=-1)) / RAMP)
+        if self.hollow:
+            sigma = torch.where(points.norm(dim=-1) < RADIUS / 2, torch.zeros_like(sigma), sigma)
         rgb = ((dirs[:, None] + 1) / 2).expand(*points.shape[:2], 3)
         return FieldOutput(sigma + 0 * self.anchor, rgb)
 
@@ -84,6 +88,16 @@ def test_marching_cubes_of_an_analytic_ball():
     assert error.max() < 0.1 and error.mean() < 0.03
     with pytest.raises(ValueError, match="never reaches the level"):
         extract_mesh(field, _pose(), resolution=16, level=PEAK * 2)
+
+
+def test_a_closed_pocket_inside_is_no_surface():
+    field = Ball(hollow=True)
+    field.set_boxes(torch.zeros(1, 3), torch.full((1, 3), 0.8))
+    mesh = extract_mesh(field, _pose(), resolution=48, level=PEAK / 2)
+    radii = np.linalg.norm(mesh.vertices, axis=1)
+    # the outer sphere alone (within half a voxel, as the solid ball's), no vertex near the pocket's wall at R / 2
+    assert np.abs(radii - RADIUS).max() < 1.6 / 47 / 2
+    assert len(trimesh.Trimesh(mesh.vertices, mesh.faces).split(only_watertight=False)) == 1
 
 
 def test_surface_metrics_of_concentric_spheres():
