@@ -3,9 +3,9 @@
 ``extract_mesh`` samples the density over the union of the posed part boxes, fills every closed pocket of empty
 space inside the body (``filled_pockets``: the field's density inside the body is never seen by a camera, and a part
 held to its shell holds none deep inside, docs/model.md §1; a pocket would become a surface nobody sees), runs
-scikit-image's marching cubes, and colours each vertex with the colour branch seen from outside along its normal, with a part label from the
-part selector. ``surface_metrics`` compares two meshes: the symmetric surface distance (mean and 95th percentile
-over points sampled uniformly on both surfaces) and the normal consistency.
+scikit-image's marching cubes, and colours each vertex with the colour branch seen from outside along its normal,
+with a part label from the part selector. ``surface_metrics`` compares two meshes: the symmetric surface distance
+(mean and 95th percentile over points sampled uniformly on both surfaces) and the normal consistency.
 
 ``vertex_normals`` and ``vertex_faces`` compute what trimesh's properties of the same names do, without their
 fallback: trimesh wraps its sparse-matrix path in ``except BaseException`` and drops to a slow loop, which also
