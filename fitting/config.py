@@ -306,6 +306,7 @@ KIND_ONLY = {
     "data.renders_per_mesh": "autoencoder",
     "train.pose_correction": "subject",
     "model.body_shell": "subject",
+    "model.shell_resolution": "subject",
     "train.camera_colour": "subject",
     "data.camera_gains": "subject",
     "train.random_background": "subject",

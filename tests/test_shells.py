@@ -173,3 +173,6 @@ def test_body_shell_is_for_subject_fits():
     config.model.body_shell = 0.03
     with pytest.raises(ConfigError, match="model.body_shell: only subject"):
         validate_config(config)
+    config.model.body_shell, config.model.shell_resolution = 0.0, 16
+    with pytest.raises(ConfigError, match="model.shell_resolution: only subject"):
+        validate_config(config)
