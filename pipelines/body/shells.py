@@ -22,15 +22,15 @@ import math
 
 import numpy as np
 import torch
-import trimesh
 from scipy.spatial import cKDTree
 
+from fitting.mesh import vertex_normals
 from narf.kinematics import N_PARTS
 
 
 def winding_numbers(points: np.ndarray, vertices: np.ndarray, faces: np.ndarray, chunk: int = 64) -> np.ndarray:
     """(N,) generalised winding number of a mesh (vertices (V, 3), faces (F, 3) wound outward) at points (N, 3):
-    the triangles' solid angles summed over 4 pi (Van Oosterom and Strackee 1983), tan(Omega / 2) = a . (b x c) /
+    the triangles' solid angles summed over 4 pi (docs/model.md §1, *Body shells*), tan(Omega / 2) = a . (b x c) /
     (|a||b||c| + (a . b)|c| + (a . c)|b| + (b . c)|a|) with a, b, c the corners relative to the point. 1 inside a
     closed surface, 0 outside, 2 where two overlapping closed pieces hold the point. ``chunk`` points at a time
     (their corners: chunk x F x 9 doubles, 64 MB for SMPL's 13,776 faces)."""
@@ -52,7 +52,7 @@ def hidden_vertices(vertices: np.ndarray, faces: np.ndarray, offset: float = 0.0
     winding number above 1/2 (the stand-in's tubes overlap inside the body; skin pressed against skin). The winding
     number is taken at every ``stride``-th vertex (it costs V x F solid angles); every other vertex takes the answer
     of the nearest of those whose normal is within 60 degrees of its own (not one across a thin wall)."""
-    normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals
+    normals = vertex_normals(vertices, faces)
     sampled = np.arange(0, len(vertices), stride)
     inside = winding_numbers(vertices[sampled] + offset * normals[sampled], vertices, faces) > 0.5
     neighbours = min(16, len(sampled))
@@ -71,7 +71,7 @@ def signed_distance_to_vertices(
     negative projection (inside). Outside, the distance to the nearest vertex never falls short of the distance to
     the surface by more than the vertex spacing; inside, the projection is the depth below a smooth surface.
     ``among`` (V,) bool: the vertices that may be nearest (default all)."""
-    normals = trimesh.Trimesh(vertices, faces, process=False).vertex_normals
+    normals = vertex_normals(vertices, faces)
     ids = np.arange(len(vertices)) if among is None else np.flatnonzero(among)
     distance, nearest = cKDTree(vertices[ids]).query(points)
     nearest = ids[nearest]

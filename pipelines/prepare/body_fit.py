@@ -17,8 +17,8 @@ forward kinematics pass.
 scales away: a limb far from rest in a fast movement (an arm overhead, a leg kicked back) then follows the priors and
 the neighbouring frames instead of its keypoints. The pose stage therefore starts with the kernel
 ``rho_k(r) = r^2 / (1 + (r / k)^2)`` at ``k = robust_reach`` (as steep near zero, saturating k times further out) and
-shrinks k geometrically to 1 (Geman-McClure) over its first half, a graduated non-convexity (Black and Rangarajan
-1996); the global stage, where the limbs are still at rest, keeps k = 1.
+shrinks k geometrically to 1 (Geman-McClure) over its first half, a graduated non-convexity
+(docs/guides/real-captures.md, step 6); the global stage, where the limbs are still at rest, keeps k = 1.
 
 A last stage (``silhouette_iterations``) adds the person masks, ``w_s (E_out + E_in)`` of
 ``pipelines.prepare.silhouettes`` on the posed vertices, and corrects every camera's pose

@@ -109,21 +109,15 @@ def training_poses(capture: ZjuCapture, body_model: BodyModel, frames: list[int]
     return PoseBatch(**{k: None if v[0] is None else torch.cat(v) for k, v in stacked.items()})
 
 
-def fit_boxes(body_model: BodyModel, bodies, shapes: torch.Tensor, scale_pad: float, abs_pad: float):
-    """Part boxes over the rest pose and the posed ``bodies`` (docs/model.md §1)."""
+def fit_boxes(body_model: BodyModel, bodies, shapes: torch.Tensor, model) -> tuple[tuple, torch.Tensor | None]:
+    """Part boxes over the rest pose and the posed ``bodies`` (docs/model.md §1), and their shells (*Body shells*),
+    or None where ``model.body_shell`` is 0 (whole boxes, as the paper)."""
     with torch.no_grad():
         rest = body_model.rest_body(shapes[:1])
-        return body_model.part_boxes([rest, bodies], scale_pad, abs_pad)
-
-
-def fit_shells(body_model: BodyModel, bodies, shapes: torch.Tensor, boxes, model) -> torch.Tensor | None:
-    """The part boxes' shells over the rest pose and the posed ``bodies`` (docs/model.md §1, *Body shells*), or None
-    where ``model.body_shell`` is 0 (whole boxes, as the paper)."""
+        boxes = body_model.part_boxes([rest, bodies], model.box_scale_pad, model.box_abs_pad)
     if not model.body_shell:
-        return None
-    with torch.no_grad():
-        rest = body_model.rest_body(shapes[:1])
-    return part_shells([rest, bodies], body_model.faces, *boxes, model.shell_resolution, model.body_shell)
+        return boxes, None
+    return boxes, part_shells([rest, bodies], body_model.faces, *boxes, model.shell_resolution, model.body_shell)
 
 
 def box_frames(frames: list[int], count: int) -> list[int]:
@@ -208,8 +202,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         poses = training_poses(source, body_model, frames)
         training.poses = poses.to(device)
     _, bodies, shapes = poses_for_frames(source, body_model, box_frames(frames, config.data.box_frames))
-    boxes = fit_boxes(body_model, bodies, shapes, config.model.box_scale_pad, config.model.box_abs_pad)
-    shells = fit_shells(body_model, bodies, shapes, boxes, config.model)
+    boxes, shells = fit_boxes(body_model, bodies, shapes, config.model)
     held_frame = frames[len(frames) // 2]
     gains = capture_gains(capture, config)
     held_view = protocol.test_views[0] if protocol.test_views else protocol.train_views[0]
