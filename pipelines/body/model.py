@@ -8,6 +8,7 @@ ZJU / EasyMocap convention is ``V_world = R(Rh) X + Th`` with ``X = SMPL(poses, 
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
 import warnings
 from dataclasses import dataclass
@@ -20,6 +21,7 @@ from smplx.lbs import batch_rigid_transform, batch_rodrigues, lbs
 from smplx.utils import Struct
 
 from fitting.corrections import CapturePoses
+from fitting.mesh import vertex_normals
 from narf.fields.common import PoseBatch
 from narf.geometry import so3_log
 from narf.kinematics import (
@@ -100,7 +102,7 @@ class BodyModel:
         v_shaped = self.smpl.v_template + smplx.lbs.blend_shapes(betas, self.smpl.shapedirs)
         return smplx.lbs.vertices2joints(self.smpl.J_regressor, v_shaped)
 
-    def pose_zju(self, poses, rh, th, shapes, pose_blendshapes: bool = True) -> PosedBody:
+    def pose_zju(self, poses, rh, th, shapes, pose_blendshapes: bool = True, template_offsets=None) -> PosedBody:
         """Pose ZJU-MoCap parameters.
 
         Args:
@@ -109,6 +111,7 @@ class BodyModel:
             th: (B, 3) global translation, metres.
             shapes: (B, 10) betas.
             pose_blendshapes: False for the old ``params/`` fits (no pose blend shapes).
+            template_offsets: optional (6890, 3) rest-frame offsets of the surface (:meth:`vertices_zju`).
 
         Returns:
             A :class:`PosedBody`.
@@ -135,18 +138,28 @@ class BodyModel:
         )
         world_from_smpl = rigid_from_rotvec_translation(rh, th)
         vertices = vertices_smpl @ world_from_smpl[:, :3, :3].transpose(1, 2) + th[:, None]
+        if template_offsets is not None:
+            vertices = self.vertices_zju(poses, rh, th, shapes, 1, pose_blendshapes, template_offsets)
         return posed_from_rest_joints(poses, world_from_smpl, self.rest_joints(shapes), vertices)
 
-    def vertices_zju(self, poses, rh, th, shapes, every: int = 1, pose_blendshapes: bool = True) -> torch.Tensor:
+    def vertices_zju(
+        self, poses, rh, th, shapes, every: int = 1, pose_blendshapes: bool = True, template_offsets=None
+    ) -> torch.Tensor:
         """Every ``every``-th vertex of :meth:`pose_zju`'s posed body, (B, ceil(6890 / every), 3) world: smplx's
         ``lbs`` step by step (shape and pose blend shapes, ``batch_rigid_transform``, skinning) on those vertices
         alone, the joints regressed from the whole shaped mesh. For fits that pose many frames many times and look
-        at a subset of the surface (``pipelines.body.silhouettes``)."""
+        at a subset of the surface (``pipelines.body.silhouettes``).
+
+        ``template_offsets`` (6890, 3), rest-frame metres: added to the shaped template before the pose blend shapes
+        and the skinning, the skeleton left as the shape makes it (SMPL+D, docs/guides/real-captures.md, "Body
+        fit")."""
         m = self.smpl
         batch = poses.shape[0]
         template, weights = m.v_template[::every], m.lbs_weights[::every]
         shapedirs = m.shapedirs[::every]
         v_shaped = template + smplx.lbs.blend_shapes(shapes, shapedirs)
+        if template_offsets is not None:
+            v_shaped = v_shaped + template_offsets[::every]
         rotations = batch_rodrigues(poses.reshape(-1, 3)).reshape(batch, N_JOINTS, 3, 3)
         if pose_blendshapes:
             eye = torch.eye(3, dtype=poses.dtype, device=poses.device)
@@ -159,11 +172,26 @@ class BodyModel:
         world_from_smpl = rigid_from_rotvec_translation(rh, th)
         return local @ world_from_smpl[:, :3, :3].transpose(1, 2) + th[:, None]
 
-    def rest_body(self, shapes) -> PosedBody:
+    @functools.cached_property
+    def template_normals(self) -> torch.Tensor:
+        """(6890, 3) unit vertex normals of the mean template (``fitting.mesh.vertex_normals``), the directions of a
+        fit's per-vertex displacement (``pipelines.prepare.body_fit``)."""
+        normals = vertex_normals(self.smpl.v_template.double().numpy(), self.faces)
+        return torch.as_tensor(normals, dtype=self.dtype)
+
+    def surface_offsets(self, displacement) -> torch.Tensor | None:
+        """(6890, 3) rest-frame offsets ``d_i n_i`` of a (6890,) displacement along :attr:`template_normals`
+        (metres; a capture's ``body_surface.npy``, docs/formats.md §1.13), or None for None."""
+        if displacement is None:
+            return None
+        return torch.as_tensor(displacement, dtype=self.dtype)[:, None] * self.template_normals
+
+    def rest_body(self, shapes, template_offsets=None) -> PosedBody:
         """The rest pose (identity rotations, no global transform) for the given betas."""
         shapes = _as_tensor("shapes", shapes, (10,), self.dtype)
         zeros = torch.zeros(shapes.shape[0], 3, dtype=self.dtype)
-        return self.pose_zju(torch.zeros(shapes.shape[0], 72, dtype=self.dtype), zeros, zeros, shapes)
+        poses = torch.zeros(shapes.shape[0], 72, dtype=self.dtype)
+        return self.pose_zju(poses, zeros, zeros, shapes, template_offsets=template_offsets)
 
     def part_boxes(self, bodies: list[PosedBody], scale_pad: float = 1.1, abs_pad: float = 0.03):
         """Fit part boxes over the rest pose(s) and the given posed frames (use at most 100 training frames).

@@ -192,6 +192,13 @@ def _choices(parser: argparse.ArgumentParser) -> None:
         help="fit the body to the masks but leave the cameras exactly as the calibration gives them",
     )
     parser.add_argument(
+        "--no-surface",
+        action="store_true",
+        help="fit the masks with the ten shape coefficients only: no displacement of each vertex along its normal "
+        "(SMPL+D, written to body_surface.npy), as for a person in tight clothes or a body model that already "
+        "fits",
+    )
+    parser.add_argument(
         "--smpl-dir",
         type=Path,
         default=None,
@@ -244,6 +251,7 @@ def main(argv: list[str] | None = None) -> int:
             silhouette_iterations=args.silhouette_iterations,
             window=args.fit_window,
             refine_cameras=not args.keep_calibration,
+            surface=not args.no_surface,
         ),
         floor=args.floor,
         overwrite=args.overwrite,

@@ -212,6 +212,14 @@ class ZjuCapture:
         path = self.root / "colour.json"
         return read_camera_colour(path, [c.name for c in self.cameras]) if path.is_file() else None
 
+    def surface_displacement(self, n_vertices: int) -> np.ndarray | None:
+        """(n_vertices,) each body template vertex's displacement along its normal, metres (``body_surface.npy``,
+        written by narf-prepare-capture: docs/formats.md §1.13), or None where there is none."""
+        from pipelines.datasets.zju_mocap import BODY_SURFACE, read_body_surface
+
+        path = self.root / BODY_SURFACE
+        return read_body_surface(path, n_vertices) if path.is_file() else None
+
     def person_pixels(self, frame: int, cam: int) -> tuple[np.ndarray, np.ndarray]:
         """The view as recorded: (H, W, 3) uint8 BGR image, not undistorted, and (H, W) bool of the pixels that are
         the person's or of unknown owner (the mask and ``mask_unknown/``)."""

@@ -124,6 +124,28 @@ def write_params(path: Path, params: SmplParams) -> None:
     _save_npy(path, np.array(data, dtype=object))
 
 
+BODY_SURFACE = "body_surface.npy"
+MAX_DISPLACEMENT = 0.2  # metres: a displacement beyond this is no garment, but a broken file
+
+
+def read_body_surface(path: Path, n_vertices: int) -> np.ndarray:
+    """(n_vertices,) float32 metres: each template vertex's displacement along its normal (docs/formats.md §1.13)."""
+    try:
+        data = np.load(path, allow_pickle=False)
+    except (OSError, ValueError) as err:
+        raise CaptureError(f"{path}: unreadable ({err})") from None
+    if data.shape != (n_vertices,) or data.dtype.kind != "f":
+        raise CaptureError(f"{path}: expected ({n_vertices},) floats, got {data.dtype} {data.shape}")
+    if not np.isfinite(data).all() or np.abs(data).max() > MAX_DISPLACEMENT:
+        raise CaptureError(f"{path}: displacements must be finite and within {MAX_DISPLACEMENT} m")
+    return data.astype(np.float32)
+
+
+def write_body_surface(path: Path, displacement: np.ndarray) -> None:
+    """Write :func:`read_body_surface`'s file."""
+    _save_npy(path, np.asarray(displacement, np.float32))
+
+
 def _save_npy(path: Path, array: np.ndarray) -> None:
     import io
 

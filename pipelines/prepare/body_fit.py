@@ -23,7 +23,10 @@ shrinks k geometrically to 1 (Geman-McClure) over its first half, a graduated no
 A last stage (``silhouette_iterations``) adds the person masks, ``w_s (E_out + E_in)`` of
 ``pipelines.prepare.silhouettes`` on the posed vertices, and corrects every camera's pose
 (:class:`CameraCorrection`) against a prior of ``camera_turn`` degrees and ``camera_shift`` metres: a calibration a
-few pixels off moves every view's silhouette the same way in every frame, which no body pose can absorb.
+few pixels off moves every view's silhouette the same way in every frame, which no body pose can absorb. With
+``surface``, that stage also fits one displacement ``d_i`` of every template vertex along its normal, shared by
+all frames (SMPL+D: clothes and build that ten shape coefficients miss), with the prior of :class:`SurfacePrior`;
+the skeleton stays the shape's, so the part transforms a subject fit learns in do not move.
 
 A take longer than ``window`` frames goes through that stage in pieces, so that its memory (each view's distance map
 and the autograd graph of the posed vertices) does not grow with the take: first ``window`` frames spread over the
@@ -75,6 +78,10 @@ class FitSettings:
     camera_turn: float = 1.0  # degrees: the camera prior's scale of turns ...
     camera_shift: float = 0.01  # ... and of shifts (metres)
     window: int = 100  # frames the silhouette stage holds at once (0: every frame, whatever the take's length)
+    surface: bool = True  # the silhouette stage also fits a displacement of each vertex along its normal (SMPL+D)
+    surface_scale: float = 0.01  # metres: the displacement's unit
+    surface_prior: float = 0.1  # weight of mean (d / scale)^2 ...
+    surface_smooth: float = 10.0  # ... and of mean (L d / scale)^2, L the mesh's uniform Laplacian
     window_overlap: int = 10  # frames a window fits again of the previous one's end (at most half a window)
 
 
@@ -109,6 +116,7 @@ class BodyFit:
     offsets: np.ndarray
     targets: np.ndarray
     cam_from_world: np.ndarray | None = None  # (V, 3, 4) the corrected cameras, when the fit corrected them
+    displacement: np.ndarray | None = None  # (6890,) metres along the template's normals (SMPL+D), when fitted
 
 
 def fitted_vertices(body: BodyModel, fitted: BodyFit, chunk: int = 100) -> np.ndarray:
@@ -118,9 +126,33 @@ def fitted_vertices(body: BodyModel, fitted: BodyFit, chunk: int = 100) -> np.nd
     for a in range(0, len(fitted.poses), chunk):
         part = slice(a, a + chunk)
         shapes = np.repeat(fitted.shapes[None], len(fitted.poses[part]), 0)
+        args = [torch.as_tensor(x, dtype=body.dtype) for x in (fitted.poses[part], fitted.rh[part], fitted.th[part])]
+        offsets = body.surface_offsets(fitted.displacement)
         with torch.no_grad():
-            out.append(body.pose_zju(fitted.poses[part], fitted.rh[part], fitted.th[part], shapes).vertices.numpy())
+            out.append(body.vertices_zju(*args, torch.as_tensor(shapes, dtype=body.dtype), template_offsets=offsets))
     return np.concatenate(out).astype(np.float32)
+
+
+class SurfacePrior:
+    """The displacement's prior, ``a mean u^2 + b mean (u - A u)^2`` of ``u = d / scale`` with A the mean over each
+    vertex's mesh neighbours (trimesh's uniform Laplacian): small and smooth, so that a few vertices cannot reach
+    for a mask's stray pixels."""
+
+    def __init__(self, body: BodyModel, settings: FitSettings):
+        import trimesh
+        import trimesh.smoothing
+
+        mesh = trimesh.Trimesh(body.smpl.v_template.numpy(), body.faces, process=False)
+        average = trimesh.smoothing.laplacian_calculation(mesh, equal_weight=True).tocoo()
+        indices = torch.as_tensor(np.stack([average.row, average.col]), dtype=torch.long)
+        weights = torch.as_tensor(average.data, dtype=torch.float32)
+        self.average = torch.sparse_coo_tensor(indices, weights, average.shape, check_invariants=True)
+        self.settings = settings
+
+    def __call__(self, units: torch.Tensor) -> torch.Tensor:
+        s = self.settings
+        rough = units - torch.sparse.mm(self.average, units[:, None])[:, 0]
+        return s.surface_prior * units.pow(2).mean() + s.surface_smooth * rough.pow(2).mean()
 
 
 def _kabsch(source: np.ndarray, target: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -282,19 +314,27 @@ class CameraCorrection:
 def _silhouette_pass(problem, body, silhouettes, frames, every, mask, shared, settings, tick, before=None):
     """One pass of the last stage of :func:`fit_body` over ``frames`` (indices; ``problem`` is theirs): keypoints
     plus ``settings.silhouette_weight`` times the silhouette term built at the keypoint fit's vertices, seen by
-    ``problem.P``. ``every``: the fit's (poses, rh, th, shapes, offsets), of which the frames' poses, rh and th are
-    fitted (from their values) and returned. With ``shared`` (a (K, cam_from_world) pair, or True without cameras)
-    the shape and offsets are fitted too, in place, and with cameras and ``settings.refine_cameras`` the cameras'
-    poses (:class:`CameraCorrection`, returned; else None). ``before``: the held frame before, for the smoothness."""
-    poses, rh, th, shapes, offsets = every
+    ``problem.P``. ``every``: the fit's (poses, rh, th, shapes, offsets, units), of which the frames' poses, rh and
+    th are fitted (from their values) and returned. With ``shared`` (a (K, cam_from_world) pair, or True without
+    cameras) the shape, the offsets and the surface's displacement (``units``, in ``settings.surface_scale``; None:
+    not fitted) are fitted too, in place, and with cameras and ``settings.refine_cameras`` the cameras' poses
+    (:class:`CameraCorrection`, returned; else None). ``before``: the held frame before, for the smoothness."""
+    poses, rh, th, shapes, offsets, units = every
     index = torch.as_tensor(frames)
     own = [x[index].detach().clone().requires_grad_() for x in (poses, rh, th)]
-    posed = lambda: body.pose_zju(own[0] * mask, own[1], own[2], shapes.expand(len(frames), -1)).vertices  # noqa: E731
+    surface = None if units is None else lambda: body.surface_offsets(units * settings.surface_scale)  # noqa: E731
+
+    def posed():
+        args = (own[0] * mask, own[1], own[2], shapes.expand(len(frames), -1))
+        return body.vertices_zju(*args, template_offsets=None if surface is None else surface())
+
     with torch.no_grad():
         term = silhouettes(posed().numpy(), frames)
-    correction, variables = None, own
+    correction, variables, prior = None, own, None
     if shared is not None:
         variables = [*own, shapes, offsets]
+        if units is not None:
+            variables, prior = [*variables, units], SurfacePrior(body, settings)
         if shared is not True and settings.refine_cameras:
             correction = CameraCorrection(*shared, settings)
             variables = [*variables, correction.turn, correction.shift]
@@ -303,6 +343,7 @@ def _silhouette_pass(problem, body, silhouettes, frames, every, mask, shared, se
         P = problem.P if correction is None else correction.projections()
         total = problem.energy(own[0] * mask, own[1], own[2], shapes, offsets, P, before)
         total = total + settings.silhouette_weight * term(posed(), P)
+        total = total if prior is None else total + prior(units)
         return total if correction is None else total + correction.penalty()
 
     adam_stage(energy, variables, settings.silhouette_iterations, settings.silhouette_lr, tick)
@@ -312,7 +353,7 @@ def _silhouette_pass(problem, body, silhouettes, frames, every, mask, shared, se
 def _silhouette_stage(problem, body, silhouettes, every, mask, cameras, settings, tick):
     """The last stage of :func:`fit_body`, in the passes of :func:`_passes` (module docstring); ``every``'s
     tensors are updated in place. Returns the :class:`CameraCorrection` or None."""
-    poses, rh, th, shapes, offsets = every
+    poses, rh, th, shapes, offsets, units = every
     passes = _passes(settings, len(poses))
     frames, _ = passes[0]
     alone = len(passes) == 1
@@ -325,7 +366,7 @@ def _silhouette_stage(problem, body, silhouettes, every, mask, cameras, settings
     if correction is not None:
         problem = copy.copy(problem)
         problem.P = correction.projections().detach()
-    held = [poses, rh, th, shapes.detach(), offsets.detach()]
+    held = [poses, rh, th, shapes.detach(), offsets.detach(), None if units is None else units.detach()]
     for frames, _ in passes[1:]:
         a = int(frames[0])
         before = None if a == 0 else [x[a - 1 : a].detach() for x in (poses, rh, th)]
@@ -384,7 +425,8 @@ def fit_body(
     offsets = torch.zeros(len(TARGETS), 3, requires_grad=True)
     mask = torch.ones(N_JOINTS * 3)
     mask[:3] = 0  # poses[:3] stays 0: the global rotation is Rh
-    every = [poses, rh, th, shapes, offsets]
+    units = torch.zeros(body.n_vertices, requires_grad=True) if settings.surface and silhouettes is not None else None
+    every = [poses, rh, th, shapes, offsets, units]
     reach = [1.0]  # the global stage leaves the limbs, still at rest, to saturate
     keypoint_energy = lambda: problem.energy(poses * mask, rh, th, shapes, offsets, reach=reach[0])  # noqa: E731
     total = fit_steps(settings, n_frames, silhouettes is not None)
@@ -402,7 +444,7 @@ def fit_body(
         reach[0] = max(reach[0] * (1.0 / settings.robust_reach) ** (1.0 / half), 1.0)
         tick()
 
-    adam_stage(keypoint_energy, every, settings.iterations, settings.lr, tick_and_shrink)
+    adam_stage(keypoint_energy, every[:5], settings.iterations, settings.lr, tick_and_shrink)
     correction = None
     if silhouettes is not None:
         correction = _silhouette_stage(problem, body, silhouettes, every, mask, cameras, settings, tick)
@@ -417,4 +459,5 @@ def fit_body(
         offsets=(offsets[problem.offset_source] * problem.offset_sign).detach().numpy(),
         targets=targets.numpy(),
         cam_from_world=None if correction is None else correction.corrected().detach().double().numpy(),
+        displacement=None if units is None else (units * settings.surface_scale).detach().numpy().astype(np.float32),
     )

@@ -20,7 +20,7 @@ from pipelines.datasets.camera import project_distorted, silhouette
 from pipelines.datasets.easymocap import write_easymocap_cameras
 from pipelines.datasets.floor import feet_against_floor
 from pipelines.datasets.keypoints import TARGET_NAMES
-from pipelines.datasets.zju_mocap import SmplParams, write_annots, write_params
+from pipelines.datasets.zju_mocap import BODY_SURFACE, SmplParams, write_annots, write_body_surface, write_params
 from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, reprojection_notice
 from pipelines.prepare.multiview import projection_matrix, relative_errors
 from pipelines.prepare.occlusion import person_mask
@@ -42,6 +42,8 @@ def write_sequence(root: Path, cameras, found, fitted, vertices: np.ndarray) -> 
     ims = [[f"{cam.name}/{i:06d}.jpg" for cam in cameras] for i in range(len(found.frames))]
     write_annots(root / "annots.npy", cameras, ims)
     write_easymocap_cameras(root, cameras)
+    if fitted.displacement is not None:
+        write_body_surface(root / BODY_SURFACE, fitted.displacement)
     np.save(root / "keypoints3d.npy", found.points.astype(np.float32))
 
 
@@ -192,7 +194,8 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
             "median_triangulation_pct_height": 100 * _median(triangulated),
             "min_camera_iou": min((p["iou_mean"] for p in per_camera.values()), default=float("nan")),
             "body_to_triangulated_cm": 100 * _median(distance),
-        },
+        }
+        | _displacement(fitted),
         "splits": {k: v for k, v in split.items() if k != "excluded"} | {"excluded_views": len(excluded)},
         "floor": floor.to_json() | feet_against_floor(vertices, floor),
         "sync": seen.sync,
@@ -205,6 +208,14 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
     report["colour"] = write_capture_colour(root, progress=request.progress)
     (root / "report.json").write_text(json.dumps(_json_ready(report), indent=1, allow_nan=False))
     return report
+
+
+def _displacement(fitted) -> dict:
+    """The surface's displacement along the template's normals (SMPL+D; ``pipelines.prepare.body_fit``), cm."""
+    if fitted.displacement is None:
+        return {}
+    size = 100 * np.abs(fitted.displacement)
+    return {"surface_displacement_cm": {"median": float(np.median(size)), "p99": float(np.percentile(size, 99))}}
 
 
 def _notices(seen, split: dict) -> list[str]:

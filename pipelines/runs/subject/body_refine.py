@@ -92,10 +92,12 @@ def refine_to_masks(
     frames: list[int],
     settings: RefineSettings = RefineSettings(),
     progress: bool = True,
+    template_offsets=None,
 ) -> dict[int, SmplParams]:
     """The training frames' bodies refined against their views' masks (module docstring): capture frame ->
     SmplParams. ``source``: the capture (anything with ``params(frame)``); ``frames``: the capture frame of each
-    training frame (``training.frame_of_image`` indexes them)."""
+    training frame (``training.frame_of_image`` indexes them); ``template_offsets``: the capture's surface
+    (``BodyModel.surface_offsets``), or None."""
     params = [source.params(f) for f in frames]
     poses0, rh0, th0, shapes = (
         torch.as_tensor(np.stack([getattr(p, k) for p in params]), dtype=torch.float32)
@@ -114,7 +116,8 @@ def refine_to_masks(
         return torch.cat([poses0[:, :3], poses0[:, 3:] + d_poses.reshape(len(frames), -1)], dim=1)
 
     def posed(every: int) -> torch.Tensor:
-        return body.vertices_zju(refined_poses(), rh0 + d_rh, th0 + d_th, shapes, every)
+        args = (refined_poses(), rh0 + d_rh, th0 + d_th, shapes, every)
+        return body.vertices_zju(*args, template_offsets=template_offsets)
 
     def energy() -> torch.Tensor:
         turns = torch.cat([d_poses, d_rh[:, None]], dim=1).pow(2).sum(-1) / scale2

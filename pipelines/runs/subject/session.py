@@ -92,13 +92,14 @@ def open_capture(config: FitConfig, quiet: bool = False) -> ZjuCapture:
     )
 
 
-def poses_for_frames(source, body_model: BodyModel, frames: list[int]):
+def poses_for_frames(source, body_model: BodyModel, frames: list[int], template_offsets=None):
     """PoseBatch, posed bodies and betas (F, 10) of capture frames, from their SMPL parameters; ``source``: the
-    capture, or a loaded run (:class:`LoadedRun`: corrected poses on its training frames)."""
+    capture, or a loaded run (:class:`LoadedRun`: corrected poses on its training frames); ``template_offsets``:
+    the capture's surface (``BodyModel.surface_offsets``), or None."""
     params = [source.params(f) for f in frames]
     stack = [torch.as_tensor(np.stack([getattr(p, k) for p in params])) for k in ("poses", "rh", "th", "shapes")]
     with torch.no_grad():
-        bodies = body_model.pose_zju(*stack)
+        bodies = body_model.pose_zju(*stack, template_offsets=template_offsets)
     return pose_batch(bodies), bodies, stack[3]
 
 
@@ -109,11 +110,14 @@ def training_poses(capture: ZjuCapture, body_model: BodyModel, frames: list[int]
     return PoseBatch(**{k: None if v[0] is None else torch.cat(v) for k, v in stacked.items()})
 
 
-def fit_boxes(body_model: BodyModel, bodies, shapes: torch.Tensor, model) -> tuple[tuple, torch.Tensor | None]:
+def fit_boxes(
+    body_model: BodyModel, bodies, shapes: torch.Tensor, model, template_offsets=None
+) -> tuple[tuple, torch.Tensor | None]:
     """Part boxes over the rest pose and the posed ``bodies`` (docs/model.md §1), and their shells (*Body shells*),
-    or None where ``model.body_shell`` is 0 (whole boxes, as the paper)."""
+    or None where ``model.body_shell`` is 0 (whole boxes, as the paper); ``template_offsets``: the capture's
+    surface, which ``bodies`` wear too (``BodyModel.surface_offsets``), or None."""
     with torch.no_grad():
-        rest = body_model.rest_body(shapes[:1])
+        rest = body_model.rest_body(shapes[:1], template_offsets)
         boxes = body_model.part_boxes([rest, bodies], model.box_scale_pad, model.box_abs_pad)
     if not model.body_shell:
         return boxes, None
@@ -186,6 +190,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
             file=sys.stderr,
         )
     body_model = fit_body_model(capture, state)
+    surface = body_model.surface_offsets(capture.surface_displacement(body_model.n_vertices))
     poses = training_poses(capture, body_model, frames)
     training = camera_views(capture, protocol, frames, poses, device, progress)
     source, refine = capture, config.train.mask_body_iterations > 0 and model_spec(config.model.name).rays
@@ -197,12 +202,12 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         kept = None if state is None else saved_bodies(state, capture)
         if kept is None:
             settings = RefineSettings(iterations=config.train.mask_body_iterations)
-            kept = refine_to_masks(training, capture, body_model, frames, settings, progress)
+            kept = refine_to_masks(training, capture, body_model, frames, settings, progress, surface)
         source = RefinedCapture(capture, kept)
         poses = training_poses(source, body_model, frames)
         training.poses = poses.to(device)
-    _, bodies, shapes = poses_for_frames(source, body_model, box_frames(frames, config.data.box_frames))
-    boxes, shells = fit_boxes(body_model, bodies, shapes, config.model)
+    _, bodies, shapes = poses_for_frames(source, body_model, box_frames(frames, config.data.box_frames), surface)
+    boxes, shells = fit_boxes(body_model, bodies, shapes, config.model, surface)
     held_frame = frames[len(frames) // 2]
     gains = capture_gains(capture, config)
     held_view = protocol.test_views[0] if protocol.test_views else protocol.train_views[0]
