@@ -275,6 +275,9 @@ def _print_summary(report: dict, out) -> None:
         f"  floor ({floor['source']}): height {floor['height']:.3f} m along up {[round(v, 3) for v in floor['up']]}; "
         f"the body's lowest point {floor['lowest_point_cm_median']:.1f} cm above it (median frame)"
     )
+    surface = summary.get("surface_displacement_cm")
+    if surface:
+        print(f"  the body's surface displaced a median {surface['median']:.1f} cm (99 %: {surface['p99']:.1f} cm)")
     for notice in report["notices"]:
         print(f"  note: {notice}")
     if "person" in report:
