@@ -38,6 +38,9 @@ def test_template_offsets_are_skinned_with_the_shapes_skeleton(body_model64):
     rotations = posed.world_from_joint[..., :3, :3]  # (B, 24, 3, 3)
     skinned = torch.einsum("vj,bjkl,vl->bvk", body_model64.skinning_weights, rotations, offsets)
     torch.testing.assert_close(moved - posed.vertices, skinned, rtol=0, atol=1e-12)
+    worn = body_model64.pose_zju(poses, rh, th, shapes, template_offsets=offsets)
+    torch.testing.assert_close(worn.vertices, moved, rtol=0, atol=0)  # the same path
+    torch.testing.assert_close(worn.world_from_joint, posed.world_from_joint, rtol=0, atol=0)  # the same skeleton
     normals = body_model64.template_normals
     torch.testing.assert_close(normals.norm(dim=-1), torch.ones(len(normals), dtype=torch.float64))
 

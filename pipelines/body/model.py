@@ -125,6 +125,10 @@ class BodyModel:
                 f"batch sizes differ: poses {poses.shape[0]}, Rh {rh.shape[0]}, Th {th.shape[0]}, "
                 f"shapes {shapes.shape[0]}"
             )
+        world_from_smpl = rigid_from_rotvec_translation(rh, th)
+        if template_offsets is not None:  # the skeleton stays the shape's: smplx's lbs would regress it from them
+            vertices = self.vertices_zju(poses, rh, th, shapes, 1, pose_blendshapes, template_offsets)
+            return posed_from_rest_joints(poses, world_from_smpl, self.rest_joints(shapes), vertices)
         posedirs = self.smpl.posedirs if pose_blendshapes else torch.zeros_like(self.smpl.posedirs)
         vertices_smpl, _ = lbs(
             shapes,
@@ -136,10 +140,7 @@ class BodyModel:
             self.smpl.parents,
             self.smpl.lbs_weights,
         )
-        world_from_smpl = rigid_from_rotvec_translation(rh, th)
         vertices = vertices_smpl @ world_from_smpl[:, :3, :3].transpose(1, 2) + th[:, None]
-        if template_offsets is not None:
-            vertices = self.vertices_zju(poses, rh, th, shapes, 1, pose_blendshapes, template_offsets)
         return posed_from_rest_joints(poses, world_from_smpl, self.rest_joints(shapes), vertices)
 
     def vertices_zju(
