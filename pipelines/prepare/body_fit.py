@@ -78,11 +78,11 @@ class FitSettings:
     camera_turn: float = 1.0  # degrees: the camera prior's scale of turns ...
     camera_shift: float = 0.01  # ... and of shifts (metres)
     window: int = 100  # frames the silhouette stage holds at once (0: every frame, whatever the take's length)
+    window_overlap: int = 10  # frames a window fits again of the previous one's end (at most half a window)
     surface: bool = True  # the silhouette stage also fits a displacement of each vertex along its normal (SMPL+D)
     surface_scale: float = 0.01  # metres: the displacement's unit
     surface_prior: float = 0.1  # weight of mean (d / scale)^2 ...
     surface_smooth: float = 10.0  # ... and of mean (L d / scale)^2, L the mesh's uniform Laplacian
-    window_overlap: int = 10  # frames a window fits again of the previous one's end (at most half a window)
 
 
 def fit_steps(settings: FitSettings, n_frames: int, silhouettes: bool = True) -> int:
