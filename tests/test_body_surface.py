@@ -91,9 +91,9 @@ def test_the_boxes_wear_the_surface(body_model):
     offsets = body_model.surface_offsets(np.full(body_model.n_vertices, 0.02))
     with torch.no_grad():
         rest = body_model.rest_body(shapes)
-        worn = body_model.rest_body(shapes, offsets)
     (_, plain), _ = fit_boxes(body_model, rest, shapes, model)
-    (_, wide), shells = fit_boxes(body_model, worn, shapes, model, offsets)
+    # the bodies given do not wear it: the growth is fit_boxes' own rest body's
+    (_, wide), shells = fit_boxes(body_model, rest, shapes, model, offsets)
     grown = (wide - plain) * rest.reach[0]  # body units to metres
     assert torch.all(grown > -0.002) and torch.all(grown < 0.02 + 1e-5), grown
     assert torch.all(grown.max(dim=1).values > 0.99 * 0.02), grown
