@@ -122,14 +122,15 @@ class BodyFit:
 def fitted_vertices(body: BodyModel, fitted: BodyFit, chunk: int = 100) -> np.ndarray:
     """(F, N, 3) float32 posed vertices of a fit, ``chunk`` frames at a time (the skinning's (chunk, N, 4, 4)
     transforms are the largest thing it holds)."""
-    out = []
+    out, offsets = [], body.surface_offsets(fitted.displacement)
     for a in range(0, len(fitted.poses), chunk):
         part = slice(a, a + chunk)
         shapes = np.repeat(fitted.shapes[None], len(fitted.poses[part]), 0)
-        args = [torch.as_tensor(x, dtype=body.dtype) for x in (fitted.poses[part], fitted.rh[part], fitted.th[part])]
-        offsets = body.surface_offsets(fitted.displacement)
+        args = [
+            torch.as_tensor(x, dtype=body.dtype) for x in (fitted.poses[part], fitted.rh[part], fitted.th[part], shapes)
+        ]
         with torch.no_grad():
-            out.append(body.vertices_zju(*args, torch.as_tensor(shapes, dtype=body.dtype), template_offsets=offsets))
+            out.append(body.vertices_zju(*args, template_offsets=offsets).numpy())
     return np.concatenate(out).astype(np.float32)
 
 
@@ -322,11 +323,11 @@ def _silhouette_pass(problem, body, silhouettes, frames, every, mask, shared, se
     poses, rh, th, shapes, offsets, units = every
     index = torch.as_tensor(frames)
     own = [x[index].detach().clone().requires_grad_() for x in (poses, rh, th)]
-    surface = None if units is None else lambda: body.surface_offsets(units * settings.surface_scale)  # noqa: E731
 
     def posed():
         args = (own[0] * mask, own[1], own[2], shapes.expand(len(frames), -1))
-        return body.vertices_zju(*args, template_offsets=None if surface is None else surface())
+        offsets = None if units is None else body.surface_offsets(units * settings.surface_scale)
+        return body.vertices_zju(*args, template_offsets=offsets)
 
     with torch.no_grad():
         term = silhouettes(posed().numpy(), frames)
