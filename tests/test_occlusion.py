@@ -3,8 +3,10 @@ cameras whose figures can be worked out by hand."""
 
 from types import SimpleNamespace
 
+import cv2
 import numpy as np
 
+from pipelines.body.silhouettes import distance_to_mask
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.keypoints import TARGET_NAMES
 from pipelines.prepare.occlusion import (
@@ -83,6 +85,22 @@ def test_the_mask_loses_the_others_outside_the_body_only():
     cut = without_others(mask, body, camera, [_person((0.6, 0, 0))])
     assert (cut == body).all() and (body & other).any()  # what the body covers stays, whoever else is there
     assert (without_others(mask, body, camera, []) == mask).all()
+
+
+def test_what_the_mask_holds_beside_somebody_elses_capsules_is_theirs():
+    # real people are wider than their capsules (hair, clothes): the segmenter's one mask holds both people widened by
+    # a few pixels; each pixel outside the body goes to whoever's region is nearer
+    camera = _camera("front", (0, -5, 1.0))
+    body = body_region(camera, _person())
+    other = body_region(camera, _person((0.6, 0, 0)))
+    ring = lambda region, px: cv2.dilate(region.astype(np.uint8), np.ones((2 * px + 1,) * 2, np.uint8)) > 0  # noqa: E731
+    clothes, theirs = ring(body, 3) & ~body, ring(other, 8) & ~other & ~ring(body, 8)
+    cut = without_others(body | clothes | other | theirs, body, camera, [_person((0.6, 0, 0))])
+    assert theirs.sum() > 1000 and not (cut & theirs).any()  # all of their ring, which the capsules alone left
+    # the person's own clothes stay where they are nearer the person than the other's region (every pixel of the
+    # 3-px ring except where the two regions touch: the pixels there are within 3 px of both)
+    far = clothes & (distance_to_mask(other) > 3)
+    assert far.sum() > 1000 and (cut & far).sum() == far.sum()
 
 
 def test_somebody_in_front_makes_the_owner_unknown_and_somebody_behind_does_not():

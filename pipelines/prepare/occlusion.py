@@ -22,6 +22,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from pipelines.body.silhouettes import distance_to_mask
 from pipelines.datasets.camera import Camera, project_distorted
 from pipelines.datasets.keypoints import TARGET_NAMES
 from pipelines.prepare.checks import body_neighbourhood
@@ -91,12 +92,19 @@ def overlap_share(camera: Camera, points: np.ndarray, others: list[np.ndarray]) 
 
 
 def without_others(mask: np.ndarray, body: np.ndarray, camera: Camera, others: list[np.ndarray]) -> np.ndarray:
-    """(H, W) bool ``mask`` less the :func:`body_region` of each of ``others`` ((T, 3) targets) where it lies
-    outside ``body`` (H, W) bool, the followed person's fitted silhouette; ``camera`` of the mask's size."""
+    """(H, W) bool ``mask`` less its pixels outside ``body`` ((H, W) bool, the followed person's fitted silhouette)
+    that lie nearer the :func:`body_region` of one of ``others`` ((T, 3) targets) than ``body``: the capsules are
+    thinner than a person (hair, clothes), so what the one mask holds beside them, on their side, is theirs too.
+    ``camera`` of the mask's size."""
     if not others:
         return mask
     covered = np.logical_or.reduce([body_region(camera, o) for o in others])
-    return mask & ~(covered & ~body)
+    if not covered.any():
+        return mask
+    if not body.any():
+        return mask & ~covered
+    theirs = distance_to_mask(covered) < distance_to_mask(body)
+    return mask & ~(theirs & ~body)
 
 
 def _centre_depth(camera: Camera, points: np.ndarray) -> float:
