@@ -69,3 +69,17 @@ def test_equal_distances_choose_the_first_track():
     route = {f: _at(0.0) for f in range(5)}
     left, right = Track({f: _at(-0.1) for f in range(5)}), Track({f: _at(0.1) for f in range(5)})
     assert nearest_track([left, right], route) == 0 and nearest_track([right, left], route) == 0
+
+
+def test_the_other_people_fill_short_gaps_and_stop_at_their_ends():
+    # the detector finds one person a view, so somebody beside the followed person drops out of a frame or two: the
+    # others are drawn where interpolated within MAX_GAP (here halfway, 1 m -> 1.5 m), never held past their ends
+    from pipelines.prepare.people import MAX_GAP
+    from pipelines.prepare.run import _others
+
+    followed = Track({f: np.zeros((2, 3)) for f in range(20)})
+    other = Track({2: np.ones((2, 3)), 4: 2 * np.ones((2, 3)), 6 + MAX_GAP + 1: np.ones((2, 3))})
+    others = _others([followed, other], 0, list(range(20)))
+    assert np.allclose(others[3][0], 1.5) and len(others[2]) == 1
+    assert others[5] == [] and others[6 + MAX_GAP] == []  # a gap wider than MAX_GAP stays open
+    assert others[1] == [] and others[19] == []  # before the first and after the last frame: nobody

@@ -236,10 +236,10 @@ def _pixel_distance(track: Track, camera: Camera, pixel: np.ndarray, frames: int
     return float(np.median(np.linalg.norm(project_distorted(camera, centres) - pixel, axis=-1)))
 
 
-def guide(track: Track, frames: list[int]) -> dict[int, np.ndarray]:
+def guide(track: Track, frames: list[int], hold: int = HOLD) -> dict[int, np.ndarray]:
     """The track's targets at each of ``frames``: its own where it has them, else interpolated linearly between
     its frames on either side when both are within ``MAX_GAP``, or held from its first or last frame for up to
-    ``HOLD`` frames beyond it (where the crops may find the person again); frames farther from the track have none."""
+    ``hold`` frames beyond it (where the crops may find the person again); frames farther from the track have none."""
     known = sorted(track.points)
     out = {}
     for frame in frames:
@@ -250,9 +250,9 @@ def guide(track: Track, frames: list[int]) -> dict[int, np.ndarray]:
             before, after = known[at - 1], known[at]
             w = (frame - before) / (after - before)
             out[frame] = (1 - w) * track.points[before] + w * track.points[after]
-        elif at == 0 and known[0] - frame <= HOLD:
+        elif at == 0 and known[0] - frame <= hold:
             out[frame] = track.points[known[0]]
-        elif at == len(known) and frame - known[-1] <= HOLD:
+        elif at == len(known) and frame - known[-1] <= hold:
             out[frame] = track.points[known[-1]]
     return out
 

@@ -24,7 +24,7 @@ from pipelines.datasets.rig_files import read_rig
 from pipelines.prepare.body_fit import FitSettings, fit_body, fit_steps, fitted_vertices
 from pipelines.prepare.layout import finish_capture, write_sequence
 from pipelines.prepare.observe import observe
-from pipelines.prepare.people import choose_track
+from pipelines.prepare.people import choose_track, guide
 from pipelines.prepare.person_targets import find_tracks, triangulate_people
 from pipelines.prepare.silhouettes import silhouette_stage
 from pipelines.prepare.sources import find_sources, frame_count, frame_rate, match_cameras
@@ -213,7 +213,6 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
     ``seen.people`` gains the crops' detections (keypoints from the detector) and ``seen.person`` says whom."""
     from pipelines.prepare.crops import crop_masks, cut_masks, redetect_masks
     from pipelines.prepare.occlusion import leave_out_overlapped
-    from pipelines.prepare.people import guide
 
     tracks = find_tracks(seen.cameras, seen.people, frames, request.threshold)
     if not tracks:
@@ -259,7 +258,7 @@ def _look_again(folder: Path, seen, frames: list[int], tracks, detector, request
     ``CHOICE_STRIDE`` before the choice; then the chosen one in every frame. Returns the tracks found again, the
     chosen one's index, the line saying whom, the crops and the number of views detected again."""
     from pipelines.prepare.crops import redetect
-    from pipelines.prepare.people import guide, nearest_track
+    from pipelines.prepare.people import nearest_track
 
     crops, looked, counted = {}, 0, None
     several = detector is not None and len(tracks) > 1 and request.follow == "best-seen"
@@ -289,8 +288,11 @@ def _look_again(folder: Path, seen, frames: list[int], tracks, detector, request
 
 
 def _others(tracks, chosen: int, frames) -> dict[int, list[np.ndarray]]:
-    """By frame, the targets of every track but ``chosen``."""
-    return {f: [t.points[f] for k, t in enumerate(tracks) if k != chosen and f in t.points] for f in frames}
+    """By frame, the targets of every track but ``chosen``: their own, or interpolated across a gap of up to
+    ``MAX_GAP`` frames (``guide`` without holding them past their ends), since the detector finds one person a view
+    and somebody beside the followed person is often missed in a frame or two."""
+    guided = [guide(t, frames, hold=0) for k, t in enumerate(tracks) if k != chosen]
+    return {f: [g[f] for g in guided if f in g] for f in frames}
 
 
 def brought_bodies(folder: Path, frames: list[int], person: int | None):
