@@ -122,6 +122,30 @@ def test_somebody_in_front_makes_the_owner_unknown_and_somebody_behind_does_not(
     assert (mask == body).all() and not unknown.any()
 
 
+def test_a_limb_behind_somebody_who_stands_behind_the_person_is_hidden_by_them():
+    # the other stands 40 cm behind the person and 45 cm aside, and the person's left leg reaches back past them:
+    # where the other's capsules cover the part of the leg behind them the owner is unknown, not elsewhere
+    camera = _camera("front", (0, -5, 1.0))
+    person = _person()
+    person[TARGET_NAMES.index("l_knee")] = (0.35, 0.6, 0.5)
+    person[TARGET_NAMES.index("l_ankle")] = (0.5, 0.9, 0.2)
+    person[TARGET_NAMES.index("l_foot")] = (0.5, 0.8, 0.15)
+    other = _person((0.45, 0.4, 0))
+    shin = np.full_like(person, np.nan)
+    for name in ("l_knee", "l_ankle", "l_foot"):  # 60-90 cm behind the person's centre, behind the other (40 cm)
+        shin[TARGET_NAMES.index(name)] = person[TARGET_NAMES.index(name)]
+    theirs = body_region(camera, other)
+    shin_behind = body_region(camera, shin) & theirs & ~body_region(camera, _person())
+    hidden = hidden_region(camera, person, [other], np.ones_like(theirs))
+    # (not all of it: each quarter of a bone holds one depth, and the thigh's quarter before the knee, at 5.375 m,
+    # in front of the other's 5.4 m, still covers the knee's end of the shin: 45 of 1,090 pixels)
+    assert shin_behind.sum() > 500 and (hidden & shin_behind).sum() >= 0.9 * shin_behind.sum()
+    # above the hips (image rows above the centre, 1 m high at the person) the other stands behind the person's
+    # torso and arms: those pixels stay the person's
+    upper = body_region(camera, _person()) & theirs & (np.arange(1000)[:, None] < 500)
+    assert upper.sum() > 100 and not (hidden & upper).any()  # 480 pixels: the other's shoulder and arm
+
+
 def test_overlapped_views_are_left_out_with_their_keypoints():
     cameras = [_camera("front", (0, -5, 1.0)), _camera("side", (-5, 0, 1.0))]
     person, other = _person(), _person((0, 2, 0))  # behind the person for the front camera, 2 m aside for the side

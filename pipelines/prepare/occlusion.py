@@ -9,12 +9,12 @@ from geometry: each person's region in a view is drawn as capsules around the bo
   body fit, the training and the evaluation, as views showing only somebody else are: in front, they hide the
   person; behind, the one mask covers both and the view's detection and mask may be theirs (measured on
   Demo_MultiPerson: docs/results/real-capture.md).
-* In the views kept, the mask loses the other people's regions outside the followed person's fitted body
-  (:func:`without_others`): what lies there is somebody else.
-* Where people nearer the camera (by the depth of their centres) cover the followed person's neighbourhood, the
-  pixels' owner is unknown (:func:`hidden_region`): the capture marks them in ``mask_unknown/`` (docs/formats.md
-  §1.5), no loss draws them, the body fits let the body lie there, and the evaluation counts them with the
-  boundary band, in the background's colour.
+* In the views kept, the mask loses its pixels outside the followed person's fitted body that lie nearer the other
+  people's regions than that body (:func:`without_others`): what lies there is somebody else.
+* Where somebody else's capsule is nearer the camera than the followed person's at a pixel of the followed person's
+  neighbourhood (bone by bone, :func:`body_depth`), the pixels' owner is unknown (:func:`hidden_region`): the
+  capture marks them in ``mask_unknown/`` (docs/formats.md §1.5), no loss draws them, the body fits let the body
+  lie there, and the evaluation counts them with the boundary band, in the background's colour.
 """
 
 from __future__ import annotations
@@ -48,6 +48,8 @@ BONE_RADII = (
     ("pelvis", "neck", 0.12),
     ("neck", "head", 0.1),
 )
+#: pieces each bone is cut in along its length for :func:`body_depth` (a thigh reaching back spans 60 cm of depth)
+DEPTH_PIECES = 4
 #: the torso's quadrilateral, filled between the capsules of its sides
 TORSO = ("l_shoulder", "r_shoulder", "r_hip", "l_hip")
 
@@ -56,28 +58,63 @@ def _index(name: str) -> int:
     return TARGET_NAMES.index(name)
 
 
-def body_region(camera: Camera, points: np.ndarray) -> np.ndarray:
-    """(H, W) bool: the person ``points`` (T, 3 world targets, NaN where missing) drawn in ``camera``'s image as
-    capsules of ``BONE_RADII`` (a capsule's width in pixels is 2 r f_y / z at its joints' mean depth z) and the filled
-    torso, in distorted pixels (as the masks are). Targets behind the camera or missing leave their capsules out."""
-    region = np.zeros((camera.height, camera.width), np.uint8)
+def _capsules(camera: Camera, points: np.ndarray, pieces: int = 1):
+    """The person ``points`` (T, 3 world targets, NaN where missing) in ``camera``'s distorted pixels: a list of
+    (depth, kind, pixels, width) with kind "line" (two (2,) int ends, ``BONE_RADII``' capsule width 2 r f_y / z at
+    its joints' mean depth z; each bone cut in ``pieces`` along its length, each at the depth of its middle) or
+    "torso" (the filled quadrilateral at its corners' mean depth, width 0). Targets behind the camera or missing
+    leave their shapes out."""
     in_camera = points @ camera.cam_from_world[:3, :3].T + camera.cam_from_world[:3, 3]
     depth = in_camera[:, 2]
     ok = np.isfinite(in_camera).all(-1) & (depth > 1e-3)
     pixels = np.full((len(points), 2), np.nan)
     pixels[ok] = project_distorted(camera, points[ok])
     ok &= (np.abs(pixels) < 1e5).all(-1)
-    fy = camera.K[1, 1]
+    shapes = []
     for a, b, radius in BONE_RADII:
         i, j = _index(a), _index(b)
         if ok[i] and ok[j]:
-            width = max(1, int(round(2 * radius * fy / (0.5 * (depth[i] + depth[j])))))
-            ends = np.round(pixels[[i, j]]).astype(np.int32)
-            cv2.line(region, tuple(map(int, ends[0])), tuple(map(int, ends[1])), 1, width, cv2.LINE_8)
+            width = max(1, int(round(2 * radius * camera.K[1, 1] / (0.5 * (depth[i] + depth[j])))))
+            if pieces == 1:
+                shapes.append((0.5 * (depth[i] + depth[j]), "line", np.round(pixels[[i, j]]).astype(np.int32), width))
+                continue
+            t = np.linspace(0.0, 1.0, pieces + 1)[:, None]  # the bone cut in pieces, each at its middle's depth
+            ends = np.round((1 - t) * pixels[i] + t * pixels[j]).astype(np.int32)
+            middles = (1 - (t[:-1, 0] + t[1:, 0]) / 2) * depth[i] + (t[:-1, 0] + t[1:, 0]) / 2 * depth[j]
+            shapes.extend((float(z), "line", ends[k : k + 2], width) for k, z in enumerate(middles))
     corners = [_index(n) for n in TORSO]
     if ok[corners].all():
-        cv2.fillConvexPoly(region, np.round(pixels[corners]).astype(np.int32), 1)
+        shapes.append((float(depth[corners].mean()), "torso", np.round(pixels[corners]).astype(np.int32), 0))
+    return shapes
+
+
+def _draw(image: np.ndarray, shape, value: float) -> None:
+    _, kind, pixels, width = shape
+    if kind == "line":
+        cv2.line(image, tuple(map(int, pixels[0])), tuple(map(int, pixels[1])), value, width, cv2.LINE_8)
+    else:
+        cv2.fillConvexPoly(image, pixels, value)
+
+
+def body_region(camera: Camera, points: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the person ``points`` (T, 3 world targets, NaN where missing) drawn in ``camera``'s image as
+    capsules of ``BONE_RADII`` (a capsule's width in pixels is 2 r f_y / z at its joints' mean depth z) and the filled
+    torso, in distorted pixels (as the masks are). Targets behind the camera or missing leave their capsules out."""
+    region = np.zeros((camera.height, camera.width), np.uint8)
+    for shape in _capsules(camera, points):
+        _draw(region, shape, 1)
     return region > 0
+
+
+def body_depth(camera: Camera, points: np.ndarray) -> np.ndarray:
+    """(H, W) float32: over :func:`body_region`, the depth of the nearest capsule or torso covering each pixel (each
+    bone drawn in ``DEPTH_PIECES`` pieces along its length at their middles' depths, the farthest first); inf
+    elsewhere."""
+    depth = np.full((camera.height, camera.width), np.inf, np.float32)
+    for z, kind, pixels, width in sorted(_capsules(camera, points, DEPTH_PIECES), key=lambda s: -s[0]):
+        _draw(depth, (z, kind, pixels, width + 2 if width else 0), float(z))  # 1 px wider: the pieces' ends round
+    depth[~body_region(camera, points)] = np.inf
+    return depth
 
 
 def overlap_share(camera: Camera, points: np.ndarray, others: list[np.ndarray]) -> float:
@@ -116,13 +153,15 @@ def _centre_depth(camera: Camera, points: np.ndarray) -> float:
 
 
 def hidden_region(camera: Camera, points: np.ndarray, others: list[np.ndarray], near: np.ndarray) -> np.ndarray:
-    """(H, W) bool: the :func:`body_region` of each of ``others`` ((T, 3) targets) whose centre is nearer ``camera``
-    than the person ``points``' centre, within ``near`` (H, W) bool (the person's neighbourhood)."""
-    depth = _centre_depth(camera, points)
-    front = [o for o in others if _centre_depth(camera, o) < depth]
-    if not front:
+    """(H, W) bool: the pixels within ``near`` (H, W) bool (the person's neighbourhood) where the :func:`body_region`
+    of one of ``others`` ((T, 3) targets) lies nearer ``camera`` than the person ``points``: than the person's own
+    capsule there (:func:`body_depth`; a leg behind somebody else's), or than the person's centre outside them."""
+    if not others:
         return np.zeros_like(near)
-    return np.logical_or.reduce([body_region(camera, o) for o in front]) & near
+    theirs = np.minimum.reduce([body_depth(camera, o) for o in others])
+    mine = body_depth(camera, points)
+    mine[np.isinf(mine)] = _centre_depth(camera, points)
+    return (theirs < mine) & near
 
 
 def person_mask(
