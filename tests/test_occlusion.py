@@ -103,6 +103,20 @@ def test_what_the_mask_holds_beside_somebody_elses_capsules_is_theirs():
     assert far.sum() > 1000 and (cut & far).sum() == far.sum()
 
 
+def test_the_boxed_distances_give_the_whole_images_owners():
+    # the reference: both distance fields over the whole image; the function's boxes must give the same pixels,
+    # bit for bit (distance_to_mask is exact in its integer squared distances), with the other person beside,
+    # behind, touching or far, and a mask reaching 60 px past the body
+    camera = _camera("front", (0, -5, 1.0))
+    body = body_region(camera, _person())
+    mask = cv2.dilate(body.astype(np.uint8), np.ones((121, 121), np.uint8)) > 0
+    # (1.0-1.1 m aside: the other's arm starts 20-40 px past the mask, nearer its edge than the body is)
+    for offset in ((0.6, 0, 0), (0.3, 1.0, 0), (-0.5, -0.5, 0.2), (2.0, 0, 0), (1.0, 0, 0), (1.1, 0, 0)):
+        covered = body_region(camera, _person(offset))
+        reference = mask & ~((distance_to_mask(covered) < distance_to_mask(body)) & ~body)
+        assert (without_others(mask, body, camera, [_person(offset)]) == reference).all(), offset
+
+
 def test_somebody_in_front_makes_the_owner_unknown_and_somebody_behind_does_not():
     camera = _camera("front", (0, -5, 1.0))
     person, body = _person(), body_region(camera, _person())

@@ -88,8 +88,10 @@ def _capsules(camera: Camera, points: np.ndarray, pieces: int = 1):
     return shapes
 
 
-def _draw(image: np.ndarray, shape, value: float) -> None:
+def _draw(image: np.ndarray, shape, value: float, origin: tuple[int, int] = (0, 0)) -> None:
+    """Draw one of :func:`_capsules`' shapes into ``image``, whose pixel (0, 0) is the image's (row, col) ``origin``."""
     _, kind, pixels, width = shape
+    pixels = pixels - np.array([origin[1], origin[0]], np.int32)
     if kind == "line":
         cv2.line(image, tuple(map(int, pixels[0])), tuple(map(int, pixels[1])), value, width, cv2.LINE_8)
     else:
@@ -106,14 +108,19 @@ def body_region(camera: Camera, points: np.ndarray) -> np.ndarray:
     return region > 0
 
 
-def body_depth(camera: Camera, points: np.ndarray) -> np.ndarray:
+def body_depth(camera: Camera, points: np.ndarray, box: tuple[slice, slice] | None = None) -> np.ndarray:
     """(H, W) float32: over :func:`body_region`, the depth of the nearest capsule or torso covering each pixel (each
     bone drawn in ``DEPTH_PIECES`` pieces along its length at their middles' depths, the farthest first); inf
-    elsewhere."""
-    depth = np.full((camera.height, camera.width), np.inf, np.float32)
+    elsewhere. With ``box`` (row and column slices), only that part of the image."""
+    rows, cols = box or (slice(0, camera.height), slice(0, camera.width))
+    origin, size = (rows.start, cols.start), (rows.stop - rows.start, cols.stop - cols.start)
+    region = np.zeros(size, np.uint8)
+    for shape in _capsules(camera, points):
+        _draw(region, shape, 1, origin)
+    depth = np.full(size, np.inf, np.float32)
     for z, kind, pixels, width in sorted(_capsules(camera, points, DEPTH_PIECES), key=lambda s: -s[0]):
-        _draw(depth, (z, kind, pixels, width + 2 if width else 0), float(z))  # 1 px wider: the pieces' ends round
-    depth[~body_region(camera, points)] = np.inf
+        _draw(depth, (z, kind, pixels, width + 2 if width else 0), float(z), origin)  # 1 px wider: the ends round
+    depth[region == 0] = np.inf
     return depth
 
 
@@ -138,10 +145,31 @@ def without_others(mask: np.ndarray, body: np.ndarray, camera: Camera, others: l
     covered = np.logical_or.reduce([body_region(camera, o) for o in others])
     if not covered.any():
         return mask
-    if not body.any():
-        return mask & ~covered
-    theirs = distance_to_mask(covered) < distance_to_mask(body)
-    return mask & ~(theirs & ~body)
+    decide = mask & ~body & ~covered
+    if not body.any() or not decide.any():
+        return mask & ~(covered & ~body)
+    # the distances within boxes, not the whole image: the box around the body and the pixels to decide gives their
+    # exact distances to the body; grown by the largest of those, it holds every covered pixel nearer to one of them
+    # than the body (farther ones could not win), so the comparison is the whole image's
+    rows, cols = _box(decide | body, 0, mask.shape)
+    inner = decide[rows, cols]
+    to_body = distance_to_mask(body[rows, cols])[inner]
+    reach = int(np.ceil(to_body.max())) + 1
+    grown = _box(decide | body, reach, mask.shape)
+    to_them = distance_to_mask(covered[grown])[rows.start - grown[0].start :, cols.start - grown[1].start :]
+    theirs = np.zeros_like(mask)
+    theirs[rows, cols][inner] = to_them[: inner.shape[0], : inner.shape[1]][inner] < to_body
+    return mask & ~((theirs | covered) & ~body)
+
+
+def _box(region: np.ndarray, pad: int, shape: tuple[int, int]) -> tuple[slice, slice]:
+    """Row and column slices of the bounding box of the (H, W) bool ``region`` (not empty), grown by ``pad`` pixels
+    on every side within ``shape``."""
+    rows, cols = np.nonzero(region.any(axis=1))[0], np.nonzero(region.any(axis=0))[0]
+    return (
+        slice(max(0, rows[0] - pad), min(shape[0], rows[-1] + 1 + pad)),
+        slice(max(0, cols[0] - pad), min(shape[1], cols[-1] + 1 + pad)),
+    )
 
 
 def _centre_depth(camera: Camera, points: np.ndarray) -> float:
@@ -156,12 +184,15 @@ def hidden_region(camera: Camera, points: np.ndarray, others: list[np.ndarray], 
     """(H, W) bool: the pixels within ``near`` (H, W) bool (the person's neighbourhood) where the :func:`body_region`
     of one of ``others`` ((T, 3) targets) lies nearer ``camera`` than the person ``points``: than the person's own
     capsule there (:func:`body_depth`; a leg behind somebody else's), or than the person's centre outside them."""
-    if not others:
-        return np.zeros_like(near)
-    theirs = np.minimum.reduce([body_depth(camera, o) for o in others])
-    mine = body_depth(camera, points)
+    hidden = np.zeros_like(near)
+    if not others or not near.any():
+        return hidden
+    box = _box(near, 0, near.shape)
+    theirs = np.minimum.reduce([body_depth(camera, o, box) for o in others])
+    mine = body_depth(camera, points, box)
     mine[np.isinf(mine)] = _centre_depth(camera, points)
-    return (theirs < mine) & near
+    hidden[box] = (theirs < mine) & near[box]
+    return hidden
 
 
 def person_mask(
