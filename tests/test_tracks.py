@@ -5,7 +5,16 @@ size counted only in front of each camera."""
 import numpy as np
 import pytest
 
-from pipelines.prepare.people import JOIN_RADIUS, TRACK_RADIUS, Track, _image_height, link_tracks, nearest_track
+from pipelines.prepare.people import (
+    JOIN_RADIUS,
+    MAX_GAP,
+    TRACK_RADIUS,
+    Track,
+    _image_height,
+    link_tracks,
+    nearest_track,
+)
+from pipelines.prepare.run import _others
 
 
 def _at(x: float) -> np.ndarray:
@@ -73,10 +82,8 @@ def test_equal_distances_choose_the_first_track():
 
 def test_the_other_people_fill_short_gaps_and_stop_at_their_ends():
     # the detector finds one person a view, so somebody beside the followed person drops out of a frame or two: the
-    # others are drawn where interpolated within MAX_GAP (here halfway, 1 m -> 1.5 m), never held past their ends
-    from pipelines.prepare.people import MAX_GAP
-    from pipelines.prepare.run import _others
-
+    # others are drawn where interpolated within MAX_GAP (frame 3: halfway between 1 m and 2 m), never held past
+    # their ends
     followed = Track({f: np.zeros((2, 3)) for f in range(20)})
     other = Track({2: np.ones((2, 3)), 4: 2 * np.ones((2, 3)), 6 + MAX_GAP + 1: np.ones((2, 3))})
     others = _others([followed, other], 0, list(range(20)))
