@@ -75,9 +75,6 @@ def _capsules(camera: Camera, points: np.ndarray, pieces: int = 1):
         i, j = _index(a), _index(b)
         if ok[i] and ok[j]:
             width = max(1, int(round(2 * radius * camera.K[1, 1] / (0.5 * (depth[i] + depth[j])))))
-            if pieces == 1:
-                shapes.append((0.5 * (depth[i] + depth[j]), "line", np.round(pixels[[i, j]]).astype(np.int32), width))
-                continue
             t = np.linspace(0.0, 1.0, pieces + 1)[:, None]  # the bone cut in pieces, each at its middle's depth
             ends = np.round((1 - t) * pixels[i] + t * pixels[j]).astype(np.int32)
             middles = (1 - (t[:-1, 0] + t[1:, 0]) / 2) * depth[i] + (t[:-1, 0] + t[1:, 0]) / 2 * depth[j]
@@ -151,24 +148,22 @@ def without_others(mask: np.ndarray, body: np.ndarray, camera: Camera, others: l
     # the distances within boxes, not the whole image: the box around the body and the pixels to decide gives their
     # exact distances to the body; grown by the largest of those, it holds every covered pixel nearer to one of them
     # than the body (farther ones could not win), so the comparison is the whole image's
-    rows, cols = _box(decide | body, 0, mask.shape)
-    inner = decide[rows, cols]
-    to_body = distance_to_mask(body[rows, cols])[inner]
-    reach = int(np.ceil(to_body.max())) + 1
-    grown = _box(decide | body, reach, mask.shape)
-    to_them = distance_to_mask(covered[grown])[rows.start - grown[0].start :, cols.start - grown[1].start :]
+    box = _box(decide | body)
+    to_body = distance_to_mask(body[box])
+    grown = _box(decide | body, int(np.ceil(to_body[decide[box]].max())) + 1)
+    within = tuple(slice(b.start - g.start, b.stop - g.start) for b, g in zip(box, grown))  # box inside grown
     theirs = np.zeros_like(mask)
-    theirs[rows, cols][inner] = to_them[: inner.shape[0], : inner.shape[1]][inner] < to_body
+    theirs[box] = decide[box] & (distance_to_mask(covered[grown])[within] < to_body)
     return mask & ~((theirs | covered) & ~body)
 
 
-def _box(region: np.ndarray, pad: int, shape: tuple[int, int]) -> tuple[slice, slice]:
+def _box(region: np.ndarray, pad: int = 0) -> tuple[slice, slice]:
     """Row and column slices of the bounding box of the (H, W) bool ``region`` (not empty), grown by ``pad`` pixels
-    on every side within ``shape``."""
+    on every side within the image."""
     rows, cols = np.nonzero(region.any(axis=1))[0], np.nonzero(region.any(axis=0))[0]
     return (
-        slice(max(0, rows[0] - pad), min(shape[0], rows[-1] + 1 + pad)),
-        slice(max(0, cols[0] - pad), min(shape[1], cols[-1] + 1 + pad)),
+        slice(max(0, rows[0] - pad), min(region.shape[0], rows[-1] + 1 + pad)),
+        slice(max(0, cols[0] - pad), min(region.shape[1], cols[-1] + 1 + pad)),
     )
 
 
@@ -187,7 +182,7 @@ def hidden_region(camera: Camera, points: np.ndarray, others: list[np.ndarray], 
     hidden = np.zeros_like(near)
     if not others or not near.any():
         return hidden
-    box = _box(near, 0, near.shape)
+    box = _box(near)
     theirs = np.minimum.reduce([body_depth(camera, o, box) for o in others])
     mine = body_depth(camera, points, box)
     mine[np.isinf(mine)] = _centre_depth(camera, points)
