@@ -1,5 +1,9 @@
 """From per-view people to one person's 3D targets per frame: the consensus of views, then robust triangulation.
-Frames where fewer than two views agree on a person, or the torso cannot be placed, are dropped with a reason."""
+Frames where fewer than two views agree on a person, or the torso cannot be placed, are dropped with a reason.
+
+A detector may swap one pair of limbs alone, the legs as they cross or the arms as they fold, in a view where the
+rest of the person is right: each view's legs and arms are exchanged left for right where the exchange agrees with the
+other views and the detection as given does not (:func:`side_swaps`), before the triangulation."""
 
 from __future__ import annotations
 
@@ -8,14 +12,23 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipelines.datasets.camera import Camera
-from pipelines.datasets.keypoints import TARGETS, mirror_index
-from pipelines.prepare.multiview import consensus, project, projection_matrix, triangulate_robust, undistort_points
+from pipelines.datasets.keypoints import TARGET_NAMES, TARGETS, mirror_index
+from pipelines.prepare.multiview import (
+    consensus,
+    project,
+    projection_matrix,
+    relative_errors,
+    triangulate_robust,
+    undistort_points,
+)
 from pipelines.prepare.people import TRACK_RADIUS, Track, link_tracks, matches, people_in_frame, reach
 
 #: least detector confidence of a keypoint that is used
 MIN_CONFIDENCE = 0.3
 #: fewest targets a kept frame has triangulated
 MIN_TARGETS = 8
+#: the left targets of each limb a detector swaps alone (the hips and shoulders stay with the torso)
+SWAPPED_LIMBS = (("l_knee", "l_ankle", "l_foot"), ("l_elbow", "l_wrist"))
 
 
 @dataclass
@@ -139,6 +152,8 @@ def triangulate_people(
             followed = " (the person followed so far)" if previous is not None else ""
             dropped[frame] = f"fewer than two views agree on a person{followed}"
             continue
+        for v, order in enumerate(side_swaps(P, frame_xy, heights, threshold)):
+            frame_xy[v], frame_raw[v] = frame_xy[v, order], frame_raw[v, order]
         xyz, weights = triangulate_robust(
             P, frame_xy[..., :2].transpose(1, 0, 2), frame_xy[..., 2].T, heights, threshold
         )
@@ -165,6 +180,48 @@ def triangulate_people(
         notes,
         {f: others[f] for f in kept if others.get(f)},
     )
+
+
+def side_swaps(P: np.ndarray, xy: np.ndarray, heights: np.ndarray, threshold: float) -> np.ndarray:
+    """(V, T) orders of the targets that undo, view by view, a limb's left/right swap (``SWAPPED_LIMBS``).
+
+    A view's limb pair is exchanged where, against the others' robust triangulation (:func:`triangulate_robust`
+    over every other view, the views corrected so far as corrected), the limb's median reprojection error as
+    detected exceeds ``threshold`` and the exchanged one's does not. Views are taken in order, so two views that
+    swapped the same limb are both found as long as two others agree.
+
+    Args:
+        P: (V, 3, 4). xy: (V, T, 3) undistorted pixels and confidence (0: not seen). heights: (V,).
+        threshold: reprojection error (fraction of the height) beyond which a view disagrees.
+    """
+    n_views, n_targets = xy.shape[:2]
+    orders = np.tile(np.arange(n_targets), (n_views, 1))
+    limbs = [[TARGET_NAMES.index(n) for n in names] for names in SWAPPED_LIMBS]
+    for v in range(n_views):
+        rest = [u for u in range(n_views) if u != v and (xy[u, :, 2] > 0).any()]
+        if len(rest) < 2 or not (xy[v, :, 2] > 0).any():
+            continue
+        seen = np.stack([xy[u, orders[u]] for u in rest])
+        points, _ = triangulate_robust(
+            P[rest], seen[..., :2].transpose(1, 0, 2), seen[..., 2].T, heights[rest], threshold
+        )
+        for left in limbs:
+            pair = left + [mirror_index(t) for t in left]
+            swapped = [mirror_index(t) for t in pair]
+            as_detected = _limb_error(P[v], points[pair], xy[v, pair], heights[v])
+            exchanged = _limb_error(P[v], points[pair], xy[v, swapped], heights[v])
+            if as_detected > threshold >= exchanged:
+                orders[v, pair] = swapped
+    return orders
+
+
+def _limb_error(P_v: np.ndarray, points: np.ndarray, xy: np.ndarray, height: float) -> float:
+    """Median reprojection error (fraction of ``height``) of (N, 3) ``points`` against (N, 3) ``xy`` (pixels and
+    confidence), over the targets seen and triangulated; inf when none is."""
+    seen = (xy[:, 2] > 0) & np.isfinite(points).all(-1)
+    if not seen.any():
+        return np.inf
+    return float(np.median(relative_errors(P_v[None], points[seen], xy[seen, None, :2], np.array([height]))))
 
 
 def _why_not(P_v, detections, others, height, threshold) -> str:
