@@ -64,6 +64,9 @@ class ModelConfig:
     #: subject fits: each part holds density only within this many metres of the body (inside it too), on a
     #: shell_resolution^3 grid per box (docs/model.md §1, *Body shells*); 0: the whole box, as the paper
     body_shell: float = 0.0
+    #: subject fits on a capture whose bodies wear a fitted surface (``body_surface.npy``): the shell's margin there
+    #: (metres; the body then follows the person's outline more closely); 0: ``body_shell`` on every capture
+    surface_shell: float = 0.0
     shell_resolution: int = 32
     image_size: int = 128  #: cnn only: side of its square bone maps and output images (paper: 128)
     latent_dim: int = 0  #: autoencoder: size of z_s and of z_a (paper 256); 0 for a per-subject fit
@@ -306,6 +309,7 @@ KIND_ONLY = {
     "data.renders_per_mesh": "autoencoder",
     "train.pose_correction": "subject",
     "model.body_shell": "subject",
+    "model.surface_shell": "subject",
     "model.shell_resolution": "subject",
     "train.camera_colour": "subject",
     "data.camera_gains": "subject",
@@ -328,6 +332,7 @@ RANGES = {
     "model.box_scale_pad": (lambda v: v > 0, "> 0"),
     "model.box_abs_pad": (lambda v: v >= 0, ">= 0"),
     "model.body_shell": (lambda v: v >= 0, ">= 0 (metres; 0: whole boxes)"),
+    "model.surface_shell": (lambda v: v >= 0, ">= 0 (metres; 0: model.body_shell)"),
     "model.shell_resolution": (lambda v: 2 <= v <= 128, "in [2, 128]"),
     "model.image_size": (lambda v: v >= 32 and v % 32 == 0, "a multiple of 32, >= 32"),
     "model.latent_dim": (lambda v: v >= 0, ">= 0"),
@@ -434,6 +439,8 @@ def validate_config(config: FitConfig) -> None:
         raise ConfigError(f"model.pose_dropout: {config.model.name}'s density reads the pose features; leave it at 0")
     if config.model.body_shell and not spec.rays:
         raise ConfigError("model.body_shell: the CNN baseline has no part boxes; leave it at 0")
+    if config.model.surface_shell and not config.model.body_shell:
+        raise ConfigError("model.surface_shell: shells are off (model.body_shell is 0); set both or neither")
     rays_only = ("pose_correction", "camera_colour", "random_background", "holdout_every", "entropy_weight")
     for key in (*rays_only, "smoothness_weight"):
         if getattr(config.train, key) and not spec.rays:

@@ -86,7 +86,7 @@ def test_the_boxes_wear_the_surface(body_model):
 
     from pipelines.runs.subject.session import fit_boxes
 
-    model = SimpleNamespace(box_scale_pad=1.0, box_abs_pad=0.0, body_shell=0.02, shell_resolution=16)
+    model = SimpleNamespace(box_scale_pad=1.0, box_abs_pad=0.0, body_shell=0.02, surface_shell=0.0, shell_resolution=16)
     shapes = torch.zeros(1, 10)
     offsets = body_model.surface_offsets(np.full(body_model.n_vertices, 0.02))
     with torch.no_grad():
@@ -119,3 +119,27 @@ def test_the_surface_prior_by_hand(body_model):
     spike[k] = 1.0
     expected = (0.1 + 10.0 * (1 + np.sum(1.0 / degree[neighbours] ** 2))) / n
     assert prior(spike).item() == pytest.approx(expected, rel=1e-5)
+
+
+def test_a_capture_with_a_surface_takes_the_surface_shell(body_model, monkeypatch):
+    """``model.surface_shell`` is the shells' margin where the capture's bodies wear a surface, and only there;
+    unset (0), ``body_shell`` is the margin everywhere. (The margin handed to ``part_shells``, whose grids
+    tests/test_shells.py checks.)"""
+    from types import SimpleNamespace
+
+    from pipelines.runs.subject import session
+
+    margins = []
+    monkeypatch.setattr(session, "part_shells", lambda *args: margins.append(args[-1]))
+    model = SimpleNamespace(
+        box_scale_pad=1.0, box_abs_pad=0.0, body_shell=0.05, surface_shell=0.01, shell_resolution=16
+    )
+    shapes = torch.zeros(1, 10)
+    offsets = body_model.surface_offsets(np.full(body_model.n_vertices, 0.005))
+    with torch.no_grad():
+        plain, worn = body_model.rest_body(shapes), body_model.rest_body(shapes, offsets)
+    session.fit_boxes(body_model, worn, shapes, model, offsets)
+    session.fit_boxes(body_model, plain, shapes, model)
+    model.surface_shell = 0.0
+    session.fit_boxes(body_model, worn, shapes, model, offsets)
+    assert margins == [0.01, 0.05, 0.05]

@@ -176,3 +176,10 @@ def test_body_shell_is_for_subject_fits():
     config.model.body_shell, config.model.shell_resolution = 0.0, 16
     with pytest.raises(ConfigError, match="model.shell_resolution: only subject"):
         validate_config(config)
+    config = FitConfig()
+    config.model.surface_shell = 0.015  # a margin for shells that are off
+    with pytest.raises(ConfigError, match="model.surface_shell: shells are off"):
+        validate_config(config)
+    config.model.surface_shell = -0.01
+    with pytest.raises(ConfigError, match="model.surface_shell"):
+        validate_config(config)

@@ -115,13 +115,15 @@ def fit_boxes(
 ) -> tuple[tuple, torch.Tensor | None]:
     """Part boxes over the rest pose and the posed ``bodies`` (docs/model.md §1), and their shells (*Body shells*),
     or None where ``model.body_shell`` is 0 (whole boxes, as the paper); ``template_offsets``: the capture's
-    surface, which ``bodies`` wear too (``BodyModel.surface_offsets``), or None."""
+    surface, which ``bodies`` wear too (``BodyModel.surface_offsets``), or None. With a surface the shells' margin
+    is ``model.surface_shell`` where that is set."""
     with torch.no_grad():
         rest = body_model.rest_body(shapes[:1], template_offsets)
         boxes = body_model.part_boxes([rest, bodies], model.box_scale_pad, model.box_abs_pad)
     if not model.body_shell:
         return boxes, None
-    return boxes, part_shells([rest, bodies], body_model.faces, *boxes, model.shell_resolution, model.body_shell)
+    margin = model.surface_shell if template_offsets is not None and model.surface_shell else model.body_shell
+    return boxes, part_shells([rest, bodies], body_model.faces, *boxes, model.shell_resolution, margin)
 
 
 def box_frames(frames: list[int], count: int) -> list[int]:
