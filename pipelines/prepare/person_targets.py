@@ -38,9 +38,10 @@ class Triangulated:
     Attributes:
         frames: kept source frame indices (ascending).
         points: (F, T, 3) triangulated targets (NaN: not triangulated).
-        keypoints: (F, V, T, 3) undistorted pixels and confidence of the chosen person (0 where not used).
+        keypoints: (F, V, T, 3) undistorted pixels and confidence of the chosen person (0 where not used), each
+            view's swapped limbs put right (:func:`side_swaps`).
         used: (F, V) bool, the views that agreed on the person.
-        distorted: (F, V, T, 3) the chosen person's keypoints as detected (for drawing).
+        distorted: (F, V, T, 3) the chosen person's keypoints as detected (for drawing), limbs put right.
         detected: (F, V, T, 3) undistorted, with the detector's confidence: the chosen person, or in a view that
             disagreed the detection nearest to the triangulated one (the report measures every camera on it).
         dropped: source frame -> reason.
