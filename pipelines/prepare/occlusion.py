@@ -95,13 +95,15 @@ def _draw(image: np.ndarray, shape, value: float, origin: tuple[int, int] = (0, 
         cv2.fillConvexPoly(image, pixels, value)
 
 
-def body_region(camera: Camera, points: np.ndarray) -> np.ndarray:
+def body_region(camera: Camera, points: np.ndarray, box: tuple[slice, slice] | None = None) -> np.ndarray:
     """(H, W) bool: the person ``points`` (T, 3 world targets, NaN where missing) drawn in ``camera``'s image as
     capsules of ``BONE_RADII`` (a capsule's width in pixels is 2 r f_y / z at its joints' mean depth z) and the filled
-    torso, in distorted pixels (as the masks are). Targets behind the camera or missing leave their capsules out."""
-    region = np.zeros((camera.height, camera.width), np.uint8)
+    torso, in distorted pixels (as the masks are). Targets behind the camera or missing leave their capsules out.
+    With ``box`` (row and column slices), only that part of the image."""
+    rows, cols = box or (slice(0, camera.height), slice(0, camera.width))
+    region = np.zeros((rows.stop - rows.start, cols.stop - cols.start), np.uint8)
     for shape in _capsules(camera, points):
-        _draw(region, shape, 1)
+        _draw(region, shape, 1, (rows.start, cols.start))
     return region > 0
 
 
@@ -109,15 +111,12 @@ def body_depth(camera: Camera, points: np.ndarray, box: tuple[slice, slice] | No
     """(H, W) float32: over :func:`body_region`, the depth of the nearest capsule or torso covering each pixel (each
     bone drawn in ``DEPTH_PIECES`` pieces along its length at their middles' depths, the farthest first); inf
     elsewhere. With ``box`` (row and column slices), only that part of the image."""
-    rows, cols = box or (slice(0, camera.height), slice(0, camera.width))
-    origin, size = (rows.start, cols.start), (rows.stop - rows.start, cols.stop - cols.start)
-    region = np.zeros(size, np.uint8)
-    for shape in _capsules(camera, points):
-        _draw(region, shape, 1, origin)
-    depth = np.full(size, np.inf, np.float32)
+    region = body_region(camera, points, box)
+    depth = np.full(region.shape, np.inf, np.float32)
+    origin = (box[0].start, box[1].start) if box else (0, 0)
     for z, kind, pixels, width in sorted(_capsules(camera, points, DEPTH_PIECES), key=lambda s: -s[0]):
         _draw(depth, (z, kind, pixels, width + 2 if width else 0), float(z), origin)  # 1 px wider: the ends round
-    depth[region == 0] = np.inf
+    depth[~region] = np.inf
     return depth
 
 

@@ -197,7 +197,7 @@ def side_swaps(P: np.ndarray, xy: np.ndarray, heights: np.ndarray, threshold: fl
     """
     n_views, n_targets = xy.shape[:2]
     orders = np.tile(np.arange(n_targets), (n_views, 1))
-    limbs = [[TARGET_NAMES.index(n) for n in names] for names in SWAPPED_LIMBS]
+    pairs = [[TARGET_NAMES.index(side + n[1:]) for side in "lr" for n in names] for names in SWAPPED_LIMBS]
     for v in range(n_views):
         rest = [u for u in range(n_views) if u != v and (xy[u, :, 2] > 0).any()]
         if len(rest) < 2 or not (xy[v, :, 2] > 0).any():
@@ -206,8 +206,7 @@ def side_swaps(P: np.ndarray, xy: np.ndarray, heights: np.ndarray, threshold: fl
         points, _ = triangulate_robust(
             P[rest], seen[..., :2].transpose(1, 0, 2), seen[..., 2].T, heights[rest], threshold
         )
-        for left in limbs:
-            pair = left + [mirror_index(t) for t in left]
+        for pair in pairs:
             swapped = [mirror_index(t) for t in pair]
             as_detected = _limb_error(P[v], points[pair], xy[v, pair], heights[v])
             exchanged = _limb_error(P[v], points[pair], xy[v, swapped], heights[v])
