@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONUNBUFFERED := 1
 
-.PHONY: demo demo-real test test-fast lint format bench gpu-check reference venv venv-real clean-venv
+.PHONY: demo demo-real test test-fast lint format bench gpu-check gpu-real reference venv venv-real clean-venv
 
 venv: $(STAMP)
 
@@ -90,6 +90,13 @@ reference: $(STAMP)
 GPU_CHECK ?=
 gpu-check: $(STAMP)
 	$(PY) -m bench.gpu_check $(GPU_CHECK)
+
+# The real demo on a lent GPU in one call of under 9 minutes (bench/gpu_real.py; docs/guides/speed.md, *On a GPU*):
+# `$(PY) -m bench.gpu_real pack CAPTURE .gpu/demo` here, then this there: rays/s of the paper preset in fp32, TF32
+# and bf16, and the paper preset with and without the CPU preset's levers and the pose correction, side by side.
+GPU_REAL ?= --subject .gpu/demo
+gpu-real: $(STAMP)
+	$(PY) -m bench.gpu_real run $(GPU_REAL)
 
 clean-venv:
 	rm -rf $(VENV)

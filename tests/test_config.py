@@ -170,3 +170,22 @@ def test_a_presets_model_section_applies_to_its_model_before_the_overrides(tmp_p
     bad.write_text("models:\n  narf_x:\n    train:\n      lr: 0.1\n")
     with pytest.raises(ConfigError, match=r"bad.yaml: models: unknown model\(s\) \['narf_x'\]"):
         load_config(str(bad))
+
+
+def test_the_sparse_paper_preset_is_the_paper_preset_with_the_cpu_presets_levers():
+    """paper_sparse differs from paper in the four settings that docs/results measured on the GPU, and each holds the
+    CPU preset's value (docs/guides/fitting.md, *Few cameras*)."""
+    import dataclasses
+
+    def flat(config):
+        return {
+            f"{s}.{k}": v
+            for s, part in dataclasses.asdict(config).items()
+            if isinstance(part, dict)
+            for k, v in part.items()
+        }
+
+    paper, sparse, cpu = (flat(load_config(name)) for name in ("paper", "paper_sparse", "cpu"))
+    changed = {key for key in paper if paper[key] != sparse[key]}
+    assert changed == {"model.view_freqs", "model.body_shell", "model.surface_shell", "train.lr_anneal"}
+    assert all(sparse[key] == cpu[key] for key in changed)

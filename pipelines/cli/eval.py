@@ -178,3 +178,7 @@ def report_joints(kind, run, folder: Path) -> None:
 
 def entrypoint() -> None:
     sys.exit(run_cli("narf-eval", main))
+
+
+if __name__ == "__main__":  # python -m pipelines.cli.eval ...
+    entrypoint()

@@ -1,0 +1,313 @@
+"""``make gpu-real``: the real demo's capture on a lent GPU, in one call (docs/guides/speed.md, *On a GPU*).
+
+A lent GPU machine takes a working tree of at most 64 MiB and a few minutes, so this is two commands:
+
+* ``pack CAPTURE OUT`` (here): a copy of a prepared capture small enough to travel. Every pixel that the loader
+  sets to the background (outside the mask and its boundary band, docs/formats.md §1) is black already, with a
+  margin for the undistortion's and the resize's neighbours, and the image is written again as JPEG; the overlay
+  folder stays behind. ``check`` reports how far the loaded views of the copy are from the original's.
+* ``run --subject OUT`` (there): (1) rays/s of the paper preset in fp32, TF32 and bf16, each fitted alone for a few
+  seconds; (2) the paper preset alone, with the pose correction and with the CPU preset's levers (``paper_sparse``;
+  docs/results/real-capture.md, *The real demo on a GPU*), or in fp32 (``--variants``), fitted side by side for the
+  same time (or ``--steps``), then ``narf-eval`` on the training images, the held-out camera and novel poses.
+  Figures go to one JSON file after each stage, so what was measured comes back even if the call is cut short.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm import tqdm
+
+#: The fits of stage 2: name -> config overrides on the paper preset.
+VARIANTS = {
+    "paper_fp32": ["train.precision=fp32"],
+    "paper_tf32": ["train.precision=tf32"],
+    "pose_correction_tf32": ["train.precision=tf32", "train.pose_correction=true"],
+    "cpu_levers_tf32": [
+        "train.precision=tf32",
+        "model.view_freqs=0",
+        "model.body_shell=0.03",
+        "model.surface_shell=0.015",
+        "train.lr_anneal=0.2",
+    ],
+}
+SPLITS = ("same_pose_same_view", "novel_view", "novel_pose")
+
+
+def _parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m bench.gpu_real", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    pack = sub.add_parser("pack", help="a copy of CAPTURE small enough to travel")
+    pack.add_argument("capture", type=Path)
+    pack.add_argument("out", type=Path)
+    pack.add_argument("--quality", type=int, default=95, help="JPEG quality of the images")
+    pack.add_argument("--margin", type=int, default=12, help="pixels kept beyond the mask and its band")
+    pack.add_argument(
+        "--drop",
+        default="mask",
+        help="folders left behind besides overlay (default: mask, which a fit with data.mask_source=cihp never reads)",
+    )
+    check = sub.add_parser("check", help="the loaded views of a packed copy against the original's")
+    check.add_argument("capture", type=Path)
+    check.add_argument("packed", type=Path)
+    run = sub.add_parser("run", help="the measurements, on the GPU")
+    run.add_argument("--subject", type=Path, required=True, help="a prepared (packed) capture")
+    run.add_argument("--work", type=Path, default=Path("runs/gpu-real"), help="folder of the runs")
+    run.add_argument("--out", type=Path, default=None, help="JSON of the figures (default: WORK/gpu-real.json)")
+    run.add_argument("--speed-seconds", type=float, default=30.0, help="stage 1: seconds of fitting per precision")
+    run.add_argument("--fit-seconds", type=float, default=220.0, help="stage 2: each fit's time, side by side")
+    run.add_argument("--steps", type=int, default=0, help="stage 2: steps per fit instead (0: --fit-seconds)")
+    run.add_argument("--limit", type=int, default=17, help="views evaluated per split")
+    run.add_argument(
+        "--variants",
+        default="paper_tf32,cpu_levers_tf32,pose_correction_tf32",
+        help=f"stage 2's fits, comma-separated, of {', '.join(VARIANTS)} (four at once outgrew an H200's 141 GB)",
+    )
+    run.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
+    run.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="an override of every fit")
+    return parser
+
+
+def pack(capture: Path, out: Path, quality: int, margin: int, drop: set[str]) -> None:
+    """Copy ``capture`` to ``out`` without its overlay and the folders ``drop``, each image blacked out beyond its
+    masks (every mask folder), their band and ``margin`` pixels, and written again as JPEG."""
+    import cv2
+
+    from pipelines.datasets.capture import ZjuCapture
+    from pipelines.datasets.images import read_image
+    from pipelines.datasets.zju_mocap import boundary_band
+
+    if out.exists():
+        raise SystemExit(f"{out}: exists; remove it first")
+    source = ZjuCapture(capture, ratio=1.0)
+    image_dirs = {Path(rel).parts[0] for row in source.ims for rel in row}
+    shutil.copytree(
+        capture,
+        out,
+        ignore=lambda d, names: [n for n in names if Path(d) == capture and n in image_dirs | drop | {"overlay"}],
+    )
+    kernel = np.ones((2 * margin + 1, 2 * margin + 1), np.uint8)
+    for rel in tqdm([rel for row in source.ims for rel in row], desc="pack", unit="view"):
+        bgr = read_image(capture / rel)
+        keep = np.zeros(bgr.shape[:2], bool)
+        for folder in ("mask", "mask_cihp", "mask_unknown"):
+            path = capture / folder / Path(rel).with_suffix(".png")
+            if path.is_file():
+                keep |= read_image(path, cv2.IMREAD_GRAYSCALE, "mask") != 0
+        keep = cv2.dilate((keep | boundary_band(keep)).astype(np.uint8), kernel) > 0
+        bgr[~keep] = 0
+        (out / rel).parent.mkdir(parents=True, exist_ok=True)
+        if not cv2.imwrite(str(out / rel), bgr, [cv2.IMWRITE_JPEG_QUALITY, quality]):
+            raise SystemExit(f"{out / rel}: could not be written")
+
+
+def check(capture: Path, packed: Path) -> dict:
+    """Every view of both captures as the fit loads it (ratio 0.5, the cihp masks): the packed copy's PSNR over the
+    mask's pixels and over the whole image, against the original's, and whether the masks are the same."""
+    from pipelines.datasets.capture import ZjuCapture
+
+    original, copy = ZjuCapture(capture), ZjuCapture(packed)
+    worst_person, squared, person, pixels, masks_equal = np.inf, 0.0, 0.0, 0, True
+    views = [(frame, cam) for frame in range(original.n_frames) for cam in range(original.n_cameras)]
+    for frame, cam in tqdm(views, desc="check", unit="view"):
+        a, b = original.load_frame(frame, cam), copy.load_frame(frame, cam)
+        masks_equal &= bool(np.array_equal(a.mask, b.mask))
+        error = (a.image - b.image) ** 2
+        inside = a.mask > 0
+        mse = float(error[inside].mean()) if inside.any() else 0.0
+        worst_person = min(worst_person, -10 * np.log10(max(mse, 1e-12)))
+        squared, person, pixels = (
+            squared + float(error.sum()),
+            person + float(error[inside].sum()),
+            pixels + int(inside.sum()),
+        )
+    n = len(views)
+    whole = squared / (n * a.image.size)
+    return {
+        "views": n,
+        "masks_equal": masks_equal,
+        "person_psnr": round(-10 * np.log10(max(person / (3 * pixels), 1e-12)), 2),
+        "worst_view_person_psnr": round(worst_person, 2),
+        "full_psnr": round(-10 * np.log10(max(whole, 1e-12)), 2),
+    }
+
+
+def _write(path: Path, figures: dict) -> None:
+    from fitting.files import atomic_write_text
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(figures, indent=1))
+
+
+def speed(subject: Path, work: Path, seconds: float, device, extra: list[str]) -> dict:
+    """Stage 1: each precision's rays/s (median of the log's rows after the first) and peak memory, fitted alone."""
+    import torch
+
+    from fitting.config import load_config
+    from fitting.run_folder import prepare_run_dir
+    from pipelines.runs.fit import start_run
+
+    rates = {}
+    for precision in ("fp32", "tf32", "bf16"):
+        overrides = [f"data.subject={subject}", "train.validate_every=0", "train.log_every=10", *extra]
+        config = load_config("paper", [*overrides, f"train.precision={precision}"])
+        run = prepare_run_dir(work / f"speed_{precision}", False)
+        if device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(device)
+        started = time.perf_counter()
+        trainer = start_run(run, device, config, progress=False)
+        ready = time.perf_counter()
+        result = trainer.fit(max_minutes=seconds / 60)
+        log = run / "log.jsonl"  # a fit shorter than train.log_every steps writes none: the mean rate then
+        rows = [json.loads(line) for line in log.read_text().splitlines()] if log.is_file() else []
+        rays = [r["rays_per_s"] for r in rows[1:]] or [r["rays_per_s"] for r in rows]
+        mean_rate = result.step * trainer.rays_per_step / max(trainer.elapsed, 1e-9)
+        rates[precision] = {
+            "steps": result.step,
+            "rays_per_s": round(float(np.median(rays)) if rays else mean_rate),
+            "start_s": round(ready - started, 1),
+            "train_psnr_last": round(rows[-1]["psnr"], 2) if rows else None,
+            "peak_gpu_memory_gib": round(torch.cuda.max_memory_allocated(device) / 2**30, 2)
+            if device.type == "cuda"
+            else None,
+        }
+        del trainer
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+        print(f"gpu-real: speed {precision}: {rates[precision]}", flush=True)
+    return rates
+
+
+def steps_for(rates: dict, variants: list[str], seconds: float, rays_per_step: int) -> int:
+    """The steps each variant reaches when they run side by side for ``seconds``, if each step of a variant costs
+    what it cost alone at its precision (no gain from sharing the GPU assumed)."""
+    cost = 0.0
+    for name in variants:
+        precision = next(o.split("=")[1] for o in VARIANTS[name] if o.startswith("train.precision="))
+        cost += rays_per_step / max(rates[precision]["rays_per_s"] or 1, 1)
+    return max(10, round(seconds / cost))
+
+
+def _person(split: dict) -> dict:
+    """A split's figures as the results tables give them: person PSNR, NB crop PSNR / SSIM, silhouette pixels."""
+    crop = split["nb_crop"]
+    return {
+        "views": split["n_views"],
+        "person_psnr": round(crop["breakdown"]["psnr_person"], 2),
+        "nb_psnr": round(crop["psnr"], 2),
+        "nb_ssim": round(crop["ssim"], 3),
+        "silhouette_pct": round(100 * crop["breakdown"]["pixels_silhouette"], 2),
+        "full_psnr": round(split["full"]["psnr"], 2),
+    }
+
+
+def side_by_side(
+    subject: Path, work: Path, variants: list[str], budget: list[str], limit: int, extra: list[str], out
+) -> dict:
+    """Stage 2: the variants fitted at once (one process each, ``narf-fit`` with the arguments ``budget``), each
+    evaluated as soon as it ends; returns each one's steps, time and split figures (also passed to ``out``)."""
+    launched = {}
+    for name in variants:
+        run = work / name
+        shutil.rmtree(run, ignore_errors=True)
+        sets = [a for o in ["train.validate_every=0", *extra, *VARIANTS[name]] for a in ("--set", o)]
+        fit = [sys.executable, "-m", "pipelines.cli.fit", "--subject", str(subject), "--config", "paper"]
+        fit += ["--out", str(run), "--quiet", *budget, *sets]
+        evaluate = [sys.executable, "-m", "pipelines.cli.eval", "--run", str(run), "--limit", str(limit)]
+        evaluate += [a for s in SPLITS for a in ("--split", s)] + ["--grids", "0", "--quiet"]
+        script = f"{shlex.join(fit)} && {shlex.join(evaluate)}"
+        log = open(work / f"{name}.log", "w")
+        threads = {"OMP_NUM_THREADS": str(max(1, (os.cpu_count() or 1) // len(variants)))}
+        launched[name] = (
+            subprocess.Popen(
+                ["bash", "-c", script], stdout=log, stderr=subprocess.STDOUT, env={**os.environ, **threads}
+            ),
+            time.perf_counter(),
+            log,
+        )
+    figures = {}
+    for name, (process, started, log) in launched.items():
+        code = process.wait()
+        log.close()
+        run = work / name
+        entry = {"exit": code, "wall_s": round(time.perf_counter() - started, 1), "overrides": VARIANTS[name]}
+        metrics = run / "eval" / "metrics.json"
+        if code == 0 and metrics.is_file():
+            data = json.loads(metrics.read_text())
+            entry["steps"] = data["step"]
+            entry.update({s: _person(data["splits"][s]) for s in SPLITS})
+        else:
+            entry["log_tail"] = (work / f"{name}.log").read_text()[-1500:]
+        figures[name] = entry
+        out(figures)
+        print(f"gpu-real: {name}: {entry}", flush=True)
+    return figures
+
+
+def run(args: argparse.Namespace) -> int:
+    import torch
+
+    from fitting.run_folder import auto_device
+
+    device = auto_device(args.device)
+    subject, work = args.subject.resolve(), args.work.resolve()
+    work.mkdir(parents=True, exist_ok=True)
+    out = args.out or work / "gpu-real.json"
+    figures = {
+        "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
+        "torch": torch.__version__,
+    }
+    figures["subject"] = str(args.subject)
+    started = time.perf_counter()
+    if args.speed_seconds > 0:
+        figures["speed"] = speed(subject, work, args.speed_seconds, device, args.set)
+        figures["speed_stage_s"] = round(time.perf_counter() - started, 1)
+        _write(out, figures)
+    variants = [v for v in args.variants.split(",") if v]
+    unknown = sorted(set(variants) - set(VARIANTS))
+    if unknown:
+        raise SystemExit(f"--variants: unknown {unknown}; known: {', '.join(VARIANTS)}")
+    if variants:
+        from fitting.config import load_config
+
+        rays_per_step = (lambda t: t.images_per_step * t.rays_per_image)(load_config("paper", []).train)
+        if args.steps:
+            budget, expected = ["--set", f"train.steps={args.steps}"], args.steps
+        else:
+            budget = ["--max-minutes", str(args.fit_seconds / 60)]
+            expected = steps_for(figures["speed"], variants, args.fit_seconds, rays_per_step)
+        # the pose correction starts once the field has taken shape: at 40 % of the steps (docs/model.md §6)
+        extra = [*args.set, f"train.pose_start={max(1, 2 * expected // 5)}"]
+        figures["side_by_side_budget"] = {"arguments": budget, "expected_steps": expected, "overrides": extra}
+        _write(out, figures)
+        publish = lambda part: _write(out, {**figures, "side_by_side": part})  # noqa: E731
+        figures["side_by_side"] = side_by_side(subject, work, variants, budget, args.limit, extra, publish)
+    figures["total_s"] = round(time.perf_counter() - started, 1)
+    _write(out, figures)
+    print("gpu-real: " + json.dumps(figures), flush=True)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if args.command == "pack":
+        pack(args.capture, args.out, args.quality, args.margin, {"overlay", *filter(None, args.drop.split(","))})
+        return 0
+    if args.command == "check":
+        print(json.dumps(check(args.capture, args.packed), indent=1))
+        return 0
+    return run(args)
+
+
+if __name__ == "__main__":
+    sys.exit(main())
