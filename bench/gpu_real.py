@@ -7,7 +7,7 @@ A lent GPU machine takes a working tree of at most 64 MiB and a few minutes, so 
   margin for the undistortion's and the resize's neighbours, and the image is written again as JPEG; the overlay
   folder stays behind. ``check`` reports how far the loaded views of the copy are from the original's.
 * ``run --subject OUT`` (there): (1) rays/s of the paper preset in fp32, TF32 and bf16, each fitted alone for a few
-  seconds; (2) the paper preset alone, with the pose correction and with the CPU preset's levers (``paper_sparse``;
+  seconds, and a profile of a few more steps (:func:`profile`: where a step's time goes); (2) the paper preset alone, with the pose correction and with the CPU preset's levers (``paper_sparse``;
   docs/results/real-capture.md, *The real demo on a GPU*), or in fp32 (``--variants``), fitted side by side for the
   same time (or ``--steps``), then ``narf-eval`` on the training images, the held-out camera and novel poses.
   Figures go to one JSON file after each stage, so what was measured comes back even if the call is cut short.
@@ -64,10 +64,12 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--subject", type=Path, required=True, help="a prepared (packed) capture")
     run.add_argument("--work", type=Path, default=Path("runs/gpu-real"), help="folder of the runs")
     run.add_argument("--out", type=Path, default=None, help="JSON of the figures (default: WORK/gpu-real.json)")
-    run.add_argument("--speed-seconds", type=float, default=30.0, help="stage 1: seconds of fitting per precision")
-    run.add_argument("--fit-seconds", type=float, default=220.0, help="stage 2: each fit's time, side by side")
+    run.add_argument("--speed-seconds", type=float, default=15.0, help="stage 1: seconds of fitting per precision")
+    run.add_argument("--profile", default="fp32,bf16", help="stage 1: precisions profiled after their timing")
+    run.add_argument("--profile-steps", type=int, default=10, help="stage 1: steps profiled")
+    run.add_argument("--fit-seconds", type=float, default=200.0, help="stage 2: each fit's time, side by side")
     run.add_argument("--steps", type=int, default=0, help="stage 2: steps per fit instead (0: --fit-seconds)")
-    run.add_argument("--limit", type=int, default=17, help="views evaluated per split")
+    run.add_argument("--limit", type=int, default=8, help="views evaluated per split")
     run.add_argument(
         "--variants",
         default="paper_tf32,cpu_levers_tf32,pose_correction_tf32",
@@ -84,11 +86,12 @@ def pack(capture: Path, out: Path, quality: int, margin: int, drop: set[str]) ->
     import cv2
 
     from pipelines.datasets.capture import ZjuCapture
+    from pipelines.datasets.errors import CaptureError
     from pipelines.datasets.images import read_image
     from pipelines.datasets.zju_mocap import boundary_band
 
     if out.exists():
-        raise SystemExit(f"{out}: exists; remove it first")
+        raise CaptureError(f"{out}: exists; remove it first")
     source = ZjuCapture(capture, ratio=1.0)
     image_dirs = {Path(rel).parts[0] for row in source.ims for rel in row}
     shutil.copytree(
@@ -108,7 +111,7 @@ def pack(capture: Path, out: Path, quality: int, margin: int, drop: set[str]) ->
         bgr[~keep] = 0
         (out / rel).parent.mkdir(parents=True, exist_ok=True)
         if not cv2.imwrite(str(out / rel), bgr, [cv2.IMWRITE_JPEG_QUALITY, quality]):
-            raise SystemExit(f"{out / rel}: could not be written")
+            raise CaptureError(f"{out / rel}: could not be written")
 
 
 def check(capture: Path, packed: Path) -> dict:
@@ -149,8 +152,11 @@ def _write(path: Path, figures: dict) -> None:
     atomic_write_text(path, json.dumps(figures, indent=1))
 
 
-def speed(subject: Path, work: Path, seconds: float, device, extra: list[str]) -> dict:
-    """Stage 1: each precision's rays/s (median of the log's rows after the first) and peak memory, fitted alone."""
+def speed(
+    subject: Path, work: Path, seconds: float, device, extra: list[str], profiled: set[str], profile_steps: int
+) -> dict:
+    """Stage 1: each precision's rays/s (median of the log's rows after the first) and peak memory, fitted alone;
+    the precisions ``profiled`` then run ``profile_steps`` more steps under the profiler (:func:`profile`)."""
     import torch
 
     from fitting.config import load_config
@@ -181,11 +187,46 @@ def speed(subject: Path, work: Path, seconds: float, device, extra: list[str]) -
             if device.type == "cuda"
             else None,
         }
+        if precision in profiled:
+            rates[precision]["profile"] = profile(trainer, profile_steps, device)
         del trainer
         if device.type == "cuda":
             torch.cuda.empty_cache()
         print(f"gpu-real: speed {precision}: {rates[precision]}", flush=True)
     return rates
+
+
+def profile(trainer, steps: int, device) -> dict:
+    """``steps`` more training steps under ``torch.profiler``: per step, the wall time, the time of each of the
+    trainer's named ranges (``narf.sample``, ``narf.forward``, ``narf.backward``: CPU time to issue them) and the
+    operators that take the most device time (self time, so the rows add up), with their calls."""
+    import torch
+    from torch.profiler import ProfilerActivity
+
+    cuda = device.type == "cuda"
+    activities = [ProfilerActivity.CPU, *([ProfilerActivity.CUDA] if cuda else [])]
+    with torch.profiler.profile(activities=activities) as prof:
+        started = time.perf_counter()
+        for _ in range(steps):
+            trainer.train_step()
+        if cuda:
+            torch.cuda.synchronize(device)
+        wall = time.perf_counter() - started
+    events = prof.key_averages()
+    self_time = (lambda e: e.self_device_time_total) if cuda else (lambda e: e.self_cpu_time_total)
+    ranges = {e.key: round(e.cpu_time_total / 1e3 / steps, 2) for e in events if e.key.startswith("narf.")}
+    top = sorted((e for e in events if not e.key.startswith("narf.")), key=self_time, reverse=True)[:25]
+    return {
+        "steps": steps,
+        "wall_ms_per_step": round(1e3 * wall / steps, 1),
+        "ranges_cpu_ms_per_step": ranges,
+        "device_ms_per_step": round(sum(self_time(e) for e in events) / 1e3 / steps, 1),
+        "operators_per_step": round(sum(e.count for e in events if not e.key.startswith("narf.")) / steps),
+        "top": [
+            {"op": e.key, "ms_per_step": round(self_time(e) / 1e3 / steps, 2), "calls_per_step": e.count / steps}
+            for e in top
+        ],
+    }
 
 
 def steps_for(rates: dict, variants: list[str], seconds: float, rays_per_step: int) -> int:
@@ -254,12 +295,24 @@ def side_by_side(
     return figures
 
 
+def _variants(args: argparse.Namespace) -> list[str]:
+    """Stage 2's variants, checked before any work: known names, and a budget stage 2 can size."""
+    variants = [v for v in args.variants.split(",") if v]
+    unknown = sorted(set(variants) - set(VARIANTS))
+    if unknown:
+        raise ValueError(f"--variants: unknown {', '.join(unknown)}; known: {', '.join(VARIANTS)}")
+    if variants and not args.steps and args.speed_seconds <= 0:
+        raise ValueError("--fit-seconds sizes the pose correction's start from stage 1's rates: give --steps instead")
+    return variants
+
+
 def run(args: argparse.Namespace) -> int:
     import torch
 
     from fitting.run_folder import auto_device
 
     device = auto_device(args.device)
+    variants = _variants(args)
     subject, work = args.subject.resolve(), args.work.resolve()
     work.mkdir(parents=True, exist_ok=True)
     out = args.out or work / "gpu-real.json"
@@ -270,13 +323,11 @@ def run(args: argparse.Namespace) -> int:
     figures["subject"] = str(args.subject)
     started = time.perf_counter()
     if args.speed_seconds > 0:
-        figures["speed"] = speed(subject, work, args.speed_seconds, device, args.set)
+        figures["speed"] = speed(
+            subject, work, args.speed_seconds, device, args.set, set(args.profile.split(",")), args.profile_steps
+        )
         figures["speed_stage_s"] = round(time.perf_counter() - started, 1)
         _write(out, figures)
-    variants = [v for v in args.variants.split(",") if v]
-    unknown = sorted(set(variants) - set(VARIANTS))
-    if unknown:
-        raise SystemExit(f"--variants: unknown {unknown}; known: {', '.join(VARIANTS)}")
     if variants:
         from fitting.config import load_config
 
@@ -310,4 +361,6 @@ def main(argv: list[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from pipelines.cli.common import run_cli
+
+    sys.exit(run_cli("python -m bench.gpu_real", main))  # a known error: one line and exit code 2

@@ -272,9 +272,15 @@ class Trainer:
     def train_step(self) -> tuple[float, float]:
         """One step on the global batch; each process renders its share (``fitting.distributed``)."""
         t, r = self.config.train, self.config.render
-        batch = self.views.sample(
-            t.images_per_step, t.rays_per_image, t.body_fraction, t.border_fraction, self.generator, t.views_per_frame
-        )
+        with torch.profiler.record_function("narf.sample"):  # named ranges for profiles (bench/gpu_real.py)
+            batch = self.views.sample(
+                t.images_per_step,
+                t.rays_per_image,
+                t.body_fraction,
+                t.border_fraction,
+                self.generator,
+                t.views_per_frame,
+            )
         n = batch.origins.shape[0]
         self.field.point_window = encoding_window(self.config, self.step)
         uniforms = [torch.rand(n, k, generator=self.generator).to(self.device) for k in (r.train_coarse, r.train_fine)]
@@ -288,7 +294,7 @@ class Trainer:
         if self.frame_appearance is not None:  # training rays only: evaluation reads the zero code
             poses = self.frame_appearance.attach(poses, index)
         share = self.processes.share(n)
-        with self.autocast():
+        with self.autocast(), torch.profiler.record_function("narf.forward"):
             loss, colour = ray_loss(
                 self.config,
                 self.field,
@@ -320,7 +326,8 @@ class Trainer:
         self.optimiser.zero_grad(set_to_none=True)
         if self.pose_optimiser is not None:
             self.pose_optimiser.zero_grad(set_to_none=True)
-        loss.backward()
+        with torch.profiler.record_function("narf.backward"):
+            loss.backward()
         sum_gradients(self._trained_parameters(), self.processes)
         self.optimiser.step()
         self.scheduler.step()

@@ -53,19 +53,24 @@ def test_steps_side_by_side_from_the_rates():
 
 @pytest.mark.slow
 def test_the_run_writes_each_stage_on_the_cpu(data_root_64, tmp_path):
-    """Stage 1 for a second per precision, then one variant for 2 steps and one view a split, on the 64^2 capture
-    with the paper preset shrunk (width 16, 4+4 samples, 2 x 32 rays): the JSON holds the rates, the budget and the
-    variant's figures from narf-eval."""
+    """Stage 1 for a second per precision (fp32 then profiled for 2 steps), then one variant for 2 steps and one view
+    a split, on the 64^2 capture with the paper preset shrunk (width 16, 4+4 samples, 2 x 32 rays): the JSON holds the
+    rates, the profile's named ranges and operators, the budget and the variant's figures from narf-eval."""
     out = tmp_path / "figures.json"
     tiny = ["model.width=16", "render.train_coarse=4", "render.train_fine=4", "render.eval_coarse=4"]
     tiny += ["render.eval_fine=4", "train.images_per_step=2", "train.rays_per_image=32", "data.ratio=1.0"]
     argv = ["run", "--subject", str(data_root_64 / "synthetic" / "taichi"), "--work", str(tmp_path / "work")]
     argv += ["--out", str(out), "--device", "cpu", "--speed-seconds", "1", "--steps", "2", "--limit", "1"]
-    argv += ["--variants", "paper_fp32", *[a for o in tiny for a in ("--set", o)]]
+    argv += ["--variants", "paper_fp32", "--profile", "fp32", "--profile-steps", "2"]
+    argv += [a for o in tiny for a in ("--set", o)]
     assert main(argv) == 0
     figures = json.loads(out.read_text())
     assert set(figures["speed"]) == {"fp32", "tf32", "bf16"}
     assert all(rate["rays_per_s"] > 0 for rate in figures["speed"].values())
+    profiled = figures["speed"]["fp32"]["profile"]
+    assert "profile" not in figures["speed"]["tf32"] and profiled["steps"] == 2
+    assert set(profiled["ranges_cpu_ms_per_step"]) == {"narf.sample", "narf.forward", "narf.backward"}
+    assert profiled["top"] and all(row["ms_per_step"] >= 0 for row in profiled["top"])
     assert figures["side_by_side_budget"]["arguments"] == ["--set", "train.steps=2"]
     fit = figures["side_by_side"]["paper_fp32"]
     assert fit["exit"] == 0 and fit["steps"] == 2
