@@ -7,10 +7,11 @@ A lent GPU machine takes a working tree of at most 64 MiB and a few minutes, so 
   margin for the undistortion's and the resize's neighbours, and the image is written again as JPEG; the overlay
   folder stays behind. ``check`` reports how far the loaded views of the copy are from the original's.
 * ``run --subject OUT`` (there): (1) rays/s of the paper preset in fp32, TF32 and bf16, each fitted alone for a few
-  seconds, and a profile of a few more steps (:func:`profile`: where a step's time goes); (2) the paper preset alone, with the pose correction and with the CPU preset's levers (``paper_sparse``;
-  docs/results/real-capture.md, *The real demo on a GPU*), or in fp32 (``--variants``), fitted side by side for the
-  same time (or ``--steps``), then ``narf-eval`` on the training images, the held-out camera and novel poses.
-  Figures go to one JSON file after each stage, so what was measured comes back even if the call is cut short.
+  seconds, and a profile of a few more steps (:func:`profile`: where a step's time goes); (2) the paper preset
+  alone, with the pose correction and with the CPU preset's levers (``paper_sparse``; docs/results/real-capture.md,
+  *The real demo on a GPU*), or in fp32 (``--variants``), fitted side by side for the same time (or ``--steps``),
+  then ``narf-eval`` on the training images, the held-out camera and novel poses. Figures go to one JSON file after
+  each stage, so what was measured comes back even if the call is cut short.
 """
 
 from __future__ import annotations

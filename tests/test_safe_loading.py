@@ -63,3 +63,43 @@ def test_checkpoint_with_a_payload_is_refused(tmp_path):
     # the message names the global it refused and never points the user at torch.load(weights_only=False)
     assert "GLOBAL" in str(refused.value) and "could run code" in str(refused.value)
     assert "weights_only" not in str(refused.value)
+
+
+def test_npy_headers_are_parsed_one_thread_at_a_time(tmp_path, monkeypatch):
+    """numpy parses a .npy header with ast.literal_eval, which CPython 3.11 cannot run in two threads at once: the
+    readers hold one lock around it. A literal_eval that sleeps 2 ms counts the parses in flight; four threads each
+    reading 10 dict files and 10 plain arrays (a fit's views) never overlap. Without the lock the 2-ms sleeps of
+    four threads overlap on the first files."""
+    import ast
+    import threading
+    from concurrent.futures import ThreadPoolExecutor
+
+    from pipelines.datasets.safe_pickle import load_npy
+
+    for i in range(10):
+        np.save(tmp_path / f"dict{i}.npy", {"poses": np.zeros((1, 72))}, allow_pickle=True)
+        np.save(tmp_path / f"plain{i}.npy", np.zeros((6890, 3), np.float32))
+    state = {"now": 0, "most": 0}
+    guard, literal_eval = threading.Lock(), ast.literal_eval
+
+    def counting(text):
+        with guard:
+            state["now"] += 1
+            state["most"] = max(state["most"], state["now"])
+        threading.Event().wait(0.002)
+        try:
+            return literal_eval(text)
+        finally:
+            with guard:
+                state["now"] -= 1
+
+    monkeypatch.setattr(ast, "literal_eval", counting)
+
+    def read(_):
+        for i in range(10):
+            assert load_npy_object(tmp_path / f"dict{i}.npy").item()["poses"].shape == (1, 72)
+            assert load_npy(tmp_path / f"plain{i}.npy").shape == (6890, 3)
+
+    with ThreadPoolExecutor(4) as pool:
+        list(pool.map(read, range(4)))
+    assert state["most"] == 1

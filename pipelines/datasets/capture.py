@@ -15,6 +15,7 @@ import numpy as np
 
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.images import read_image
+from pipelines.datasets.safe_pickle import load_npy
 from pipelines.datasets.zju_mocap import (
     Frame,
     SmplParams,
@@ -248,7 +249,7 @@ class ZjuCapture:
         path = self.root / self.vertices_dir / f"{self._frame_of_entry[frame][1]}.npy"
         if not path.is_file():
             raise CaptureError(f"{path}: missing")
-        verts = np.load(path)
+        verts = load_npy(path)
         if verts.ndim != 2 or verts.shape[1] != 3 or not np.isfinite(verts).all():
             raise CaptureError(f"{path}: expected finite (V, 3) vertices, got shape {verts.shape}")
         return verts.astype(np.float32)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import io
 import pickle
+import threading
 from pathlib import Path
 
 import numpy as np
@@ -69,10 +70,24 @@ class RestrictedUnpickler(pickle.Unpickler):
         raise UnsafePickleError(f"refuses to load '{module}.{name}' (only numpy and scipy.sparse data are allowed)")
 
 
+#: numpy reads every ``.npy`` header with ``ast.literal_eval``, and CPython 3.11 builds syntax trees with one
+#: recursion counter per interpreter, so two threads parsing at once can fail with "SystemError: AST constructor
+#: recursion depth mismatch". Fits decode views in threads (docs/design.md, *Training views on disk*): every ``.npy``
+#: the readers open goes through this lock.
+NPY_LOCK = threading.Lock()
+
+
+def load_npy(path: Path) -> np.ndarray:
+    """``np.load(path, allow_pickle=False)`` of a plain ``.npy`` array, under ``NPY_LOCK``."""
+    with NPY_LOCK:
+        return np.load(path, allow_pickle=False)
+
+
 def load_npy_object(path: Path):
     """``np.load(path, allow_pickle=True)`` for ``.npy`` files, through ``RestrictedUnpickler`` when the array
-    holds Python objects (numeric arrays load without pickle). Returns the array (0-d for a saved dict)."""
-    with open(path, "rb") as handle:
+    holds Python objects (numeric arrays load without pickle), under ``NPY_LOCK``. Returns the array (0-d for a saved
+    dict)."""
+    with NPY_LOCK, open(path, "rb") as handle:
         version = np.lib.format.read_magic(handle)
         readers = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
         if version not in readers:

@@ -22,6 +22,7 @@ import numpy as np
 
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.images import read_image
+from pipelines.datasets.safe_pickle import load_npy
 
 RENDER_SIZE = 128
 #: NARF's render_128 intrinsics (pixel centres at +0.5) converted to the project's convention (c - 0.5).
@@ -175,7 +176,7 @@ def load_array(path: Path, shape: tuple[int, ...]) -> np.ndarray:
     if not path.is_file():
         raise CaptureError(f"{path}: missing")
     try:
-        array = np.load(path, allow_pickle=False)
+        array = load_npy(path)
     except ValueError as err:
         raise CaptureError(f"{path}: not a plain .npy array ({err})") from err
     if array.shape != shape:

@@ -20,7 +20,7 @@ import numpy as np
 from fitting.files import atomic_write_bytes
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.errors import CaptureError
-from pipelines.datasets.safe_pickle import load_npy_object
+from pipelines.datasets.safe_pickle import load_npy, load_npy_object
 
 
 @dataclass(frozen=True)
@@ -131,7 +131,7 @@ MAX_DISPLACEMENT = 0.2  # metres: a displacement beyond this is no garment, but 
 def read_body_surface(path: Path, n_vertices: int) -> np.ndarray:
     """(n_vertices,) float32 metres: each template vertex's displacement along its normal (docs/formats.md §1.13)."""
     try:
-        data = np.load(path, allow_pickle=False)
+        data = load_npy(path)
     except (OSError, ValueError) as err:
         raise CaptureError(f"{path}: unreadable ({err})") from None
     if data.shape != (n_vertices,) or data.dtype.kind != "f":
