@@ -168,6 +168,7 @@ def speed(
     for precision in ("fp32", "tf32", "bf16"):
         overrides = [f"data.subject={subject}", "train.validate_every=0", "train.log_every=10", *extra]
         config = load_config("paper", [*overrides, f"train.precision={precision}"])
+        shutil.rmtree(work / f"speed_{precision}", ignore_errors=True)  # the tool's own folder: a rerun starts afresh
         run = prepare_run_dir(work / f"speed_{precision}", False)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
