@@ -44,6 +44,26 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+def log_rows(run: Path) -> list[dict]:
+    """The rows of ``run``'s ``log.jsonl``; none for a fit shorter than ``train.log_every`` steps."""
+    log = run / "log.jsonl"
+    return [json.loads(line) for line in log.read_text().splitlines()] if log.is_file() else []
+
+
+def rays_per_s(rows: list[dict], steps: int, trainer, skip: int = 0) -> int:
+    """The median rays/s of the log ``rows`` after the first ``skip`` (all of them where no more are left); without
+    rows, the fit's mean rate (its ``steps`` over the trainer's elapsed time)."""
+    rates = [r["rays_per_s"] for r in rows[skip:]] or [r["rays_per_s"] for r in rows]
+    return round(float(np.median(rates)) if rates else steps * trainer.rays_per_step / max(trainer.elapsed, 1e-9))
+
+
+def peak_gpu_memory_gib(device) -> float | None:
+    """GiB that torch allocated on ``device`` at most since the last reset; None off CUDA."""
+    import torch
+
+    return round(torch.cuda.max_memory_allocated(device) / 2**30, 2) if device.type == "cuda" else None
+
+
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     import torch
@@ -73,19 +93,14 @@ def main(argv: list[str] | None = None) -> int:
         torch.cuda.reset_peak_memory_stats(device)
     trainer = start_run(run, device, config, progress=False)
     result = trainer.fit(max_minutes=args.minutes)
-    log_path = run / "log.jsonl"  # a fit shorter than train.log_every steps writes none: the mean rate then
-    log = [json.loads(line) for line in log_path.read_text().splitlines()] if log_path.is_file() else []
-    mean_rate = result.step * trainer.rays_per_step / max(trainer.elapsed, 1e-9)
     figures.update(
         {
             "preset": args.preset,
             "overrides": args.set,
             "minutes": args.minutes,
             "steps": result.step,
-            "rays_per_s": round(float(np.median([r["rays_per_s"] for r in log])) if log else mean_rate),
-            "peak_gpu_memory_gib": round(torch.cuda.max_memory_allocated(device) / 2**30, 2)
-            if device.type == "cuda"
-            else None,
+            "rays_per_s": rays_per_s(log_rows(run), result.step, trainer),
+            "peak_gpu_memory_gib": peak_gpu_memory_gib(device),
         }
     )
     evaluate(["--run", str(run), "--split", "novel_pose", "--limit", str(args.limit), "--quiet", "--grids", "0"])

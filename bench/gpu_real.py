@@ -29,18 +29,13 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
-#: The fits of stage 2: name -> config overrides on the paper preset.
+#: The fits of stage 2: name -> (preset, config overrides); ``cpu_levers_tf32`` is ``paper_sparse``, the paper
+#: preset with the CPU preset's colour, shells and anneal.
 VARIANTS = {
-    "paper_fp32": ["train.precision=fp32"],
-    "paper_tf32": ["train.precision=tf32"],
-    "pose_correction_tf32": ["train.precision=tf32", "train.pose_correction=true"],
-    "cpu_levers_tf32": [
-        "train.precision=tf32",
-        "model.view_freqs=0",
-        "model.body_shell=0.03",
-        "model.surface_shell=0.015",
-        "train.lr_anneal=0.2",
-    ],
+    "paper_fp32": ("paper", ["train.precision=fp32"]),
+    "paper_tf32": ("paper", ["train.precision=tf32"]),
+    "pose_correction_tf32": ("paper", ["train.precision=tf32", "train.pose_correction=true"]),
+    "cpu_levers_tf32": ("paper_sparse", ["train.precision=tf32"]),
 }
 SPLITS = ("same_pose_same_view", "novel_view", "novel_pose")
 
@@ -160,6 +155,7 @@ def speed(
     the precisions ``profiled`` then run ``profile_steps`` more steps under the profiler (:func:`profile`)."""
     import torch
 
+    from bench.gpu_check import log_rows, peak_gpu_memory_gib, rays_per_s
     from fitting.config import load_config
     from fitting.run_folder import prepare_run_dir
     from pipelines.runs.fit import start_run
@@ -176,18 +172,13 @@ def speed(
         trainer = start_run(run, device, config, progress=False)
         ready = time.perf_counter()
         result = trainer.fit(max_minutes=seconds / 60)
-        log = run / "log.jsonl"  # a fit shorter than train.log_every steps writes none: the mean rate then
-        rows = [json.loads(line) for line in log.read_text().splitlines()] if log.is_file() else []
-        rays = [r["rays_per_s"] for r in rows[1:]] or [r["rays_per_s"] for r in rows]
-        mean_rate = result.step * trainer.rays_per_step / max(trainer.elapsed, 1e-9)
+        rows = log_rows(run)
         rates[precision] = {
             "steps": result.step,
-            "rays_per_s": round(float(np.median(rays)) if rays else mean_rate),
+            "rays_per_s": rays_per_s(rows, result.step, trainer, skip=1),  # the first row holds the warm-up
             "start_s": round(ready - started, 1),
             "train_psnr_last": round(rows[-1]["psnr"], 2) if rows else None,
-            "peak_gpu_memory_gib": round(torch.cuda.max_memory_allocated(device) / 2**30, 2)
-            if device.type == "cuda"
-            else None,
+            "peak_gpu_memory_gib": peak_gpu_memory_gib(device),
         }
         if precision in profiled:
             rates[precision]["profile"] = profile(trainer, profile_steps, device)
@@ -236,7 +227,7 @@ def steps_for(rates: dict, variants: list[str], seconds: float, rays_per_step: i
     what it cost alone at its precision (no gain from sharing the GPU assumed)."""
     cost = 0.0
     for name in variants:
-        precision = next(o.split("=")[1] for o in VARIANTS[name] if o.startswith("train.precision="))
+        precision = next(o.split("=")[1] for o in VARIANTS[name][1] if o.startswith("train.precision="))
         cost += rays_per_step / max(rates[precision]["rays_per_s"] or 1, 1)
     return max(10, round(seconds / cost))
 
@@ -263,8 +254,9 @@ def side_by_side(
     for name in variants:
         run = work / name
         shutil.rmtree(run, ignore_errors=True)
-        sets = [a for o in ["train.validate_every=0", *extra, *VARIANTS[name]] for a in ("--set", o)]
-        fit = [sys.executable, "-m", "pipelines.cli.fit", "--subject", str(subject), "--config", "paper"]
+        preset, overrides = VARIANTS[name]
+        sets = [a for o in ["train.validate_every=0", *extra, *overrides] for a in ("--set", o)]
+        fit = [sys.executable, "-m", "pipelines.cli.fit", "--subject", str(subject), "--config", preset]
         fit += ["--out", str(run), "--quiet", *budget, *sets]
         evaluate = [sys.executable, "-m", "pipelines.cli.eval", "--run", str(run), "--limit", str(limit)]
         evaluate += [a for s in SPLITS for a in ("--split", s)] + ["--grids", "0", "--quiet"]
@@ -283,7 +275,13 @@ def side_by_side(
         code = process.wait()
         log.close()
         run = work / name
-        entry = {"exit": code, "wall_s": round(time.perf_counter() - started, 1), "overrides": VARIANTS[name]}
+        preset, overrides = VARIANTS[name]
+        entry = {
+            "exit": code,
+            "wall_s": round(time.perf_counter() - started, 1),
+            "preset": preset,
+            "overrides": overrides,
+        }
         metrics = run / "eval" / "metrics.json"
         if code == 0 and metrics.is_file():
             data = json.loads(metrics.read_text())
