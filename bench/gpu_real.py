@@ -191,7 +191,7 @@ def speed(
 
 def profile(trainer, steps: int, device) -> dict:
     """``steps`` more training steps under ``torch.profiler``: per step, the wall time, the time of each of the
-    trainer's named ranges (``narf.sample``, ``narf.forward``, ``narf.backward``: CPU time to issue them) and the
+    trainer's named ranges (``narf.sample``, ``narf.forward``, ``narf.backward``: CPU time to launch them) and the
     operators that take the most device time (self time, so the rows add up), with their calls."""
     import torch
     from torch.profiler import ProfilerActivity

@@ -75,3 +75,22 @@ def test_the_run_writes_each_stage_on_the_cpu(data_root_64, tmp_path):
     fit = figures["side_by_side"]["paper_fp32"]
     assert fit["exit"] == 0 and fit["steps"] == 2
     assert {"same_pose_same_view", "novel_view", "novel_pose"} <= set(fit)
+
+
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--variants", "paper_fp16"], "--variants: unknown paper_fp16; known: paper_fp32"),
+        (["--speed-seconds", "0"], "--fit-seconds sizes the pose correction's start from stage 1's rates"),
+    ],
+)
+def test_bad_arguments_stop_with_one_line_before_any_work(tmp_path, capsys, extra, message):
+    """An unknown variant, or a time budget without stage 1's rates, is refused at once: one line, exit code 2, and
+    no run folder started."""
+    from pipelines.cli.common import run_cli
+
+    argv = ["run", "--subject", str(tmp_path / "capture"), "--work", str(tmp_path / "work"), "--device", "cpu", *extra]
+    assert run_cli("python -m bench.gpu_real", main, argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and message in err
+    assert not (tmp_path / "work").exists()
