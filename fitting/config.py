@@ -73,10 +73,12 @@ class ModelConfig:
     encoder_channels: int = 32  #: autoencoder: image encoder base width c (paper 32: 32..512 channels)
     #: what the colour may depend on (docs/model.md §4, *Colour conditioning*): the view direction's encoded
     #: frequencies (4: gamma_4 as in the paper; 0: no view direction), its random turn in training (degrees per
-    #: tangent axis) and the chance that a training ray's pose features xi are zeroed
+    #: tangent axis), the chance that a training ray's pose features xi are zeroed, and the frequencies of xi's
+    #: encoding that the colour reads (4: gamma_4 as in the paper; 0: none, the colour is the same in every pose)
     view_freqs: int = 4
     view_jitter: float = 0.0
     pose_dropout: float = 0.0
+    pose_freqs: int = 4
     #: subject fits: size of a per-frame appearance code that the colour reads (NeRF-W's; 0: none). Evaluation and
     #: new poses use the zero code, the training frames' mean (docs/model.md §4, *Per-frame appearance*)
     appearance_dim: int = 0
@@ -338,6 +340,7 @@ RANGES = {
     "model.latent_dim": (lambda v: v >= 0, ">= 0"),
     "model.encoder_channels": (lambda v: v >= 1, ">= 1"),
     "model.view_freqs": (lambda v: 0 <= v <= 4, "in [0, 4]"),
+    "model.pose_freqs": (lambda v: 0 <= v <= 4, "in [0, 4]"),
     "model.view_jitter": (lambda v: 0 <= v <= 45, "in [0, 45] (degrees)"),
     "model.pose_dropout": (lambda v: 0 <= v < 1, "in [0, 1)"),
     "model.appearance_dim": (lambda v: v >= 0, ">= 0 (0: none)"),
@@ -400,6 +403,7 @@ def get_value(config: FitConfig, key: str):
 
 def validate_config(config: FitConfig) -> None:
     """Value checks with messages naming the key: ranges, the model's kind, settings of another kind or model."""
+    from narf.encodings import POSE_FREQS
     from narf.fields import MODEL_SPECS, model_names
 
     rigid = config.kind == "rigid"
@@ -437,6 +441,8 @@ def validate_config(config: FitConfig) -> None:
     model_class = getattr(spec.build, "func", spec.build)  # a constructor or a functools.partial of one
     if config.model.pose_dropout and getattr(model_class, "pose_in_density", True):
         raise ConfigError(f"model.pose_dropout: {config.model.name}'s density reads the pose features; leave it at 0")
+    if config.model.pose_freqs != POSE_FREQS and getattr(model_class, "pose_in_density", True):
+        raise ConfigError(f"model.pose_freqs: {config.model.name}'s density reads the pose features; leave it at 4")
     if config.model.body_shell and not spec.rays:
         raise ConfigError("model.body_shell: the CNN baseline has no part boxes; leave it at 0")
     if config.model.surface_shell and not config.model.body_shell:

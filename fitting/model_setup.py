@@ -40,4 +40,5 @@ def configure_field(field, config: FitConfig, step: int) -> None:
     Training and evaluation both come through here, so a run evaluated at step n sees the field it trained."""
     m = config.model
     field.view_freqs, field.view_jitter, field.pose_dropout = m.view_freqs, math.radians(m.view_jitter), m.pose_dropout
+    field.pose_freqs = m.pose_freqs
     field.point_window = encoding_window(config, step)

@@ -76,6 +76,9 @@ def test_colour_conditioning_and_the_window_reach_the_field(tmp_path):
     assert load_fitted(tmp_path).field.point_window == 5.5
     with pytest.raises(ConfigError, match="model.pose_dropout: p_nerf's density reads the pose features"):
         load_config("tiny", ["model.name=p_nerf", "model.pose_dropout=0.5"])
+    assert make_field(load_config("tiny", ["model.pose_freqs=1"])).pose_freqs == 1
+    with pytest.raises(ConfigError, match="model.pose_freqs: p_nerf's density reads the pose features"):
+        load_config("tiny", ["model.name=p_nerf", "model.pose_freqs=0"])
 
 
 @pytest.mark.parametrize("legacy, kind", [("zju", "subject"), ("thuman", "autoencoder"), ("rigid", "rigid")])

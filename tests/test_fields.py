@@ -1,3 +1,4 @@
+import dataclasses
 import math
 
 import pytest
@@ -450,7 +451,7 @@ def test_colour_without_the_view_direction_ignores_it(name):
 
 @pytest.mark.parametrize("name", ["narf_d", "narf_h", "narf_p", "d_narf"])
 def test_fast_path_matches_dense_reference_with_window_and_low_order_directions(name, monkeypatch):
-    """The coarse-to-fine window and the kept direction frequencies act alike on the fast paths and the dense
+    """The coarse-to-fine window and the kept direction and pose frequencies act alike on the fast paths and the dense
     references (float64: the same sums in another order, as the test above)."""
     monkeypatch.setattr("narf.fields.narf_p.PACKED_SHARE", 1.0)
     fast = _field(name, width=16, dtype=torch.float64)
@@ -458,7 +459,7 @@ def test_fast_path_matches_dense_reference_with_window_and_low_order_directions(
     dense.load_state_dict(fast.state_dict())
     dense.fast = False
     for model in (fast, dense):
-        model.view_freqs, model.point_window = 1, 5.5
+        model.view_freqs, model.pose_freqs, model.point_window = 1, 1, 5.5
     points, dirs = _points(8, 12, seed=5, dtype=torch.float64)
     pose = _random_pose(n_frames=2, dtype=torch.float64).select(torch.tensor([0, 1] * 4))
     a, b = fast(points, dirs, pose), dense(points, dirs, pose)
@@ -492,6 +493,34 @@ def test_jitter_and_pose_dropout_act_in_training_only_and_never_on_the_density(n
     torch.manual_seed(4)
     dropped = (field(points, dirs, pose).rgb - reference.rgb).abs().amax(dim=(1, 2)) > 0
     assert 0.2 < dropped[hit].float().mean() < 0.8  # binomial(n >= 40, 1/2): outside [0.2, 0.8] with p < 1e-4
+
+
+@pytest.mark.parametrize("name", ["narf_d", "narf_h", "narf_p", "d_narf"])
+def test_a_colour_without_the_pose_features_is_the_same_in_every_pose(name):
+    """model.pose_freqs 0: two poses that differ only in their features xi give the same colour, in training and
+    evaluation, to the bit (every pose encodes as gamma(0)); at 4 they differ. At 1 the colour is that of the poses'
+    features with the higher frequencies taken at 0, exactly (the same operations: gamma(0) + 1 * (gamma(xi) -
+    gamma(0)) per kept frequency, float32 rounding of numbers up to 2 in size). The density never reads xi: equal to
+    the bit either way."""
+    field = _field(name).eval()
+    points, dirs = _points(64, 6)
+    pose = _random_pose(n_frames=2).select(torch.arange(64) % 2)
+    other = dataclasses.replace(pose, pose_features=pose.pose_features.flip(0))
+    a, b = field(points, dirs, pose), field(points, dirs, other)
+    hit = a.sigma.amax(dim=1) > 0
+    assert torch.equal(a.sigma, b.sigma) and not torch.equal(a.rgb[hit], b.rgb[hit])
+    features = pose.pose_features
+    field.pose_freqs = 1
+    kept = field.encode_pose(features).unflatten(-1, (6, 8))
+    full, still = positional_encoding(features / math.pi, 4), positional_encoding(features * 0, 4)
+    full, still = full.unflatten(-1, (6, 8)), still.unflatten(-1, (6, 8))
+    band = torch.tensor([1, 0, 0, 0] * 2, dtype=torch.bool)  # sin, cos of each frequency (positional_encoding)
+    assert torch.allclose(kept[..., band], full[..., band], atol=1e-6)
+    assert torch.equal(kept[..., ~band], still[..., ~band])
+    field.pose_freqs = 0
+    for mode in (field.eval(), field.train()):
+        a, b = mode(points, dirs, pose), mode(points, dirs, other)
+        assert torch.equal(a.sigma, b.sigma) and torch.equal(a.rgb, b.rgb)
 
 
 @pytest.mark.parametrize("name", [*model_names("field", "rigid"), "d_narf_dense"])

@@ -75,10 +75,11 @@ class Field(nn.Module):
     #: what the colour may depend on (docs/model.md §4, *Colour conditioning*), set from the model config by
     #: ``fitting.trainer.configure_field``: the direction encoding's kept frequencies (0: no view direction), the
     #: view direction's jitter in training (radians, per tangent axis) and the probability that a training ray's
-    #: pose features xi are zeroed
+    #: pose features xi are zeroed; and the frequencies of xi's encoding that the colour reads (``encode_pose``)
     view_freqs: int = POSE_FREQS
     view_jitter: float = 0.0
     pose_dropout: float = 0.0
+    pose_freqs: int = POSE_FREQS
     #: whether the density reads the pose features xi (P-NeRF, RP-NeRF): their dropout would reach the geometry
     pose_in_density = False
     #: coarse-to-fine window of the point encoding gamma_10 (``narf.encodings.frequency_window``); None: all open
@@ -145,6 +146,16 @@ class Field(nn.Module):
         """gamma_4 of view directions (..., 3) -> (..., 24), the frequencies k >= ``view_freqs`` zeroed (all of them
         at 0: the colour does not see the view direction)."""
         return windowed(positional_encoding(dirs, POSE_FREQS), float(self.view_freqs), POSE_FREQS)
+
+    def encode_pose(self, pose_features: torch.Tensor) -> torch.Tensor:
+        """gamma_4(xi/pi) of pose features (..., 6) -> (..., 48) for the colour, the frequencies k >= ``pose_freqs``
+        taken at xi = 0 (sin 0, cos 1): at 0 every pose encodes as gamma(0), so the colour does not depend on the pose
+        (docs/model.md §4, *Colour conditioning*)."""
+        encoded = positional_encoding(pose_features / math.pi, POSE_FREQS)
+        if self.pose_freqs >= POSE_FREQS:
+            return encoded
+        still = positional_encoding(torch.zeros_like(pose_features), POSE_FREQS)
+        return still + windowed(encoded - still, float(self.pose_freqs), POSE_FREQS)
 
     @staticmethod
     def zeta_encoding(pose: PoseBatch) -> torch.Tensor:

@@ -2,16 +2,12 @@
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from narf.encodings import (
     DIRECTION_WIDTH,
     POINT_WIDTH,
-    POSE_FREQS,
     XI_WIDTH,
-    positional_encoding,
     zeta_width,
 )
 from narf.fields.base import Field, FieldInputs, FieldOutput, masked_softmax
@@ -70,7 +66,7 @@ class DNarf(Field):
         density["zeta"] = encoded_zeta[None]
         colour = {
             "dirs": self.encode_dirs(blended_dirs)[None],
-            "pose": positional_encoding(blended_xi / math.pi, POSE_FREQS)[None],
+            "pose": self.encode_pose(blended_xi)[None],
         }
         sigma, rgb = self.head(density, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], probs)
@@ -101,7 +97,7 @@ class DNarf(Field):
         }
         colour = {
             "dirs": self.encode_dirs(blended_dirs[live])[None, None],
-            "pose": positional_encoding(blended_xi[live] / math.pi, POSE_FREQS)[None, None],
+            "pose": self.encode_pose(blended_xi[live])[None, None],
         }
         z_s = None if z_s is None else z_s[0, live_rays, 0][None, None]
         z_a = None if z_a is None else z_a[0, live_rays, 0][None, None]

@@ -2,14 +2,10 @@
 
 from __future__ import annotations
 
-import math
-
 from narf.encodings import (
     DIRECTION_WIDTH,
     POINT_WIDTH,
-    POSE_FREQS,
     XI_WIDTH,
-    positional_encoding,
     zeta_width,
 )
 from narf.fields.base import Field, FieldInputs, FieldOutput
@@ -75,7 +71,7 @@ class NarfH(Field):
         encoded_zeta = self.zeta_encoding(pose)
         weights, probs = self.part_weights(encoded_u, in_box, encoded_zeta)
         masked_u = (weights[..., None] * encoded_u).reshape(1, r, s, p * POINT_WIDTH)
-        encoded_xi = positional_encoding(pose.pose_features / math.pi, POSE_FREQS)[:, None]  # (R, 1, P, 48)
+        encoded_xi = self.encode_pose(pose.pose_features)[:, None]  # (R, 1, P, 48)
         encoded_d = self.encode_dirs(d_local)[:, None]  # (R, 1, P, 24)
         colour = {
             "pose": (weights[..., None] * encoded_xi).reshape(1, r, s, p * XI_WIDTH),

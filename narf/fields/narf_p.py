@@ -2,16 +2,12 @@
 
 from __future__ import annotations
 
-import math
-
 import torch
 
 from narf.encodings import (
     DIRECTION_WIDTH,
     POINT_WIDTH,
-    POSE_FREQS,
     XI_WIDTH,
-    positional_encoding,
     zeta_width,
 )
 from narf.fields.base import Field, FieldInputs, FieldOutput, masked_softmax
@@ -83,7 +79,7 @@ class NarfP(Field):
             "zeta": self.zeta_encoding(pose)[None].expand(p, -1, -1, -1),
         }
         colour = {
-            "pose": positional_encoding(pose.pose_features / math.pi, POSE_FREQS).permute(1, 0, 2)[:, :, None],
+            "pose": self.encode_pose(pose.pose_features).permute(1, 0, 2)[:, :, None],
             "dirs": self.encode_dirs(d_local).permute(1, 0, 2)[:, :, None],
         }
         sigma_parts, rgb_parts = self.head(density, colour, z_s, z_a)  # (P, R, S), (P, R, S, 3)
@@ -116,7 +112,7 @@ class NarfP(Field):
             "zeta": packed(self.zeta_encoding(pose)[ray, 0]),
         }
         colour = {
-            "pose": packed(positional_encoding(pose.pose_features[ray, part] / math.pi, POSE_FREQS)),
+            "pose": packed(self.encode_pose(pose.pose_features[ray, part])),
             "dirs": packed(self.encode_dirs(d_local[ray, part])),
         }
         z_s = None if z_s is None else packed(z_s[0, ray, 0])

@@ -46,7 +46,7 @@ class RtNerf(Field):
         _, _, pose, _, d_local, u, _, z_s, z_a = inputs
         colour = {"dirs": self.encode_dirs(d_local[:, 0])[None, :, None]}
         if self.use_pose:
-            colour["pose"] = positional_encoding(pose.pose_features[:, 0] / math.pi, POSE_FREQS)[None, :, None]
+            colour["pose"] = self.encode_pose(pose.pose_features[:, 0])[None, :, None]
         sigma, rgb = self.head({"u": self.encode_points(u[:, :, 0])[None]}, colour, z_s, z_a)
         return FieldOutput(sigma[0], rgb[0], None)
 

@@ -14,7 +14,7 @@ import math
 
 import torch
 
-from narf.encodings import POINT_WIDTH, POSE_FREQS, positional_encoding
+from narf.encodings import POINT_WIDTH
 
 
 def segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: int) -> torch.Tensor:
@@ -131,7 +131,7 @@ def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: 
 
 def _colour_table(model, pose, d_local: torch.Tensor) -> torch.Tensor:
     """Per ray and part: W_pose,i gamma(xi_i/pi) + W_dirs,i gamma(d_i), (R, P, H/2)."""
-    encoded_xi = positional_encoding(pose.pose_features / math.pi, POSE_FREQS)  # (R, P, 48)
+    encoded_xi = model.encode_pose(pose.pose_features)  # (R, P, 48)
     encoded_d = model.encode_dirs(d_local)  # (R, P, 24)
     p_count, head = encoded_xi.shape[1], model.head
     w_pose = head.color_embed["pose"].effective_weight()[0].reshape(-1, p_count, 48)  # (H/2, P, 48)
