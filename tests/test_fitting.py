@@ -156,6 +156,21 @@ def test_crop_error_breakdown_by_hand():
     assert mean["breakdown"]["pixels_band"] == pytest.approx(0.25)  # the band is the same in both views
 
 
+def test_the_inner_person_pixels_lie_three_pixels_inside_the_mask():
+    """A 10 x 10 person in a 14 x 14 image, rendered opaque, the colour off by 0.1 on its central 4 x 4 pixels (3 px
+    or more inside its edge) and by 0.3 on the 84 others: psnr_person_inner is 20 dB (MSE 0.01), psnr_person that of
+    MSE (16 * 0.01 + 84 * 0.09) / 100 (float64 sums of 100 terms: pytest.approx's default rtol 1e-6 is ample)."""
+    mask = np.zeros((14, 14))
+    mask[2:12, 2:12] = 1.0
+    pred = np.zeros((14, 14, 3))
+    pred[2:12, 2:12] = 0.3
+    pred[5:9, 5:9] = 0.1
+    b = frame_metrics({"rgb": pred, "mask": mask}, np.zeros((14, 14, 3)), mask, mask > 0, 0.0, mask < 0)
+    b = b["nb_crop"]["breakdown"]
+    assert b["psnr_person_inner"] == pytest.approx(20.0)
+    assert b["psnr_person"] == pytest.approx(-10 * np.log10((16 * 0.01 + 84 * 0.09) / 100))
+
+
 def test_metrics_against_scikit_image():
     gen = np.random.default_rng(0)
     gt = gen.random((32, 40, 3))
