@@ -54,6 +54,9 @@ LEVERS = {
     "defaults, mask weight 3": ["train.mask_weight=3"],
     "defaults, appearance code per frame": ["model.appearance_dim=8"],
     "defaults, depth smoothness on virtual patches": ["train.smoothness_weight=0.1"],
+    "defaults, pose in the colour at 1 frequency": ["model.pose_freqs=1"],
+    "defaults, no pose in the colour": ["model.pose_freqs=0"],
+    "defaults, 40 % of the rays on the silhouette band": ["train.body_fraction=0.5", "train.border_fraction=0.4"],
 }
 #: (label, capture, overrides): every row on the recording and on its analogue
 ROWS = [(f"real, {name}", REAL, sets) for name, sets in LEVERS.items()] + [
