@@ -269,7 +269,7 @@ def _breakdown_line(split: str, breakdown: dict | None) -> str | None:
     person, inner = breakdown["psnr_person"], breakdown.get("psnr_person_inner")
     return (
         f"{_SHORT[split]}: person pixels {share('person')} of the error "
-        f"({'-' if person is None else f'{person:.2f} dB'} over them, {'-' if inner is None else f'{inner:.2f}'} "
+        f"({'-' if person is None else f'{person:.2f} dB'} over them, {'-' if inner is None else f'{inner:.2f} dB'} "
         f"{INNER_PX} px or more inside the mask's edge, {pixels('person')} of the crop); silhouette "
         f"disagreement {share('silhouette')} ({pixels('silhouette')} of the crop); the mask's boundary band "
         f"{share('band')} ({pixels('band')}); background {share('background')}"
