@@ -439,10 +439,12 @@ def validate_config(config: FitConfig) -> None:
     if config.train.colour_jitter and not spec.rays:
         raise ConfigError("train.colour_jitter: only the NeRF-type autoencoders use it")
     model_class = getattr(spec.build, "func", spec.build)  # a constructor or a functools.partial of one
-    if config.model.pose_dropout and getattr(model_class, "pose_in_density", True):
-        raise ConfigError(f"model.pose_dropout: {config.model.name}'s density reads the pose features; leave it at 0")
-    if config.model.pose_freqs != POSE_FREQS and getattr(model_class, "pose_in_density", True):
-        raise ConfigError(f"model.pose_freqs: {config.model.name}'s density reads the pose features; leave it at 4")
+    if getattr(model_class, "pose_in_density", True):  # the colour's pose settings would reach the geometry
+        for key, plain in (("pose_dropout", 0), ("pose_freqs", POSE_FREQS)):
+            if getattr(config.model, key) != plain:
+                raise ConfigError(
+                    f"model.{key}: {config.model.name}'s density reads the pose features; leave it at {plain}"
+                )
     if config.model.body_shell and not spec.rays:
         raise ConfigError("model.body_shell: the CNN baseline has no part boxes; leave it at 0")
     if config.model.surface_shell and not config.model.body_shell:
