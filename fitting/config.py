@@ -116,6 +116,7 @@ class TrainConfig:
     lr_anneal_to: float = 0.1  #: with lr_anneal: the rate's multiplier at the end of the budget
     adam_eps: float = 1e-12  #: Adam epsilon (upstream)
     mask_weight: float = 1.0  #: lambda_mask (0: ablation)
+    colour_delta: float = 0.0  #: >0: the colour loss is the pseudo-Huber of this scale (docs/model.md §6; 0: squared)
     checkpoint_minutes: float = 3.0  #: write a checkpoint at least this often
     validate_every: int = 1000  #: render a validation image every n steps (0: never)
     log_every: int = 50  #: write a log line every n steps
@@ -368,6 +369,7 @@ RANGES = {
     "train.lr_anneal_to": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "train.adam_eps": (lambda v: v > 0, "> 0"),
     "train.mask_weight": (lambda v: v >= 0, ">= 0"),
+    "train.colour_delta": (lambda v: v >= 0, ">= 0 (0: the squared error)"),
     "train.checkpoint_minutes": (lambda v: v >= 0, ">= 0 (0: after every step)"),
     "train.validate_every": (lambda v: v >= 0, ">= 0 (0: never)"),
     "train.log_every": (lambda v: v >= 1, ">= 1"),

@@ -371,14 +371,16 @@ class RowAdam(torch.optim.Optimizer):
         return None
 
 
-def corrected_colour_error(out, batch, background, camera_colour, backgrounds, colour_count, mask_count):
+def corrected_colour_error(
+    out, batch, background, camera_colour, backgrounds, colour_count, mask_count, penalty=torch.square
+):
     """The colour term of ``fitting.losses.ray_loss`` with a camera colour transform (:class:`CameraColour`) and / or
     random backgrounds (R, 3): ``out`` was rendered on black, so C = T_c(sum w c) + (1 - M) bg, against the mask's
     colour inside it and bg outside; the band's rays leave the term when the backgrounds are random.
-    ``colour_count`` / ``mask_count``: the normalisers of ``ray_loss``."""
+    ``colour_count`` / ``mask_count``: the normalisers of ``ray_loss``; ``penalty``: of each channel's residual."""
     rgb = out.rgb if camera_colour is None else camera_colour(out.rgb, out.mask, batch.cameras)
     if backgrounds is None:
-        return (rgb + (1 - out.mask)[:, None] * background - batch.rgb).pow(2).sum() / colour_count
+        return penalty(rgb + (1 - out.mask)[:, None] * background - batch.rgb).sum() / colour_count
     target = torch.where(batch.mask[:, None] > 0.5, batch.rgb, backgrounds)
-    error = (rgb + (1 - out.mask)[:, None] * backgrounds - target).pow(2).sum(dim=-1)
+    error = penalty(rgb + (1 - out.mask)[:, None] * backgrounds - target).sum(dim=-1)
     return (batch.mask_weight * error).sum() / (3 * mask_count)

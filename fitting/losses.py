@@ -3,10 +3,24 @@
 from __future__ import annotations
 
 import torch
+from kornia.losses import charbonnier_loss
 
 from fitting.config import FitConfig
 from fitting.corrections import corrected_colour_error
 from fitting.training_rays import render_training_rays
+
+
+def pseudo_huber(residual: torch.Tensor, delta: float) -> torch.Tensor:
+    """rho(r) = 2 delta^2 (sqrt(1 + (r / delta)^2) - 1), elementwise (docs/model.md §6, *A robust colour loss*).
+
+    r^2 to first order where |r| << delta, 2 delta |r| - 2 delta^2 where |r| >> delta: a pixel the field cannot
+    match (a mask or body a few pixels off, a highlight) pulls on it with a bounded force, where r^2 pulls with 2 r.
+    It is 2 delta^2 times kornia's Charbonnier loss of r / delta (Barron's general loss at alpha = 1, scale 1).
+    ``delta`` 0: r^2 exactly. Any shape; returns the same shape."""
+    if delta <= 0:
+        return residual.square()
+    scaled = residual / delta
+    return 2 * delta**2 * charbonnier_loss(scaled, torch.zeros_like(scaled))
 
 
 def ray_loss(
@@ -24,7 +38,8 @@ def ray_loss(
     camera_colour=None,
     backgrounds: torch.Tensor | None = None,
 ):
-    """L = mean 1/3 |C - C_gt|^2 + lambda_mask mean (M - M_gt)^2 (band skipped). Returns loss, colour MSE.
+    """L = mean 1/3 sum_c rho(C_c - C_gt,c) + lambda_mask mean (M - M_gt)^2 (band skipped), rho the squared error or
+    with ``train.colour_delta`` > 0 its pseudo-Huber (:func:`pseudo_huber`). Returns loss, colour MSE.
 
     ``latent``: optional (F, 2 * latent_dim) autoencoder codes, one per frame of ``poses``. ``uniforms``: the rays'
     sample draws (``render_rays``). ``normalisers``: (3 R, sum of mask weights) of the global batch when ``batch``
@@ -52,9 +67,13 @@ def ray_loss(
         uniforms=uniforms,
     )
     colour_count, mask_count = normalisers or (out.rgb.numel(), batch.mask_weight.sum().clamp_min(1))
+    delta = config.train.colour_delta
     if plain:
         colour = (out.rgb - batch.rgb).pow(2).sum() / colour_count
+        robust = pseudo_huber(out.rgb - batch.rgb, delta).sum() / colour_count if delta > 0 else colour
     else:
-        colour = corrected_colour_error(out, batch, background, camera_colour, backgrounds, colour_count, mask_count)
+        terms = (out, batch, background, camera_colour, backgrounds, colour_count, mask_count)
+        colour = corrected_colour_error(*terms)
+        robust = corrected_colour_error(*terms, penalty=lambda r: pseudo_huber(r, delta)) if delta > 0 else colour
     mask_term = (batch.mask_weight * (out.mask - batch.mask).pow(2)).sum() / mask_count
-    return colour + config.train.mask_weight * mask_term, colour
+    return robust + config.train.mask_weight * mask_term, colour

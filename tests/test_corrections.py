@@ -4,12 +4,14 @@ against the body model (smplx) and hand-computed values; and the degraded synthe
 import json
 import os
 import shutil
+from unittest import mock
 
 import numpy as np
 import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
+from fitting.config import FitConfig
 from fitting.corrections import (
     CameraColour,
     FrameAppearance,
@@ -18,6 +20,7 @@ from fitting.corrections import (
     pose_correction_from_state,
 )
 from fitting.data import RayBatch
+from fitting.losses import pseudo_huber, ray_loss
 from narf.fields.common import PoseBatch
 from narf.renderer import RenderOutput
 from pipelines.body.model import capture_poses, pose_batch
@@ -160,6 +163,37 @@ def test_random_background_colour_term_by_hand():
     # ray 0: (0, 0.1, 0) -> 0.01; ray 1: C = (0.1 + 0.8, 0.4, 0) vs bg (1, 0.5, 0) -> 0.01 + 0.01; ray 2: band, out
     got = corrected_colour_error(out, batch, 0.0, None, backgrounds, None, torch.tensor(2.0))
     assert float(got) == pytest.approx(0.03 / 6)
+
+
+def test_the_robust_colour_loss_by_hand():
+    """pseudo_huber against its formula at hand-chosen residuals, and ray_loss's colour term with it: the loss takes
+    rho, the reported colour error stays the MSE, on the plain path and through the camera colour alike."""
+    delta = 0.05
+    r = torch.tensor([0.0, delta, -10 * delta, 1e-3 * delta], dtype=torch.float64)
+    expected = torch.tensor([0.0, 2 * delta**2 * (2**0.5 - 1), 2 * delta**2 * (101**0.5 - 1), r[3].item() ** 2])
+    # float64 throughout; the last value differs from r^2 by r^4 / (4 delta^2), 2.5e-7 of it
+    torch.testing.assert_close(pseudo_huber(r, delta), expected.double(), rtol=1e-6, atol=0)
+    assert torch.equal(pseudo_huber(r, 0.0), r.square())
+
+    out = RenderOutput(torch.tensor([[0.5, 0.5, 0.5], [0.2, 0.9, 0.4]]), torch.tensor([1.0, 0.6]), torch.zeros(2))
+    batch = RayBatch(
+        *(torch.zeros(2, 3),) * 2,
+        torch.zeros(2, dtype=torch.long),
+        torch.tensor([[0.5, 0.6, 0.5], [0.0, 0.0, 0.0]]),
+        torch.tensor([1.0, 0.0]),
+        torch.tensor([1.0, 1.0]),
+        torch.zeros(2, dtype=torch.long),
+    )
+    residual = torch.tensor([0.0, -0.1, 0.0, 0.2, 0.9, 0.4])  # rendered on black, the target's own pixels
+    mask_term = (0.0 + 0.6**2) / 2
+    config = FitConfig()
+    config.train.colour_delta = delta
+    rho = 2 * delta**2 * ((1 + (residual / delta) ** 2).sqrt() - 1)
+    with mock.patch("fitting.losses.render_training_rays", return_value=out):
+        for colour_transform in (None, CameraColour(1)):  # a new transform is the identity
+            loss, colour = ray_loss(config, None, batch, None, None, 8, 8, camera_colour=colour_transform)
+            assert float(colour.detach()) == pytest.approx(float(residual.square().mean()), rel=1e-6)  # float32 sums
+            assert float(loss.detach()) == pytest.approx(float(rho.mean()) + mask_term, rel=1e-6)
 
 
 def test_degraded_capture_turns_every_joint_and_recolours_every_camera(data_root_64, body_model64, tmp_path):
