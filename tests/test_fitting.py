@@ -10,11 +10,12 @@ import numpy as np
 import pytest
 import spawn
 import torch
+from scipy import ndimage
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 
 from fitting.checkpoint import CheckpointError, load_checkpoint
 from fitting.config import ConfigError, load_config
-from fitting.evaluate import average_metrics, frame_metrics
+from fitting.evaluate import average_metrics, frame_metrics, masked_blur
 from fitting.run_folder import prepare_run_dir
 from fitting.schedule import Budget, lr_factor
 from pipelines.cli import eval as cli_eval
@@ -169,6 +170,37 @@ def test_the_inner_person_pixels_lie_three_pixels_inside_the_mask():
     b = b["nb_crop"]["breakdown"]
     assert b["psnr_person_inner"] == pytest.approx(20.0)
     assert b["psnr_person"] == pytest.approx(-10 * np.log10((16 * 0.01 + 84 * 0.09) / 100))
+
+
+def test_the_coarse_person_psnr_keeps_the_colour_and_drops_the_detail():
+    """A 40 x 40 opaque person in a 60 x 60 image: rendered 0.1 too bright, psnr_person_coarse equals psnr_person,
+    20 dB (a constant stays itself under the normalised blur; float64); rendered with a 1-px checkerboard of +-0.1,
+    psnr_person is 20 dB and the coarse PSNR far higher (the checkerboard's frequency is damped by exp(-2 pi^2
+    sigma^2 / 4) = e^-79 at sigma 4 px; what is left comes from the blur's one-sided weights near the edge)."""
+    mask = np.zeros((60, 60))
+    mask[10:50, 10:50] = 1.0
+    truth = np.zeros((60, 60, 3))
+    truth[10:50, 10:50] = np.linspace(0.2, 0.6, 40)[:, None, None]  # shading down the body
+    checker = 0.1 * (-1.0) ** np.add.outer(np.arange(60), np.arange(60))[..., None]
+    for pred, coarse in ((truth + 0.1 * mask[..., None], 20.0), (truth + checker * mask[..., None], None)):
+        b = frame_metrics({"rgb": pred, "mask": mask}, truth, mask, mask > 0, 0.0, mask < 0)["nb_crop"]["breakdown"]
+        assert b["psnr_person"] == pytest.approx(20.0)
+        if coarse is None:
+            assert b["psnr_person_coarse"] > 40.0
+        else:
+            assert b["psnr_person_coarse"] == pytest.approx(coarse)
+
+
+def test_the_masked_blur_against_scipy():
+    """masked_blur is scipy's Gaussian filter of I 1_P over that of 1_P, both zero outside the image: OpenCV and
+    scipy both truncate the kernel at 4 sigma (33 taps at sigma 4); float64 sums of 33^2 terms."""
+    gen = np.random.default_rng(2)
+    image, where = gen.random((30, 40, 3)), gen.random((30, 40)) > 0.3
+    got = masked_blur(image, where, 4.0)
+    weight = where.astype(np.float64)
+    num = np.stack([ndimage.gaussian_filter(image[..., c] * weight, 4.0, mode="constant") for c in range(3)], -1)
+    want = num / ndimage.gaussian_filter(weight, 4.0, mode="constant")[..., None]
+    np.testing.assert_allclose(got[where], want[where], rtol=1e-9)
 
 
 def test_metrics_against_scikit_image():
