@@ -57,6 +57,9 @@ LEVERS = {
     "defaults, pose in the colour at 1 frequency": ["model.pose_freqs=1"],
     "defaults, no pose in the colour": ["model.pose_freqs=0"],
     "defaults, 40 % of the rays on the silhouette band": ["train.body_fraction=0.5", "train.border_fraction=0.4"],
+    "defaults, pseudo-Huber colour loss at 0.05": ["train.colour_delta=0.05"],
+    "defaults, pseudo-Huber colour loss at 0.2": ["train.colour_delta=0.2"],
+    "defaults, pose correction": ["train.pose_correction=true"],
 }
 #: (label, capture, overrides): every row on the recording and on its analogue
 ROWS = [(f"real, {name}", REAL, sets) for name, sets in LEVERS.items()] + [
@@ -96,7 +99,8 @@ def _row(label: str, capture: Path, sets: list[str], out: Path, env: dict) -> di
 
 
 def measured(label: str, out: Path) -> dict:
-    """The row of a fitted and evaluated run folder ``out``: person PSNR, NB crop and silhouette per split, the gap."""
+    """The row of a fitted and evaluated run folder ``out``: person PSNR (and low-passed, docs/model.md §7), NB crop
+    and silhouette per split, the gap."""
     report = json.loads((out / "eval" / "metrics.json").read_text())
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     row = {
@@ -111,6 +115,7 @@ def measured(label: str, out: Path) -> dict:
         breakdown = crop.get("breakdown", {})
         person[split] = breakdown.get("psnr_person") or float("nan")
         row[f"{split} person PSNR"] = round(person[split], 2)
+        row[f"{split} person PSNR low-passed"] = round(breakdown.get("psnr_person_coarse") or float("nan"), 2)
         row[f"{split} NB PSNR"] = round(crop["psnr"], 2)
         row[f"{split} silhouette %"] = round(100 * breakdown.get("pixels_silhouette", float("nan")), 2)
     row["gap SS - novel_view (dB)"] = round(person["same_pose_same_view"] - person["novel_view"], 2)
