@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import torch
 from kornia.losses import charbonnier_loss
 
@@ -67,13 +69,15 @@ def ray_loss(
         uniforms=uniforms,
     )
     colour_count, mask_count = normalisers or (out.rgb.numel(), batch.mask_weight.sum().clamp_min(1))
-    delta = config.train.colour_delta
-    if plain:
-        colour = (out.rgb - batch.rgb).pow(2).sum() / colour_count
-        robust = pseudo_huber(out.rgb - batch.rgb, delta).sum() / colour_count if delta > 0 else colour
-    else:
+
+    def colour_error(penalty) -> torch.Tensor:
+        if plain:
+            return penalty(out.rgb - batch.rgb).sum() / colour_count
         terms = (out, batch, background, camera_colour, backgrounds, colour_count, mask_count)
-        colour = corrected_colour_error(*terms)
-        robust = corrected_colour_error(*terms, penalty=lambda r: pseudo_huber(r, delta)) if delta > 0 else colour
+        return corrected_colour_error(*terms, penalty=penalty)
+
+    delta = config.train.colour_delta
+    colour = colour_error(torch.square)
+    robust = colour_error(partial(pseudo_huber, delta=delta)) if delta > 0 else colour
     mask_term = (batch.mask_weight * (out.mask - batch.mask).pow(2)).sum() / mask_count
     return robust + config.train.mask_weight * mask_term, colour
