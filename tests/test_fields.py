@@ -330,6 +330,29 @@ def test_sparse_fast_path_matches_dense_reference(name, monkeypatch):
             assert torch.allclose(ga, gb, atol=1e-8)
 
 
+@pytest.mark.parametrize("name", ["narf_d", "narf_d_sigmoid"])
+def test_the_fast_path_gathers_no_rows_by_advanced_indexing(name):
+    """NARF_D's in-box path reads per-pair rows with index_select or per-part blocks, never ``x[index]``: on CUDA the
+    gradient of advanced indexing sorts the indices and sums each row's pairs serially, which took a third of an
+    H200's training step while the selector's 19 output rows were gathered once per pair (docs/results/benchmark.md,
+    *A GPU step*). The graph of sigma and rgb must hold no IndexBackward0 node, with the poses refined too."""
+    field = _field(name, width=16)
+    points, dirs = _points(8, 12, seed=5)
+    pose = _random_pose(n_frames=2)
+    refined = dataclasses.replace(pose, world_from_part=pose.world_from_part.detach().requires_grad_(True))
+    pose = refined.select(torch.tensor([0, 1] * 4))
+    out = field(points, dirs, pose)
+    names, stack, seen = set(), [(out.sigma.sum() + out.rgb.sum()).grad_fn], set()
+    while stack:
+        node = stack.pop()
+        if node is not None and node not in seen:
+            seen.add(node)
+            names.add(type(node).__name__)
+            stack.extend(next_node for next_node, _ in node.next_functions)
+    assert "IndexSelectBackward0" in names  # the walk reaches the gathers
+    assert "IndexBackward0" not in names
+
+
 @pytest.mark.parametrize("name", [*model_names("field", "rigid"), "narf_d_dense"])
 def test_density_alone_equals_the_forward_sigma(name):
     """Field.density (the occupancy refresh's query; NARF_D / NARF_H skip the colour branch) against the full

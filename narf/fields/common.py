@@ -51,8 +51,9 @@ class PoseBatch:
         return PoseBatch(*(None if (v := getattr(self, k)) is None else fn(v) for k in self.__dataclass_fields__))
 
     def select(self, frames: torch.Tensor) -> PoseBatch:
-        """Gather per-ray poses: ``frames`` (R,) long -> a PoseBatch of R entries."""
-        return self._map(lambda v: v[frames])
+        """Gather per-ray poses: ``frames`` (R,) long -> a PoseBatch of R entries (index_select: where the poses are
+        refined, its gradient is an index_add rather than advanced indexing's sort, docs/results/benchmark.md)."""
+        return self._map(lambda v: v.index_select(0, frames))
 
     def to(self, device) -> PoseBatch:
         return self._map(lambda v: v.to(device))

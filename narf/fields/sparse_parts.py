@@ -21,9 +21,10 @@ def segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: in
     """Softmax of ``logits`` (M,) within each segment (``segments`` (M,) in [0, n_segments))."""
     peak = torch.full((n_segments,), float("-inf"), dtype=logits.dtype, device=logits.device)
     peak = peak.scatter_reduce(0, segments, logits.detach(), reduce="amax")
-    exp = torch.exp(logits - peak[segments])
+    exp = torch.exp(logits - peak.index_select(0, segments))
     total = torch.zeros(n_segments, dtype=logits.dtype, device=logits.device).index_add(0, segments, exp)
-    return exp / total[segments]
+    # index_select rather than total[segments]: its gradient is an index_add, not advanced indexing's sort
+    return exp / total.index_select(0, segments)
 
 
 def in_box_pairs(in_box: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -36,6 +37,10 @@ def in_box_pairs(in_box: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torc
 def selector_logits(selector, chunks: tuple[torch.Tensor, ...], ray: torch.Tensor, part: torch.Tensor, encoded_zeta):
     """The part selector's logits o_i (narf.fields.selector) of in-box pairs only.
 
+    Each part's rows are one block (the pairs are sorted by part), so its own weights W_i, b_i, w_i, b'_i are
+    applied to the block by a matmul rather than gathered per pair: a gathered (M, hidden) copy of 19 rows would
+    take, in the backward pass, a sum over every pair of a part into one row (on a GPU, serial per row).
+
     Args:
         selector: a PartSelector. chunks: per part k, the gamma(u_k) (M_k, 60) of its in-box pairs, in part order.
         ray, part: (M,) of the same pairs, sorted by part. encoded_zeta: (R, 1, 152).
@@ -43,12 +48,18 @@ def selector_logits(selector, chunks: tuple[torch.Tensor, ...], ray: torch.Tenso
     Returns:
         (M,) logits.
     """
-    weights, biases = selector.local.effective_weight().unbind(0), selector.local.bias.unbind(0)
-    local = torch.cat([torch.addmm(bias, chunk, weight.T) for chunk, weight, bias in zip(chunks, weights, biases)])
     r_count, p_count = encoded_zeta.shape[0], len(chunks)
-    bones = selector.bones(encoded_zeta.reshape(1, r_count, -1)).reshape(r_count, p_count, selector.hidden)
-    hidden = torch.relu(local + bones[ray, part])
-    return (hidden * selector.out.effective_weight()[:, 0, :][part]).sum(-1) + selector.out.bias[part, 0, 0]
+    bones = selector.bones(encoded_zeta.reshape(1, r_count, -1)).reshape(r_count * p_count, selector.hidden)
+    per_pair = bones.index_select(0, ray * p_count + part).split([len(chunk) for chunk in chunks])
+    weights, biases = selector.local.effective_weight().unbind(0), selector.local.bias.unbind(0)
+    out_weights, out_biases = selector.out.effective_weight()[:, 0, :].unbind(0), selector.out.bias[:, 0].unbind(0)
+    logits = [
+        torch.relu(torch.addmm(bias, chunk, weight.T) + bone) @ out_weight + out_bias  # (M_k,), also for M_k = 0
+        for chunk, bone, weight, bias, out_weight, out_bias in zip(
+            chunks, per_pair, weights, biases, out_weights, out_biases
+        )
+    ]
+    return torch.cat(logits)
 
 
 def sparse_density_inputs(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: torch.Tensor) -> torch.Tensor:
@@ -102,7 +113,8 @@ def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: 
     n_samples = r_count * s_count
     ray, in_ray, part = in_box_pairs(in_box)
     sample = ray * s_count + in_ray
-    encoded = model.encode_points(u[ray, in_ray, part])  # (M, 60)
+    # u needs a gradient when the poses are refined (docs/model.md §6): gathered with index_select, as below
+    encoded = model.encode_points(u.reshape(-1, 3).index_select(0, sample * p_count + part))  # (M, 60)
     counts = torch.bincount(part, minlength=p_count).tolist()
     chunks = torch.split(encoded, counts)
     w_density = head.density_embed["parts"].effective_weight()
@@ -118,7 +130,7 @@ def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: 
         else:
             probs = torch.sigmoid(logit)
         norm = torch.zeros(n_samples, dtype=u.dtype, device=u.device).index_add(0, sample, probs**2).sqrt()
-        weights = probs * math.sqrt(p_count) / norm[sample].clamp_min(1e-12)
+        weights = probs * math.sqrt(p_count) / norm.index_select(0, sample).clamp_min(1e-12)
     else:
         n_in = torch.zeros(n_samples, dtype=u.dtype, device=u.device).index_add(
             0, sample, torch.ones_like(sample, dtype=u.dtype)
