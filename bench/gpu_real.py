@@ -6,11 +6,12 @@ A lent GPU machine takes a working tree of at most 64 MiB and a few minutes, so 
   sets to the background (outside the mask and its boundary band, docs/formats.md §1) is black already, with a
   margin for the undistortion's and the resize's neighbours, and the image is written again as JPEG; the overlay
   folder stays behind. ``check`` reports how far the loaded views of the copy are from the original's.
-* ``run --subject OUT`` (there): (1) rays/s of the paper preset in fp32, TF32 and bf16, each fitted alone for a few
-  seconds, and a profile of a few more steps (:func:`profile`: where a step's time goes); (2) the paper preset
-  alone, with the pose correction and with the CPU preset's levers (``paper_sparse``; docs/results/real-capture.md,
-  *The real demo on a GPU*), or in fp32 (``--variants``), fitted side by side for the same time (or ``--steps``),
-  then ``narf-eval`` on the training images, the held-out camera and novel poses. Figures go to one JSON file after
+* ``run --subject OUT`` (there): (1) rays/s of the paper preset in fp32, TF32 and bf16 (``--precisions``: also with
+  torch.compile or without deterministic kernels), each fitted alone for a few seconds, and a profile of a few more
+  steps (:func:`profile`: where a step's time goes); (2) the paper preset alone, with the pose correction and with
+  the CPU preset's levers (``paper_sparse``; docs/results/real-capture.md, *The real demo on a GPU*), or in other
+  precisions (``--variants``), fitted side by side for the same time (or ``--steps``), then ``narf-eval`` on the
+  training images, the held-out camera and novel poses. Figures go to one JSON file after
   each stage, so what was measured comes back even if the call is cut short.
 """
 
@@ -36,7 +37,11 @@ VARIANTS = {
     "paper_tf32": ("paper", ["train.precision=tf32"]),
     "pose_correction_tf32": ("paper", ["train.precision=tf32", "train.pose_correction=true"]),
     "cpu_levers_tf32": ("paper_sparse", ["train.precision=tf32"]),
+    "cpu_levers_fp32": ("paper_sparse", ["train.precision=fp32"]),
+    "cpu_levers_bf16_nondet": ("paper_sparse", ["train.precision=bf16", "train.deterministic=false"]),
 }
+#: Stage 1's suffixes: ``bf16+compile+nondet`` is bf16 with these overrides.
+SPEED_SUFFIXES = {"compile": "train.compile=true", "nondet": "train.deterministic=false"}
 SPLITS = ("same_pose_same_view", "novel_view", "novel_pose")
 
 
@@ -61,9 +66,21 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--work", type=Path, default=Path("runs/gpu-real"), help="folder of the runs")
     run.add_argument("--out", type=Path, default=None, help="JSON of the figures (default: WORK/gpu-real.json)")
     run.add_argument("--speed-seconds", type=float, default=15.0, help="stage 1: seconds of fitting per precision")
-    run.add_argument("--profile", default="fp32,bf16", help="stage 1: precisions profiled after their timing")
+    run.add_argument(
+        "--precisions",
+        default="fp32,tf32,bf16",
+        help="stage 1: the precisions timed; +compile adds train.compile=true (torch.compile), +nondet "
+        "train.deterministic=false (atomic index_add / scatter kernels on CUDA)",
+    )
+    run.add_argument("--compile-seconds", type=float, default=90.0, help="stage 1: extra seconds for a compile")
+    run.add_argument("--profile", default="tf32,bf16", help="stage 1: precisions profiled after their timing")
     run.add_argument("--profile-steps", type=int, default=10, help="stage 1: steps profiled")
-    run.add_argument("--fit-seconds", type=float, default=200.0, help="stage 2: each fit's time, side by side")
+    run.add_argument(
+        "--fit-seconds",
+        type=float,
+        default=200.0,
+        help="stage 2: each fit's time, side by side (with --steps: its cap)",
+    )
     run.add_argument("--steps", type=int, default=0, help="stage 2: steps per fit instead (0: --fit-seconds)")
     run.add_argument("--limit", type=int, default=8, help="views evaluated per split")
     run.add_argument(
@@ -148,11 +165,11 @@ def _write(path: Path, figures: dict) -> None:
     atomic_write_text(path, json.dumps(figures, indent=1))
 
 
-def speed(
-    subject: Path, work: Path, seconds: float, device, extra: list[str], profiled: set[str], profile_steps: int
-) -> dict:
-    """Stage 1: each precision's rays/s (median of the log's rows after the first) and peak memory, fitted alone;
-    the precisions ``profiled`` then run ``profile_steps`` more steps under the profiler (:func:`profile`)."""
+def speed(subject: Path, work: Path, device, extra: list[str], args: argparse.Namespace, publish) -> dict:
+    """Stage 1: each of ``args.precisions``' rays/s (median of the log's rows after the first) and peak memory,
+    fitted alone for ``args.speed_seconds`` (and ``args.compile_seconds`` more where torch.compile runs first); those
+    in ``args.profile`` then run ``args.profile_steps`` more steps under the profiler (:func:`profile`). Each one's
+    figures go to ``publish`` as soon as they are known."""
     import torch
 
     from bench.gpu_check import log_rows, peak_gpu_memory_gib, rays_per_s
@@ -160,12 +177,17 @@ def speed(
     from fitting.run_folder import prepare_run_dir
     from pipelines.runs.fit import start_run
 
-    rates = {}
-    for precision in ("fp32", "tf32", "bf16"):
+    rates, profiled = {}, set(args.profile.split(","))
+    for name in filter(None, args.precisions.split(",")):
+        precision, *suffixes = name.split("+")
+        compiled = "compile" in suffixes
         overrides = [f"data.subject={subject}", "train.validate_every=0", "train.log_every=10", *extra]
-        config = load_config("paper", [*overrides, f"train.precision={precision}"])
-        shutil.rmtree(work / f"speed_{precision}", ignore_errors=True)  # the tool's own folder: a rerun starts afresh
-        run = prepare_run_dir(work / f"speed_{precision}", False)
+        overrides += [f"train.precision={precision}", *(SPEED_SUFFIXES[suffix] for suffix in suffixes)]
+        config = load_config("paper", overrides)
+        seconds = args.speed_seconds + (args.compile_seconds if compiled else 0.0)
+        folder = work / f"speed_{name.replace('+', '_')}"
+        shutil.rmtree(folder, ignore_errors=True)  # the tool's own folder: a rerun starts afresh
+        run = prepare_run_dir(folder, False)
         if device.type == "cuda":
             torch.cuda.reset_peak_memory_stats(device)
         started = time.perf_counter()
@@ -173,19 +195,20 @@ def speed(
         ready = time.perf_counter()
         result = trainer.fit(max_minutes=seconds / 60)
         rows = log_rows(run)
-        rates[precision] = {
+        rates[name] = {
             "steps": result.step,
             "rays_per_s": rays_per_s(rows, result.step, trainer, skip=1),  # the first row holds the warm-up
             "start_s": round(ready - started, 1),
             "train_psnr_last": round(rows[-1]["psnr"], 2) if rows else None,
             "peak_gpu_memory_gib": peak_gpu_memory_gib(device),
         }
-        if precision in profiled:
-            rates[precision]["profile"] = profile(trainer, profile_steps, device)
+        if name in profiled:
+            rates[name]["profile"] = profile(trainer, args.profile_steps, device)
         del trainer
         if device.type == "cuda":
             torch.cuda.empty_cache()
-        print(f"gpu-real: speed {precision}: {rates[precision]}", flush=True)
+        publish(rates)
+        print(f"gpu-real: speed {name}: {rates[name]}", flush=True)
     return rates
 
 
@@ -208,12 +231,15 @@ def profile(trainer, steps: int, device) -> dict:
     events = prof.key_averages()
     self_time = (lambda e: e.self_device_time_total) if cuda else (lambda e: e.self_cpu_time_total)
     ranges = {e.key: round(e.cpu_time_total / 1e3 / steps, 2) for e in events if e.key.startswith("narf.")}
-    top = sorted((e for e in events if not e.key.startswith("narf.")), key=self_time, reverse=True)[:25]
+    top = sorted((e for e in events if not e.key.startswith("narf.")), key=self_time, reverse=True)[:40]
+    # the kernels and copies alone (the operators' own device time counts their kernels a second time)
+    busy = sum(e.self_device_time_total for e in events if e.device_type == torch.autograd.DeviceType.CUDA)
     return {
         "steps": steps,
         "wall_ms_per_step": round(1e3 * wall / steps, 1),
         "ranges_cpu_ms_per_step": ranges,
         "device_ms_per_step": round(sum(self_time(e) for e in events) / 1e3 / steps, 1),
+        "gpu_busy_ms_per_step": round(busy / 1e3 / steps, 1) if cuda else None,
         "operators_per_step": round(sum(e.count for e in events if not e.key.startswith("narf.")) / steps),
         "top": [
             {"op": e.key, "ms_per_step": round(self_time(e) / 1e3 / steps, 2), "calls_per_step": e.count / steps}
@@ -301,6 +327,10 @@ def _variants(args: argparse.Namespace) -> list[str]:
     unknown = sorted(set(variants) - set(VARIANTS))
     if unknown:
         raise ValueError(f"--variants: unknown {', '.join(unknown)}; known: {', '.join(VARIANTS)}")
+    for name in filter(None, args.precisions.split(",")):
+        precision, *suffixes = name.split("+")
+        if precision not in ("fp32", "tf32", "bf16") or not set(suffixes) <= set(SPEED_SUFFIXES):
+            raise ValueError(f"--precisions: {name} is not fp32, tf32 or bf16 with +{' or +'.join(SPEED_SUFFIXES)}")
     if variants and not args.steps and args.speed_seconds <= 0:
         raise ValueError("--fit-seconds sizes the pose correction's start from stage 1's rates: give --steps instead")
     return variants
@@ -323,17 +353,19 @@ def run(args: argparse.Namespace) -> int:
     figures["subject"] = str(args.subject)
     started = time.perf_counter()
     if args.speed_seconds > 0:
-        figures["speed"] = speed(
-            subject, work, args.speed_seconds, device, args.set, set(args.profile.split(",")), args.profile_steps
-        )
+        publish = lambda part: _write(out, {**figures, "speed": part})  # noqa: E731
+        figures["speed"] = speed(subject, work, device, args.set, args, publish)
         figures["speed_stage_s"] = round(time.perf_counter() - started, 1)
         _write(out, figures)
     if variants:
         from fitting.config import load_config
 
         rays_per_step = (lambda t: t.images_per_step * t.rays_per_image)(load_config("paper", []).train)
-        if args.steps:
-            budget, expected = ["--set", f"train.steps={args.steps}"], args.steps
+        if args.steps:  # the steps, with --fit-seconds as a cap, so a slow fit still leaves time to evaluate
+            budget, expected = (
+                ["--set", f"train.steps={args.steps}", "--max-minutes", str(args.fit_seconds / 60)],
+                args.steps,
+            )
         else:
             budget = ["--max-minutes", str(args.fit_seconds / 60)]
             expected = steps_for(figures["speed"], variants, args.fit_seconds, rays_per_step)

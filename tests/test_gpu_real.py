@@ -53,25 +53,27 @@ def test_steps_side_by_side_from_the_rates():
 
 @pytest.mark.slow
 def test_the_run_writes_each_stage_on_the_cpu(data_root_64, tmp_path):
-    """Stage 1 for a second per precision (fp32 then profiled for 2 steps), then one variant for 2 steps and one view
-    a split, on the 64^2 capture with the paper preset shrunk (width 16, 4+4 samples, 2 x 32 rays): the JSON holds the
-    rates, the profile's named ranges and operators, the budget and the variant's figures from narf-eval."""
+    """Stage 1 for a second per precision (fp32 then profiled for 2 steps; bf16 with a suffix's override), then one
+    variant for 2 steps and one view a split, on the 64^2 capture with the paper preset shrunk (width 16, 4+4
+    samples, 2 x 32 rays): the JSON holds the rates, the profile's named ranges and operators, the budget (the
+    steps, capped by --fit-seconds) and the variant's figures from narf-eval."""
     out = tmp_path / "figures.json"
     tiny = ["model.width=16", "render.train_coarse=4", "render.train_fine=4", "render.eval_coarse=4"]
     tiny += ["render.eval_fine=4", "train.images_per_step=2", "train.rays_per_image=32", "data.ratio=1.0"]
     argv = ["run", "--subject", str(data_root_64 / "synthetic" / "taichi"), "--work", str(tmp_path / "work")]
     argv += ["--out", str(out), "--device", "cpu", "--speed-seconds", "1", "--steps", "2", "--limit", "1"]
-    argv += ["--variants", "paper_fp32", "--profile", "fp32", "--profile-steps", "2"]
+    argv += ["--variants", "paper_fp32", "--profile", "fp32", "--profile-steps", "2", "--fit-seconds", "600"]
+    argv += ["--precisions", "fp32,tf32,bf16+nondet"]
     argv += [a for o in tiny for a in ("--set", o)]
     assert main(argv) == 0
     figures = json.loads(out.read_text())
-    assert set(figures["speed"]) == {"fp32", "tf32", "bf16"}
+    assert set(figures["speed"]) == {"fp32", "tf32", "bf16+nondet"}
     assert all(rate["rays_per_s"] > 0 for rate in figures["speed"].values())
     profiled = figures["speed"]["fp32"]["profile"]
     assert "profile" not in figures["speed"]["tf32"] and profiled["steps"] == 2
     assert set(profiled["ranges_cpu_ms_per_step"]) == {"narf.sample", "narf.forward", "narf.backward"}
     assert profiled["top"] and all(row["ms_per_step"] >= 0 for row in profiled["top"])
-    assert figures["side_by_side_budget"]["arguments"] == ["--set", "train.steps=2"]
+    assert figures["side_by_side_budget"]["arguments"] == ["--set", "train.steps=2", "--max-minutes", "10.0"]
     fit = figures["side_by_side"]["paper_fp32"]
     assert fit["exit"] == 0 and fit["steps"] == 2
     assert {"same_pose_same_view", "novel_view", "novel_pose"} <= set(fit)
@@ -82,11 +84,12 @@ def test_the_run_writes_each_stage_on_the_cpu(data_root_64, tmp_path):
     [
         (["--variants", "paper_fp16"], "--variants: unknown paper_fp16; known: paper_fp32"),
         (["--speed-seconds", "0"], "--fit-seconds sizes the pose correction's start from stage 1's rates"),
+        (["--precisions", "fp32+fast"], "--precisions: fp32+fast is not fp32, tf32 or bf16 with +compile or +nondet"),
     ],
 )
 def test_bad_arguments_stop_with_one_line_before_any_work(tmp_path, capsys, extra, message):
-    """An unknown variant, or a time budget without stage 1's rates, is refused at once: one line, exit code 2, and
-    no run folder started."""
+    """An unknown variant or precision, or a time budget without stage 1's rates, is refused at once: one line,
+    exit code 2, and no run folder started."""
     from pipelines.cli.common import run_cli
 
     argv = ["run", "--subject", str(tmp_path / "capture"), "--work", str(tmp_path / "work"), "--device", "cpu", *extra]
