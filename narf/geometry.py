@@ -112,4 +112,6 @@ def se3_exp(xi: torch.Tensor) -> torch.Tensor:
         (..., 4, 4) rigid transforms.
     """
     check_shape("xi", xi, (..., 6))
-    return Se3.exp(torch.cat([xi[..., 3:], xi[..., :3]], dim=-1)).matrix()
+    matrix = Se3.exp(torch.cat([xi[..., 3:], xi[..., :3]], dim=-1)).matrix()
+    # kornia keeps the rotation as an nn.Parameter, so the matrix would carry a graph even for a plain xi
+    return matrix if xi.requires_grad else matrix.detach()

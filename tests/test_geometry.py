@@ -72,6 +72,13 @@ class TestSe3Log:
         ).requires_grad_()
         assert torch.autograd.gradcheck(lambda x: se3_log(se3_exp(x)), (xi,))
 
+    def test_a_plain_twist_gives_a_plain_matrix(self, gen):
+        """kornia holds the rotation as an nn.Parameter; a twist without gradient must not give a matrix that carries a
+        graph (a pose built from it would then need a gradient in every model that reads it)."""
+        xi = torch.randn(3, 6, generator=gen, dtype=torch.float64)
+        assert not se3_exp(xi).requires_grad
+        assert se3_exp(xi.clone().requires_grad_()).requires_grad
+
     def test_bad_shape_names_argument(self):
         with pytest.raises(ValueError, match=r"transform: expected shape \(\.\.\., 4, 4\), got \(3, 3\)"):
             se3_log(torch.eye(3))
