@@ -11,8 +11,8 @@ A lent GPU machine takes a working tree of at most 64 MiB and a few minutes, so 
   steps (:func:`profile`: where a step's time goes); (2) the paper preset alone, with the pose correction and with
   the CPU preset's levers (``paper_sparse``; docs/results/real-capture.md, *The real demo on a GPU*), or in other
   precisions (``--variants``), fitted side by side for the same time (or ``--steps``), then ``narf-eval`` on the
-  training images, the held-out camera and novel poses. Figures go to one JSON file after
-  each stage, so what was measured comes back even if the call is cut short.
+  training images, the held-out camera and novel poses. Figures go to one JSON file after each stage, so what was
+  measured comes back even if the call is cut short.
 """
 
 from __future__ import annotations
