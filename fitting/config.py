@@ -146,6 +146,8 @@ class TrainConfig:
     virtual_rays: int = 256  #: with the entropy: rays of virtual cameras per step
     smoothness_weight: float = 0.0  #: weight of RegNeRF's depth smoothness on virtual patches (0: off)
     virtual_patches: int = 4  #: with the smoothness: 8x8 patches of virtual cameras per step
+    mirror_weight: float = 0.0  #: weight of the left-right colour symmetry on virtual rays (0: off)
+    mirror_rays: int = 256  #: with the symmetry: virtual rays per step, each rendered with its mirror image
     holdout_every: int = 0  #: subject fits: every n-th training frame is held back to choose the step kept (0: none)
     select_every: int = 500  #: with a holdout: steps between scores of the held-back frames
     select_rays: int = 4096  #: with a holdout: the person pixels of the held-back frames each score renders
@@ -320,6 +322,7 @@ KIND_ONLY = {
     "train.holdout_every": "subject",
     "train.entropy_weight": "subject",
     "train.smoothness_weight": "subject",
+    "train.mirror_weight": "subject",
     "model.appearance_dim": "subject",
     "train.appearance_decay": "subject",
 }
@@ -388,6 +391,8 @@ RANGES = {
     "train.appearance_decay": (lambda v: v >= 0, ">= 0"),
     "train.entropy_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
     "train.virtual_rays": (lambda v: v >= 1, ">= 1"),
+    "train.mirror_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
+    "train.mirror_rays": (lambda v: v >= 1, ">= 1"),
     "train.smoothness_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
     "train.virtual_patches": (lambda v: v >= 1, ">= 1"),
     "train.holdout_every": (lambda v: v == 0 or v >= 2, "0 (none) or >= 2"),
@@ -452,6 +457,6 @@ def validate_config(config: FitConfig) -> None:
     if config.model.surface_shell and not config.model.body_shell:
         raise ConfigError("model.surface_shell: shells are off (model.body_shell is 0); set both or neither")
     rays_only = ("pose_correction", "camera_colour", "random_background", "holdout_every", "entropy_weight")
-    for key in (*rays_only, "smoothness_weight"):
+    for key in (*rays_only, "smoothness_weight", "mirror_weight"):
         if getattr(config.train, key) and not spec.rays:
             raise ConfigError(f"train.{key}: the CNN baseline renders no rays; set it false (--set train.{key}=false)")

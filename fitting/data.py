@@ -191,6 +191,8 @@ class FitData:
         camera_gains: (C, 3) the measured colour gain of each training camera (``training``'s camera indices), or
             None (docs/model.md §6, *Measured camera colour*).
         shells: (P, N, N, N) bool, the part boxes' shells (docs/model.md §1, *Body shells*), or None: whole boxes.
+        mirrored_poses: the training frames' bodies in their mirror-image poses (docs/model.md §6, *Left-right
+            symmetry*), on the training device, or None: the symmetry term is off.
     """
 
     training: TrainingSet
@@ -204,3 +206,4 @@ class FitData:
     selection: TrainingSet | None = None
     camera_gains: torch.Tensor | None = None
     shells: torch.Tensor | None = None
+    mirrored_poses: PoseBatch | None = None

@@ -26,7 +26,7 @@ from fitting.plots import write_curve, write_validation
 from fitting.run_folder import trim_log, write_config
 from fitting.schedule import Budget, lr_factor
 from fitting.selection import selection_set
-from fitting.unseen import unseen_views_loss
+from fitting.unseen import mirror_colour_loss, unseen_views_loss
 from narf.fields.common import PoseBatch
 from narf.metrics import psnr
 from narf.occupancy import refresh_cells
@@ -310,6 +310,12 @@ class Trainer:
             )
             # every process renders the same virtual rays (the same generator)
             unseen = unseen_views_loss(self.config, self.field, poses, batch.frames, self.generator)
+            # the capture's poses and their mirror images, indexed by training frame (docs/model.md §6)
+            drawn = batch.frames if index is None else index[batch.frames]
+            mirrored = getattr(self.fit_data, "mirrored_poses", None)  # subject fits only
+            unseen = unseen + mirror_colour_loss(
+                self.config, self.field, self.views.poses, mirrored, drawn, self.generator
+            )
             loss = loss + unseen / self.processes.world_size
         # every process adds the penalty; the summed gradients then hold it once
         loss = loss + self.correction_penalty(index) / self.processes.world_size

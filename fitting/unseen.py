@@ -1,6 +1,7 @@
 """Views nobody trained on (docs/model.md §6, *Unseen views*; not in the paper): rays from random virtual cameras
 around each training frame's body, InfoNeRF's ray entropy (Kim et al., CVPR 2022) over them, and RegNeRF's depth
-smoothness (Niemeyer et al., CVPR 2022) over small patches of them.
+smoothness (Niemeyer et al., CVPR 2022) over small patches of them, and the colour's left-right symmetry: each
+virtual ray and its mirror image, rendered in the mirror-image pose, should see the same colour.
 
 With few training cameras, density that lies inside every training mask but outside the person is not seen by the
 loss, and shows from a new camera as a wrong silhouette or a halo. The entropy term asks each virtual ray that meets
@@ -145,18 +146,18 @@ def unseen_views_loss(config: FitConfig, field, poses: PoseBatch, frames: torch.
     if t.entropy_weight > 0:
         origins, dirs, frame = virtual_rays(poses, drawn, t.virtual_rays, generator)
         total = total + t.entropy_weight * ray_entropy(
-            _render(config, field, origins, dirs, frame, poses, generator).sample_weights
+            render_virtual(config, field, origins, dirs, frame, poses, generator).sample_weights
         )
     if t.smoothness_weight > 0:
         origins, dirs, frame = virtual_patches(poses, drawn, t.virtual_patches, generator)
-        out = _render(config, field, origins, dirs, frame, poses, generator)
+        out = render_virtual(config, field, origins, dirs, frame, poses, generator)
         shape = (-1, PATCH_SIDE, PATCH_SIDE)
         reach = poses.reach[frame[:: PATCH_SIDE * PATCH_SIDE]]
         total = total + t.smoothness_weight * depth_smoothness(out.depth.reshape(shape), out.mask.reshape(shape), reach)
     return total
 
 
-def _render(config: FitConfig, field, origins, dirs, frame, poses: PoseBatch, generator: torch.Generator):
+def render_virtual(config: FitConfig, field, origins, dirs, frame, poses: PoseBatch, generator: torch.Generator):
     """Virtual rays rendered as the training rays, their stratified draws from the fit's CPU generator (moved: a CPU
     generator cannot draw on a GPU)."""
     r, device = config.render, origins.device
@@ -164,3 +165,52 @@ def _render(config: FitConfig, field, origins, dirs, frame, poses: PoseBatch, ge
     return render_training_rays(
         config, field, origins, dirs, frame, poses, r.train_coarse, r.train_fine, uniforms=uniforms
     )
+
+
+def mirror_rays(
+    origins: torch.Tensor, dirs: torch.Tensor, frame: torch.Tensor, poses: PoseBatch
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Rays reflected about their frame's sagittal plane: the plane through the pelvis (the root part's origin)
+    normal to the root's x axis, x' = c + S (x - c), d' = S d with S = I - 2 n n^T.
+
+    Args:
+        origins, dirs: (R, 3). frame: (R,) indices into ``poses``.
+
+    Returns:
+        the reflected origins and directions, (R, 3) each.
+    """
+    root = poses.world_from_part[frame, 0]
+    normal, centre = root[:, :3, 0], root[:, :3, 3]
+
+    def reflect(v: torch.Tensor) -> torch.Tensor:
+        return v - 2 * (v * normal).sum(-1, keepdim=True) * normal
+
+    return centre + reflect(origins - centre), reflect(dirs)
+
+
+def mirror_colour_loss(
+    config: FitConfig, field, poses: PoseBatch, mirrored: PoseBatch, frames: torch.Tensor, generator: torch.Generator
+) -> torch.Tensor | float:
+    """``train.mirror_weight`` times the colour's left-right asymmetry (docs/model.md §6, *Left-right symmetry*):
+    over ``train.mirror_rays`` virtual rays around the bodies of ``frames`` (as :func:`virtual_rays`), each rendered
+    in its frame's pose and, reflected (:func:`mirror_rays`), in the mirror-image pose ``mirrored``, the mean of
+    |c - c'|^2 / 3 over the colours c = C / M of the pairs (:func:`symmetry_error`), weighed by M M' where both
+    opacities exceed 0.5 (rays beside the body, or through an outline the mirror does not repeat, weigh nothing; the
+    weights carry no gradient). 0 when the weight is 0 (nothing drawn, nothing rendered)."""
+    weight = config.train.mirror_weight
+    if weight <= 0 or mirrored is None:
+        return 0.0
+    origins, dirs, frame = virtual_rays(poses, torch.unique(frames), config.train.mirror_rays, generator)
+    seen = render_virtual(config, field, origins, dirs, frame, poses, generator)
+    mirror = render_virtual(config, field, *mirror_rays(origins, dirs, frame, poses), frame, mirrored, generator)
+    return weight * symmetry_error(seen.rgb, seen.mask, mirror.rgb, mirror.mask)
+
+
+def symmetry_error(rgb: torch.Tensor, mask: torch.Tensor, rgb_mirror: torch.Tensor, mask_mirror: torch.Tensor):
+    """sum_r w_r |C_r / M_r - C'_r / M'_r|^2 / (3 max(sum_r w_r, 1)), w_r = M_r M'_r [M_r > 0.5][M'_r > 0.5] (no
+    gradient): rgb (R, 3) and mask (R,) of the rays, the same of their mirror images; 0 where no pair is opaque, and
+    a step with under one pair's weight counts less."""
+    both = (mask * mask_mirror * ((mask > 0.5) & (mask_mirror > 0.5))).detach()
+    colour = rgb / mask.clamp_min(1e-4)[:, None]
+    colour_mirror = rgb_mirror / mask_mirror.clamp_min(1e-4)[:, None]
+    return (both * (colour - colour_mirror).pow(2).sum(-1)).sum() / (3 * both.sum().clamp_min(1.0))

@@ -137,6 +137,7 @@ def test_run_state_is_not_a_setting():
         ("train.checkpoint_minutes=-1", "config key 'train.checkpoint_minutes': must be >= 0 (0: after every step)"),
         ("train.lr_decay=1.5", "config key 'train.lr_decay': must be in (0, 1]"),
         ("train.colour_delta=-0.1", "config key 'train.colour_delta': must be >= 0 (0: the squared error)"),
+        ("train.mirror_weight=-1", "config key 'train.mirror_weight': must be >= 0 (0: off)"),
         ("train.body_fraction=0.9", "the shares of body and border rays exceed 1"),
         ("train.steps=2.5", "config key 'train.steps': expected an integer, got 2.5"),
     ],

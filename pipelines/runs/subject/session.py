@@ -34,6 +34,7 @@ from pipelines.body.locate import (
     find_recorded,
     recorded_body_file,
 )
+from pipelines.body.mirror import MirroredSource
 from pipelines.body.model import BodyModel, capture_poses, pose_batch
 from pipelines.body.shells import part_shells
 from pipelines.datasets.capture import ZjuCapture
@@ -208,6 +209,9 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         source = RefinedCapture(capture, kept)
         poses = training_poses(source, body_model, frames)
         training.poses = poses.to(device)
+    mirrored = None
+    if config.train.mirror_weight > 0:  # the bodies the fit trains on, in their mirror-image poses
+        mirrored = training_poses(MirroredSource(source), body_model, frames).to(device)
     _, bodies, shapes = poses_for_frames(source, body_model, box_frames(frames, config.data.box_frames), surface)
     boxes, shells = fit_boxes(body_model, bodies, shapes, config.model, surface)
     held_frame = frames[len(frames) // 2]
@@ -230,6 +234,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         held_back_views(capture, protocol, body_model, held_back, device, progress),
         None if gains is None else torch.as_tensor(gains[list(protocol.train_views)]),
         shells,
+        mirrored,
     )
 
 
