@@ -165,6 +165,15 @@ def _write(path: Path, figures: dict) -> None:
     atomic_write_text(path, json.dumps(figures, indent=1))
 
 
+def speed_overrides(name: str) -> list[str]:
+    """Stage 1's config overrides of a precision name such as ``bf16+compile+nondet``; ValueError if it is not fp32,
+    tf32 or bf16 with suffixes of SPEED_SUFFIXES."""
+    precision, *suffixes = name.split("+")
+    if precision not in ("fp32", "tf32", "bf16") or not set(suffixes) <= set(SPEED_SUFFIXES):
+        raise ValueError(f"--precisions: {name} is not fp32, tf32 or bf16 with +{' or +'.join(SPEED_SUFFIXES)}")
+    return [f"train.precision={precision}", *(SPEED_SUFFIXES[suffix] for suffix in suffixes)]
+
+
 def speed(subject: Path, work: Path, device, extra: list[str], args: argparse.Namespace, publish) -> dict:
     """Stage 1: each of ``args.precisions``' rays/s (median of the log's rows after the first) and peak memory,
     fitted alone for ``args.speed_seconds`` (and ``args.compile_seconds`` more where torch.compile runs first); those
@@ -179,10 +188,9 @@ def speed(subject: Path, work: Path, device, extra: list[str], args: argparse.Na
 
     rates, profiled = {}, set(args.profile.split(","))
     for name in filter(None, args.precisions.split(",")):
-        precision, *suffixes = name.split("+")
-        compiled = "compile" in suffixes
+        compiled = "compile" in name.split("+")
         overrides = [f"data.subject={subject}", "train.validate_every=0", "train.log_every=10", *extra]
-        overrides += [f"train.precision={precision}", *(SPEED_SUFFIXES[suffix] for suffix in suffixes)]
+        overrides += speed_overrides(name)
         config = load_config("paper", overrides)
         seconds = args.speed_seconds + (args.compile_seconds if compiled else 0.0)
         folder = work / f"speed_{name.replace('+', '_')}"
@@ -328,9 +336,7 @@ def _variants(args: argparse.Namespace) -> list[str]:
     if unknown:
         raise ValueError(f"--variants: unknown {', '.join(unknown)}; known: {', '.join(VARIANTS)}")
     for name in filter(None, args.precisions.split(",")):
-        precision, *suffixes = name.split("+")
-        if precision not in ("fp32", "tf32", "bf16") or not set(suffixes) <= set(SPEED_SUFFIXES):
-            raise ValueError(f"--precisions: {name} is not fp32, tf32 or bf16 with +{' or +'.join(SPEED_SUFFIXES)}")
+        speed_overrides(name)
     if variants and not args.steps and args.speed_seconds <= 0:
         raise ValueError("--fit-seconds sizes the pose correction's start from stage 1's rates: give --steps instead")
     return variants
