@@ -92,6 +92,7 @@ class BodyModel:
         self.faces = np.asarray(data["f"]).astype(np.int64)
         self.skinning_weights = self.smpl.lbs_weights
         self.parts_of_vertices = vertex_parts(self.skinning_weights)
+        self._posedirs: dict[int, torch.Tensor] = {}
 
     @property
     def n_vertices(self) -> int:
@@ -165,13 +166,22 @@ class BodyModel:
         if pose_blendshapes:
             eye = torch.eye(3, dtype=poses.dtype, device=poses.device)
             features = (rotations[:, 1:] - eye).reshape(batch, -1)
-            posedirs = m.posedirs.reshape(m.posedirs.shape[0], -1, 3)[:, ::every].reshape(m.posedirs.shape[0], -1)
-            v_shaped = v_shaped + (features @ posedirs).reshape(batch, -1, 3)
+            v_shaped = v_shaped + (features @ self._strided_posedirs(every)).reshape(batch, -1, 3)
         _, transforms = batch_rigid_transform(rotations, self.rest_joints(shapes), m.parents)
         skin = (weights @ transforms.reshape(batch, N_JOINTS, 16)).reshape(batch, -1, 4, 4)
         local = (skin[..., :3, :3] @ v_shaped[..., None])[..., 0] + skin[..., :3, 3]
         world_from_smpl = rigid_from_rotvec_translation(rh, th)
         return local @ world_from_smpl[:, :3, :3].transpose(1, 2) + th[:, None]
+
+    def _strided_posedirs(self, every: int) -> torch.Tensor:
+        """(207, 3 ceil(6890 / every)) the pose blend shapes of every ``every``-th vertex, copied once (a strided
+        view's reshape copied the 8 MB on each call)."""
+        if every not in self._posedirs:
+            posedirs = self.smpl.posedirs
+            self._posedirs[every] = posedirs.reshape(posedirs.shape[0], -1, 3)[:, ::every].reshape(
+                posedirs.shape[0], -1
+            )
+        return self._posedirs[every]
 
     @functools.cached_property
     def template_normals(self) -> torch.Tensor:

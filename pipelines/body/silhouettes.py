@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy.spatial import cKDTree
 
 
 @dataclass(frozen=True)
@@ -128,11 +129,12 @@ class SilhouetteTerm:
         image = torch.einsum("vij,fnj->fvni", self.P if P is None else P, homogeneous)
         return image[..., :2] / image[..., 2:].clamp(min=1e-3)
 
-    def __call__(self, vertices: torch.Tensor, P: torch.Tensor | None = None) -> torch.Tensor:
+    def __call__(self, vertices: torch.Tensor, P: torch.Tensor | None = None, strided: bool = False) -> torch.Tensor:
         """The term for (F, N, 3) posed vertices, seen by the cameras' projections ``P`` (V, 3, 4) (None: the ones
-        given at construction)."""
+        given at construction). ``strided``: ``vertices`` are already every ``vertex_stride``-th vertex of the body
+        (``BodyModel.vertices_zju(..., every=vertex_stride)``, which poses only those)."""
         t, s = self.targets, self.settings
-        pixels = self.project(vertices[:, :: s.vertex_stride], P)  # (F, V, N, 2)
+        pixels = self.project(vertices if strided else vertices[:, :: s.vertex_stride], P)  # (F, V, N, 2)
         n_frames, n_views = pixels.shape[:2]
         heights = t.sizes[:, 1]
         # full-size pixel x lies at (x + 0.5) r / R - 0.5 in a view reduced from R to r pixels; grid_sample
@@ -149,16 +151,26 @@ class SilhouetteTerm:
         weight = t.valid.float()
         outside = (weight[..., None] * robust(sampled / s.scale)).mean(-1).sum() / weight.sum().clamp(min=1)
         if self.nearest is None or self.calls % s.nearest_every == 0:
-            with torch.no_grad():
-                # a few views at a time: the distance matrices of all views at once would take GBs
-                pairs = zip(t.outline.flatten(0, 1).split(64), pixels.detach().flatten(0, 1).split(64))
-                self.nearest = torch.cat([torch.cdist(o, p).argmin(-1) for o, p in pairs])
+            self.nearest = nearest_points(t.outline.flatten(0, 1), pixels.detach().flatten(0, 1))
         self.calls += 1
         index = self.nearest.reshape(n_frames, n_views, -1, 1).expand(-1, -1, -1, 2)
         gap = (pixels.gather(2, index) - t.outline).norm(dim=-1) / heights[None, :, None]
         valid = t.outline_valid.float()
         inside = (valid * robust(gap / s.scale)).sum() / valid.sum().clamp(min=1)
         return outside + inside
+
+
+def nearest_points(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """(B, M) long: for each of the (B, M, 2) ``queries``, the index of the nearest of the (B, N, 2) ``points`` of
+    the same batch entry (Euclidean; a k-d tree per entry, in float64). :func:`nearest_points_reference` is the
+    brute-force oracle; it held every view's distance matrix, 0.27 s a search for 40 views of 3,445 vertices."""
+    found = [cKDTree(p).query(q)[1] for q, p in zip(queries.double().numpy(), points.double().numpy())]
+    return torch.as_tensor(np.stack(found), dtype=torch.long).reshape(queries.shape[:2])
+
+
+def nearest_points_reference(queries: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """:func:`nearest_points` by the full (B, M, N) float64 distance matrix."""
+    return torch.cdist(queries.double(), points.double()).argmin(-1)
 
 
 def adam_stage(energy, variables: list[torch.Tensor], iterations: int, lr: float, tick=None) -> None:

@@ -324,13 +324,14 @@ def _silhouette_pass(problem, body, silhouettes, frames, every, mask, shared, se
     index = torch.as_tensor(frames)
     own = [x[index].detach().clone().requires_grad_() for x in (poses, rh, th)]
 
-    def posed():
+    def posed(vertex_step: int = 1):
         args = (own[0] * mask, own[1], own[2], shapes.expand(len(frames), -1))
         offsets = None if units is None else body.surface_offsets(units * settings.surface_scale)
-        return body.vertices_zju(*args, template_offsets=offsets)
+        return body.vertices_zju(*args, vertex_step, template_offsets=offsets)
 
     with torch.no_grad():
         term = silhouettes(posed().numpy(), frames)
+    stride = term.settings.vertex_stride  # the term sees every stride-th vertex: only those are posed
     correction, variables, prior = None, own, None
     if shared is not None:
         variables = [*own, shapes, offsets]
@@ -343,7 +344,7 @@ def _silhouette_pass(problem, body, silhouettes, frames, every, mask, shared, se
     def energy():
         P = problem.P if correction is None else correction.projections()
         total = problem.energy(own[0] * mask, own[1], own[2], shapes, offsets, P, before)
-        total = total + settings.silhouette_weight * term(posed(), P)
+        total = total + settings.silhouette_weight * term(posed(stride), P, strided=True)
         total = total if prior is None else total + prior(units)
         return total if correction is None else total + correction.penalty()
 
