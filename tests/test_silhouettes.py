@@ -34,8 +34,8 @@ def _world(camera, pixels, depth=2.0):
 
 def test_the_nearest_vertex_search_matches_the_brute_force_one():
     """The k-d tree's nearest points equal the full distance matrix's argmin, index for index, on 12 views of 3,445
-    projected vertices clustered in a few pixels (distances tie only with probability 0 in float64) and 200 outline
-    points each, some of them duplicated vertices."""
+    projected vertices clustered in a few pixels and 200 outline points each, some of them on vertices. The
+    coordinates are float32, as the term's; both searches compare distances in float64, where none of these ties."""
     rng = np.random.default_rng(4)
     points = torch.as_tensor(rng.normal(128, 3, (12, 3445, 2)) + rng.normal(0, 40, (12, 1, 2)))
     queries = torch.as_tensor(rng.uniform(0, 256, (12, 200, 2)))
@@ -49,7 +49,8 @@ def test_the_nearest_vertex_search_matches_the_brute_force_one():
 def test_a_body_posed_at_every_strided_vertex_gives_the_terms_value():
     """The body fit poses only the vertices the term reads (``vertices_zju(..., every=stride)``, ``strided=True``):
     the same value as the whole posed body strided by the term, and the same gradient in the pose (float32 LBS of the
-    same vertices by the same operations: rounding only, 1e-5 relative)."""
+    same vertices by the same operations: the value to rounding, 1e-5 relative; the gradient, float32 sums over
+    3,445 vertices in another order, 1e-4)."""
     from pipelines.body.model import BodyModel
 
     body, camera = BodyModel(), _camera(128, 128, 90.0)
