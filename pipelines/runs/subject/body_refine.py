@@ -13,7 +13,7 @@ pose correction that follows (``fitting.corrections.PoseCorrection``)."""
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from types import SimpleNamespace
 
 import cv2
@@ -104,9 +104,10 @@ def refine_to_masks(
         for k in ("poses", "rh", "th", "shapes")
     )
     masks, unknown, sizes, P = _view_masks(training, len(frames), settings.silhouette.height)
-    stride = settings.silhouette.vertex_stride  # the vertices are posed strided, so the term takes them all
-    seen = replace(settings.silhouette, vertex_stride=1)
-    term = SilhouetteTerm(silhouette_targets(sizes, masks, seen, unknown), P.numpy(), seen)
+    stride = settings.silhouette.vertex_stride  # only the vertices the term reads are posed
+    term = SilhouetteTerm(
+        silhouette_targets(sizes, masks, settings.silhouette, unknown), P.numpy(), settings.silhouette
+    )
     d_poses = torch.zeros(len(frames), 23, 3, requires_grad=True)
     d_rh = torch.zeros(len(frames), 3, requires_grad=True)
     d_th = torch.zeros(len(frames), 3, requires_grad=True)
@@ -122,7 +123,7 @@ def refine_to_masks(
     def energy() -> torch.Tensor:
         turns = torch.cat([d_poses, d_rh[:, None]], dim=1).pow(2).sum(-1) / scale2
         prior = robust(turns).sum(-1).mean()
-        return settings.silhouette_weight * term(posed(stride)) + settings.prior_weight * prior
+        return settings.silhouette_weight * term(posed(stride), strided=True) + settings.prior_weight * prior
 
     bar = tqdm(total=settings.iterations, desc="refining bodies to masks", unit="it", disable=not progress)
     with bar:
