@@ -31,7 +31,8 @@ import numpy as np
 from tqdm import tqdm
 
 #: The fits of stage 2: name -> (preset, config overrides); ``cpu_levers_tf32`` is ``paper_sparse``, the paper
-#: preset with the CPU preset's colour, shells and anneal.
+#: preset with the CPU preset's colour, shells and anneal; ``mirror_bf16_nondet`` adds the CPU preset's left-right
+#: symmetry of the colour (docs/model.md §6).
 VARIANTS = {
     "paper_fp32": ("paper", ["train.precision=fp32"]),
     "paper_tf32": ("paper", ["train.precision=tf32"]),
@@ -39,6 +40,10 @@ VARIANTS = {
     "cpu_levers_tf32": ("paper_sparse", ["train.precision=tf32"]),
     "cpu_levers_fp32": ("paper_sparse", ["train.precision=fp32"]),
     "cpu_levers_bf16_nondet": ("paper_sparse", ["train.precision=bf16", "train.deterministic=false"]),
+    "mirror_bf16_nondet": (
+        "paper_sparse",
+        ["train.precision=bf16", "train.deterministic=false", "train.mirror_weight=0.1"],
+    ),
 }
 #: Stage 1's suffixes: ``bf16+compile+nondet`` is bf16 with these overrides.
 SPEED_SUFFIXES = {"compile": "train.compile=true", "nondet": "train.deterministic=false"}

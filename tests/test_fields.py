@@ -446,6 +446,43 @@ def test_fast_paths_run_under_bf16_autocast(name):
     assert ((out.rgb >= 0) & (out.rgb <= 1)).all()
 
 
+@pytest.mark.parametrize("name", ["narf_d", "narf_h"])
+def test_the_per_part_loops_cast_once_under_autocast(name, monkeypatch):
+    """Under bf16 autocast the per-part loops cast each operand once for every part (sparse_parts.matmul_dtype)
+    instead of letting autocast cast each part's slice: the same roundings of the same values, so sigma, rgb and
+    every parameter's gradient equal autocast's own per-part casts to the bit, in fewer cast kernels (docs/results/
+    benchmark.md, *A GPU step*)."""
+    from narf.fields import sparse_parts
+
+    field = _field(name, width=16)
+    points, dirs = _points(8, 12, seed=3)
+    refined = _random_pose(n_frames=2).world_from_part.requires_grad_(True)  # the poses refined: u has a gradient
+
+    def run():
+        field.zero_grad()
+        refined.grad = None
+        pose = dataclasses.replace(_random_pose(n_frames=2), world_from_part=refined).select(torch.tensor([0, 1] * 4))
+        with torch.autocast("cpu", dtype=torch.bfloat16):
+            out = field(points, dirs, pose)
+        (out.sigma.float().square().sum() + out.rgb.float().sum()).backward()
+        grads = [p.grad.clone() for p in [refined, *field.parameters()] if p.grad is not None]
+        with torch.autograd.profiler.profile() as prof, torch.autocast("cpu", dtype=torch.bfloat16):
+            field(points, dirs, pose)
+        casts = sum(e.count for e in prof.key_averages() if e.key == "aten::_to_copy")
+        return out, grads, casts
+
+    once, once_grads, once_casts = run()
+    monkeypatch.setattr(sparse_parts, "matmul_dtype", lambda reference: reference.dtype)  # autocast casts per part
+    per_part, per_part_grads, per_part_casts = run()
+    assert torch.equal(once.sigma, per_part.sigma) and torch.equal(once.rgb, per_part.rgb)
+    assert len(once_grads) == len(per_part_grads) > 0
+    assert all(torch.equal(a, b) for a, b in zip(once_grads, per_part_grads))
+    # each operand cast once instead of once per part: 18 casts fewer per operand, of the density blocks' 2 (inputs,
+    # weights) and the selector's 4 more (weights, biases, output weights, its own inputs); NARF_H has no selector
+    operands = 2 + (4 if name == "narf_d" else 0)
+    assert per_part_casts - once_casts == (19 - 1) * operands
+
+
 def test_frequency_window_hand_values():
     """BARF's w_k = (1 - cos(pi clamp(alpha - k, 0, 1))) / 2 at alpha = 2.5, L = 4: 1, 1, 1/2, 0 (sin and cos alike)."""
     expected = torch.tensor([1.0, 1.0, 0.5, 0.0] * 2)

@@ -27,6 +27,18 @@ def segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: in
     return exp / total.index_select(0, segments)
 
 
+def matmul_dtype(reference: torch.Tensor) -> torch.dtype:
+    """The dtype in which autocast runs matmuls on ``reference``'s device (bf16 under ``train.precision=bf16``), or
+    ``reference``'s own dtype outside autocast.
+
+    The per-part loops below cast each operand once for all parts with it: under autocast each per-part matmul would
+    otherwise cast its slice of the weights, its block of inputs and its bias again (19 copies of each, and as many
+    in the backward pass), the same values in many more kernels (docs/results/benchmark.md, *A GPU step*).
+    """
+    device = reference.device.type
+    return torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else reference.dtype
+
+
 def in_box_pairs(in_box: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """The (ray, sample, part) index triples of in-box pairs, sorted by part (stably), so that each part's pairs are
     one contiguous block: in_box (R, S, P) bool -> ray, sample, part, each (M,) long."""
@@ -51,8 +63,11 @@ def selector_logits(selector, chunks: tuple[torch.Tensor, ...], ray: torch.Tenso
     r_count, p_count = encoded_zeta.shape[0], len(chunks)
     bones = selector.bones(encoded_zeta.reshape(1, r_count, -1)).reshape(r_count * p_count, selector.hidden)
     per_pair = bones.index_select(0, ray * p_count + part).split([len(chunk) for chunk in chunks])
-    weights, biases = selector.local.effective_weight().unbind(0), selector.local.bias.unbind(0)
-    out_weights, out_biases = selector.out.effective_weight()[:, 0, :].unbind(0), selector.out.bias[:, 0].unbind(0)
+    compute = matmul_dtype(encoded_zeta)  # each operand cast once for every part (see matmul_dtype)
+    weights = selector.local.effective_weight().to(compute).unbind(0)
+    biases = selector.local.bias.to(compute).unbind(0)
+    out_weights = selector.out.effective_weight()[:, 0, :].to(compute).unbind(0)
+    out_biases = selector.out.bias[:, 0].unbind(0)  # added in its own dtype, as autocast leaves an addition
     logits = [
         torch.relu(torch.addmm(bias, chunk, weight.T) + bone) @ out_weight + out_bias  # (M_k,), also for M_k = 0
         for chunk, bone, weight, bias, out_weight, out_bias in zip(
@@ -116,15 +131,16 @@ def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: 
     # u needs a gradient when the poses are refined (docs/model.md §6): gathered with index_select, as below
     encoded = model.encode_points(u.reshape(-1, 3).index_select(0, sample * p_count + part))  # (M, 60)
     counts = torch.bincount(part, minlength=p_count).tolist()
-    chunks = torch.split(encoded, counts)
+    compute = matmul_dtype(encoded)  # each operand cast once for every part (see matmul_dtype)
     w_density = head.density_embed["parts"].effective_weight()
     selector = getattr(model, "selector", None)
     # an empty chunk gives an empty block (every sample may miss every box)
     # one split (one backward node) rather than a slice per part, whose backwards each fill a full-size gradient
-    blocks = w_density[0].split(POINT_WIDTH, dim=-1)  # P x (H, 60): the column block of each part
-    features = torch.cat([chunk @ block.T for chunk, block in zip(chunks, blocks)])
+    blocks = w_density[0].to(compute).split(POINT_WIDTH, dim=-1)  # P x (H, 60): the column block of each part
+    features = torch.cat([chunk @ block.T for chunk, block in zip(torch.split(encoded.to(compute), counts), blocks)])
     if selector is not None:
-        logit = selector_logits(selector, chunks, ray, part, encoded_zeta)
+        # a cast of its own: the two uses' gradients are summed in encoded's dtype, as under autocast's own casts
+        logit = selector_logits(selector, torch.split(encoded.to(compute), counts), ray, part, encoded_zeta)
         if model.selector_kind == "softmax":
             probs = segment_softmax(logit, sample, n_samples)
         else:
