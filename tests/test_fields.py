@@ -449,9 +449,9 @@ def test_fast_paths_run_under_bf16_autocast(name):
 @pytest.mark.parametrize("name", ["narf_d", "narf_h"])
 def test_the_per_part_loops_cast_once_under_autocast(name, monkeypatch):
     """Under bf16 autocast the per-part loops cast each operand once for every part (sparse_parts.matmul_dtype)
-    instead of letting autocast cast each part's slice: the same roundings of the same values, so sigma, rgb and
-    every parameter's gradient equal autocast's own per-part casts to the bit, in fewer cast kernels (docs/results/
-    benchmark.md, *A GPU step*)."""
+    instead of letting autocast cast each part's slice: the same roundings of the same values in the same layout,
+    so sigma, rgb and every gradient (the parameters' and the refined poses') equal autocast's own per-part casts
+    to the bit, in fewer cast kernels (docs/results/benchmark.md, *autocast's casts in the per-part loops*)."""
     from narf.fields import sparse_parts
 
     field = _field(name, width=16)

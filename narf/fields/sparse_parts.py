@@ -136,7 +136,9 @@ def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: 
     selector = getattr(model, "selector", None)
     # an empty chunk gives an empty block (every sample may miss every box)
     # one split (one backward node) rather than a slice per part, whose backwards each fill a full-size gradient
-    blocks = w_density[0].to(compute).split(POINT_WIDTH, dim=-1)  # P x (H, 60): the column block of each part
+    blocks = w_density[0].split(POINT_WIDTH, dim=-1)  # P x (H, 60): the column block of each part
+    if compute != w_density.dtype:  # one cast, to the contiguous blocks that autocast's per-part casts would give
+        blocks = w_density[0].to(compute).unflatten(-1, (-1, POINT_WIDTH)).transpose(0, 1).contiguous().unbind(0)
     features = torch.cat([chunk @ block.T for chunk, block in zip(torch.split(encoded.to(compute), counts), blocks)])
     if selector is not None:
         # a cast of its own: the two uses' gradients are summed in encoded's dtype, as under autocast's own casts
