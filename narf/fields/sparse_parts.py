@@ -33,7 +33,8 @@ def matmul_dtype(reference: torch.Tensor) -> torch.dtype:
 
     The per-part loops below cast each operand once for all parts with it: under autocast each per-part matmul would
     otherwise cast its slice of the weights, its block of inputs and its bias again (19 copies of each, and as many
-    in the backward pass), the same values in many more kernels (docs/results/benchmark.md, *A GPU step*).
+    in the backward pass), the same values in many more kernels (docs/results/benchmark.md, *autocast's casts in
+    the per-part loops*).
     """
     device = reference.device.type
     return torch.get_autocast_dtype(device) if torch.is_autocast_enabled(device) else reference.dtype
@@ -136,8 +137,9 @@ def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: 
     selector = getattr(model, "selector", None)
     # an empty chunk gives an empty block (every sample may miss every box)
     # one split (one backward node) rather than a slice per part, whose backwards each fill a full-size gradient
-    blocks = w_density[0].split(POINT_WIDTH, dim=-1)  # P x (H, 60): the column block of each part
-    if compute != w_density.dtype:  # one cast, to the contiguous blocks that autocast's per-part casts would give
+    if compute == w_density.dtype:
+        blocks = w_density[0].split(POINT_WIDTH, dim=-1)  # P x (H, 60): the column block of each part
+    else:  # one cast, to the contiguous blocks that autocast's per-part casts would give
         blocks = w_density[0].to(compute).unflatten(-1, (-1, POINT_WIDTH)).transpose(0, 1).contiguous().unbind(0)
     features = torch.cat([chunk @ block.T for chunk, block in zip(torch.split(encoded.to(compute), counts), blocks)])
     if selector is not None:
