@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
 from functools import partial
 
 import torch
@@ -10,6 +11,7 @@ from kornia.losses import charbonnier_loss
 from fitting.config import FitConfig
 from fitting.corrections import corrected_colour_error
 from fitting.training_rays import render_training_rays
+from narf.renderer import RenderOutput
 
 
 def pseudo_huber(residual: torch.Tensor, delta: float) -> torch.Tensor:
@@ -51,8 +53,6 @@ def ray_loss(
     ``backgrounds``: (R, 3) a background colour per ray, which also replaces the target outside the mask; the
     boundary band, whose target keeps the recording's own background, then leaves the colour loss as well
     (docs/model.md §6). Ray bounds and the grid proposal take the poses without gradient."""
-    background = 1.0 if config.data.white_background else 0.0
-    plain = camera_colour is None and backgrounds is None
     out = render_training_rays(
         config,
         field,
@@ -63,11 +63,28 @@ def ray_loss(
         n_coarse,
         n_fine,
         latent=latent,
-        background=background if plain else 0.0,
         randomized=randomized,
         generator=generator,
         uniforms=uniforms,
     )
+    return batch_loss(config, out, batch, normalisers, camera_colour, backgrounds)
+
+
+def batch_loss(
+    config: FitConfig,
+    out: RenderOutput,
+    batch,
+    normalisers: tuple[float, torch.Tensor] | None = None,
+    camera_colour=None,
+    backgrounds: torch.Tensor | None = None,
+):
+    """:func:`ray_loss`'s loss and colour MSE from the rays' render ``out`` over a black background (what
+    ``fitting.training_rays`` renders): the data's background is composited here, C + (1 - M) bg, where
+    ``camera_colour`` and ``backgrounds`` are None, and by ``corrected_colour_error`` otherwise."""
+    background = 1.0 if config.data.white_background else 0.0
+    plain = camera_colour is None and backgrounds is None
+    if plain and background:
+        out = replace(out, rgb=out.rgb + (1 - out.mask)[:, None] * background)
     colour_count, mask_count = normalisers or (out.rgb.numel(), batch.mask_weight.sum().clamp_min(1))
 
     def colour_error(penalty) -> torch.Tensor:

@@ -20,13 +20,14 @@ from fitting.corrections import CameraColour, FrameAppearance, MeasuredColour, P
 from fitting.data import FitData
 from fitting.distributed import SINGLE, Processes, agreed_max, any_process, sum_gradients
 from fitting.files import named_errors
-from fitting.losses import ray_loss
+from fitting.losses import batch_loss, ray_loss
 from fitting.model_setup import encoding_window, make_field
 from fitting.plots import write_curve, write_validation
 from fitting.run_folder import trim_log, write_config
 from fitting.schedule import Budget, lr_factor
 from fitting.selection import selection_set
-from fitting.unseen import mirror_colour_loss, unseen_views_loss
+from fitting.training_rays import RaySet, render_ray_sets
+from fitting.unseen import VirtualTerm, mirror_terms, terms_value, unseen_terms
 from narf.fields.common import PoseBatch
 from narf.metrics import psnr
 from narf.occupancy import refresh_cells
@@ -295,31 +296,34 @@ class Trainer:
             poses = self.frame_appearance.attach(poses, index)
         share = self.processes.share(n)
         with self.autocast(), torch.profiler.record_function("narf.forward"):
-            loss, colour = ray_loss(
+            mine = batch.take(share)
+            training = RaySet(mine.origins, mine.dirs, mine.frames, poses, [u[share] for u in uniforms])
+            terms = self.virtual_terms(poses, batch.frames, index)  # every process draws and renders the same
+            # one render of the training rays and every term's virtual rays (docs/results/benchmark.md)
+            out = render_ray_sets(
+                self.config, self.field, [training, *(s for t in terms for s in t.sets)], r.train_coarse, r.train_fine
+            )
+            loss, colour = batch_loss(
                 self.config,
-                self.field,
-                batch.take(share),
-                poses,
-                self.generator,
-                r.train_coarse,
-                r.train_fine,
-                uniforms=[u[share] for u in uniforms],
+                out[0],
+                mine,
                 normalisers=(3 * n, batch.mask_weight.sum().clamp_min(1)),
                 camera_colour=self.colour_response,
                 backgrounds=None if backgrounds is None else backgrounds[share],
             )
-            # every process renders the same virtual rays (the same generator)
-            unseen = unseen_views_loss(self.config, self.field, poses, batch.frames, self.generator)
-            # the capture's poses and their mirror images, indexed by training frame (docs/model.md §6)
-            drawn = batch.frames if index is None else index[batch.frames]
-            mirrored = getattr(self.fit_data, "mirrored_poses", None)  # subject fits only
-            unseen = unseen + mirror_colour_loss(
-                self.config, self.field, self.views.poses, mirrored, drawn, self.generator
-            )
-            loss = loss + unseen / self.processes.world_size
+            loss = loss + terms_value(terms, out[1:]) / self.processes.world_size
         # every process adds the penalty; the summed gradients then hold it once
         loss = loss + self.correction_penalty(index) / self.processes.world_size
         return self.optimise(loss, colour)
+
+    def virtual_terms(self, poses: PoseBatch, frames: torch.Tensor, index: torch.Tensor | None) -> list[VirtualTerm]:
+        """The step's terms on virtual rays (``fitting.unseen``), drawn after the training rays': the unseen views'
+        around the frames ``frames`` of ``poses``, and the colour's symmetry around the capture's poses and their
+        mirror images (docs/model.md §6), by training frame (``index`` maps a corrected batch's frames to them)."""
+        drawn = frames if index is None else index[frames]
+        mirrored = getattr(self.fit_data, "mirrored_poses", None)  # subject fits only
+        unseen = unseen_terms(self.config, poses, frames, self.generator)
+        return unseen + mirror_terms(self.config, self.views.poses, mirrored, drawn, self.generator)
 
     def autocast(self):
         """bf16 autocast of a training forward pass when ``train.precision`` is bf16 (a no-op for fp32)."""

@@ -11,12 +11,16 @@ surface at nearly the same depth: floaters and ridges that no training camera sa
 
 from __future__ import annotations
 
+from collections.abc import Callable
+from dataclasses import dataclass
+
 import torch
 from torch import nn
 
 from fitting.config import FitConfig
-from fitting.training_rays import render_training_rays
+from fitting.training_rays import RaySet, render_ray_sets
 from narf.fields.common import PoseBatch
+from narf.renderer import RenderOutput
 
 #: virtual cameras stand this many reaches s from the pelvis (about 2.2 m for an adult's 1.1 m), and aim at points
 #: within this many reaches of it along each axis
@@ -136,35 +140,64 @@ def ray_entropy(sample_weights: torch.Tensor | None, min_opacity: float = ENTROP
     return -(p * torch.log(p.clamp_min(1e-10))).sum(dim=-1).mean()
 
 
-def unseen_views_loss(config: FitConfig, field, poses: PoseBatch, frames: torch.Tensor, generator: torch.Generator):
-    """The fit's terms on views nobody trained on: ``train.entropy_weight`` times the ray entropy over
-    ``train.virtual_rays`` virtual rays, plus ``train.smoothness_weight`` times the depth smoothness over
-    ``train.virtual_patches`` virtual patches, around the bodies of ``frames`` (a step's frame indices into
-    ``poses``), rendered as the training rays are. 0 when both weights are 0 (nothing drawn, nothing rendered)."""
-    t, total = config.train, 0.0
+@dataclass
+class VirtualTerm:
+    """A loss term on virtual rays: the ray sets it renders and its weighted value from their outputs (in order)."""
+
+    sets: list[RaySet]
+    value: Callable[[list[RenderOutput]], torch.Tensor]
+
+
+def unseen_terms(config: FitConfig, poses: PoseBatch, frames: torch.Tensor, generator: torch.Generator):
+    """The fit's terms on views nobody trained on, drawn from ``generator`` in this order: ``train.entropy_weight``
+    times the ray entropy over ``train.virtual_rays`` virtual rays, then ``train.smoothness_weight`` times the depth
+    smoothness over ``train.virtual_patches`` virtual patches, around the bodies of ``frames`` (a step's frame
+    indices into ``poses``). Only the terms of weight > 0 (none: nothing drawn). Returns a list of VirtualTerm."""
+    t, terms = config.train, []
     drawn = torch.unique(frames)
     if t.entropy_weight > 0:
         origins, dirs, frame = virtual_rays(poses, drawn, t.virtual_rays, generator)
-        total = total + t.entropy_weight * ray_entropy(
-            render_virtual(config, field, origins, dirs, frame, poses, generator).sample_weights
-        )
+        ray_set = virtual_set(config, origins, dirs, frame, poses, generator)
+        terms.append(VirtualTerm([ray_set], lambda out: t.entropy_weight * ray_entropy(out[0].sample_weights)))
     if t.smoothness_weight > 0:
         origins, dirs, frame = virtual_patches(poses, drawn, t.virtual_patches, generator)
-        out = render_virtual(config, field, origins, dirs, frame, poses, generator)
-        shape = (-1, PATCH_SIDE, PATCH_SIDE)
-        reach = poses.reach[frame[:: PATCH_SIDE * PATCH_SIDE]]
-        total = total + t.smoothness_weight * depth_smoothness(out.depth.reshape(shape), out.mask.reshape(shape), reach)
+        shape, reach = (-1, PATCH_SIDE, PATCH_SIDE), poses.reach[frame[:: PATCH_SIDE * PATCH_SIDE]]
+
+        def smoothness(out: list[RenderOutput]) -> torch.Tensor:
+            depth, opacity = out[0].depth.reshape(shape), out[0].mask.reshape(shape)
+            return t.smoothness_weight * depth_smoothness(depth, opacity, reach)
+
+        terms.append(VirtualTerm([virtual_set(config, origins, dirs, frame, poses, generator)], smoothness))
+    return terms
+
+
+def unseen_views_loss(config: FitConfig, field, poses: PoseBatch, frames: torch.Tensor, generator: torch.Generator):
+    """The :func:`unseen_terms`' sum, each set rendered alone (the reference the trainer's one render of every set
+    is tested against). 0 when both weights are 0 (nothing drawn, nothing rendered)."""
+    return terms_rendered_alone(config, field, unseen_terms(config, poses, frames, generator))
+
+
+def terms_rendered_alone(config: FitConfig, field, terms: list[VirtualTerm]) -> torch.Tensor | float:
+    """The sum of the terms' values, each of their ray sets rendered by a call of its own (0.0 for no terms)."""
+    r = config.render
+    sets = [s for term in terms for s in term.sets]
+    return terms_value(terms, [render_ray_sets(config, field, [s], r.train_coarse, r.train_fine)[0] for s in sets])
+
+
+def terms_value(terms: list[VirtualTerm], outputs: list[RenderOutput]) -> torch.Tensor | float:
+    """The sum of the terms' values from the outputs of their sets, in order (0.0 for no terms)."""
+    total, first = 0.0, 0
+    for term in terms:
+        total, first = total + term.value(outputs[first : first + len(term.sets)]), first + len(term.sets)
     return total
 
 
-def render_virtual(config: FitConfig, field, origins, dirs, frame, poses: PoseBatch, generator: torch.Generator):
-    """Virtual rays rendered as the training rays, their stratified draws from the fit's CPU generator (moved: a CPU
-    generator cannot draw on a GPU)."""
+def virtual_set(config: FitConfig, origins, dirs, frame, poses: PoseBatch, generator: torch.Generator) -> RaySet:
+    """Virtual rays as a RaySet, their stratified draws from the fit's CPU generator (moved: a CPU generator cannot
+    draw on a GPU), rendered as the training rays are."""
     r, device = config.render, origins.device
     uniforms = [torch.rand(len(frame), k, generator=generator).to(device) for k in (r.train_coarse, r.train_fine)]
-    return render_training_rays(
-        config, field, origins, dirs, frame, poses, r.train_coarse, r.train_fine, uniforms=uniforms
-    )
+    return RaySet(origins, dirs, frame, poses, uniforms)
 
 
 def mirror_rays(
@@ -188,22 +221,40 @@ def mirror_rays(
     return centre + reflect(origins - centre), reflect(dirs)
 
 
-def mirror_colour_loss(
-    config: FitConfig, field, poses: PoseBatch, mirrored: PoseBatch, frames: torch.Tensor, generator: torch.Generator
-) -> torch.Tensor | float:
+def mirror_terms(
+    config: FitConfig, poses: PoseBatch, mirrored: PoseBatch | None, frames: torch.Tensor, generator: torch.Generator
+) -> list[VirtualTerm]:
     """``train.mirror_weight`` times the colour's left-right asymmetry (docs/model.md §6, *Left-right symmetry*):
     over ``train.mirror_rays`` virtual rays around the bodies of ``frames`` (as :func:`virtual_rays`), each rendered
     in its frame's pose and, reflected (:func:`mirror_rays`), in the mirror-image pose ``mirrored``, the mean of
     |c - c'|^2 / 3 over the colours c = C / M of the pairs (:func:`symmetry_error`), weighed by M M' where both
     opacities exceed 0.5 (rays beside the body, or through an outline the mirror does not repeat, weigh nothing; the
-    weights carry no gradient). 0 when the weight is 0 (nothing drawn, nothing rendered)."""
+    weights carry no gradient). No term when the weight is 0 or there are no mirror-image poses (nothing drawn).
+    Returns a list of at most one VirtualTerm, whose two sets are the rays and their mirror images."""
     weight = config.train.mirror_weight
     if weight <= 0 or mirrored is None:
-        return 0.0
+        return []
     origins, dirs, frame = virtual_rays(poses, torch.unique(frames), config.train.mirror_rays, generator)
-    seen = render_virtual(config, field, origins, dirs, frame, poses, generator)
-    mirror = render_virtual(config, field, *mirror_rays(origins, dirs, frame, poses), frame, mirrored, generator)
-    return weight * symmetry_error(seen.rgb, seen.mask, mirror.rgb, mirror.mask)
+    seen = virtual_set(config, origins, dirs, frame, poses, generator)
+    mirror = virtual_set(config, *mirror_rays(origins, dirs, frame, poses), frame, mirrored, generator)
+
+    def asymmetry(out: list[RenderOutput]) -> torch.Tensor:
+        return weight * symmetry_error(out[0].rgb, out[0].mask, out[1].rgb, out[1].mask)
+
+    return [VirtualTerm([seen, mirror], asymmetry)]
+
+
+def mirror_colour_loss(
+    config: FitConfig,
+    field,
+    poses: PoseBatch,
+    mirrored: PoseBatch | None,
+    frames: torch.Tensor,
+    generator: torch.Generator,
+) -> torch.Tensor | float:
+    """The :func:`mirror_terms`' value, each set rendered alone (the reference the trainer's one render of every set
+    is tested against); 0 when the weight is 0."""
+    return terms_rendered_alone(config, field, mirror_terms(config, poses, mirrored, frames, generator))
 
 
 def symmetry_error(rgb: torch.Tensor, mask: torch.Tensor, rgb_mirror: torch.Tensor, mask_mirror: torch.Tensor):

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from fitting.corrections import CameraColour, MeasuredColour, camera_response
-from fitting.losses import ray_loss
+from fitting.losses import batch_loss
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.camera_colour import read_camera_colour, write_camera_colour
 from pipelines.datasets.errors import CaptureError
@@ -194,7 +194,7 @@ def test_fit_and_evaluation_use_each_cameras_gain(capture):
     train_views = list(ZjuCapture(subject).protocol("narf").train_views)
     torch.testing.assert_close(trainer.colour_response.gains, torch.ones(len(train_views), 3))
     seen = []
-    with mock.patch("fitting.trainer.ray_loss", side_effect=lambda *a, **k: seen.append(k) or ray_loss(*a, **k)):
+    with mock.patch("fitting.trainer.batch_loss", side_effect=lambda *a, **k: seen.append(k) or batch_loss(*a, **k)):
         trainer.fit()
     assert seen and all(k["camera_colour"] is trainer.colour_response for k in seen)  # every training step
     request = EvalRequest(splits=("novel_pose",), progress=False, grids=0)

@@ -63,6 +63,31 @@ class PoseBatch:
         return self._map(torch.Tensor.detach)
 
 
+def cat_poses(batches: list[PoseBatch]) -> PoseBatch:
+    """The frames of several PoseBatches, one after another: batch k's frame f becomes frame f + (frames of the
+    batches before k). Per-frame appearance codes missing from some batches are zeros there (None is the zero code);
+    ``world_from_joint`` is kept only when every batch has it (the NARF fields do not read it).
+
+    Args:
+        batches: PoseBatches of B_k frames each, with the same parts and appearance size.
+
+    Returns:
+        a PoseBatch of sum_k B_k frames.
+    """
+    first = batches[0]
+    codes = [b.appearance for b in batches if b.appearance is not None]
+    fields = {}
+    for key in first.__dataclass_fields__:
+        values = [getattr(b, key) for b in batches]
+        if key == "appearance" and codes:
+            values = [
+                v if v is not None else codes[0].new_zeros(len(b.reach), codes[0].shape[1])
+                for v, b in zip(values, batches)
+            ]
+        fields[key] = None if any(v is None for v in values) else torch.cat(values)
+    return PoseBatch(**fields)
+
+
 def part_local(points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch) -> tuple[torch.Tensor, torch.Tensor]:
     """Points and directions in every part frame: x_i = R_i^T (x - t_i) / s, d_i = R_i^T d.
 

@@ -1,0 +1,124 @@
+"""A training step's ray sets in one render (fitting.training_rays.render_ray_sets): the step's loss and every
+gradient against each set rendered by a call of its own, the outputs split back per set, and the poses of several
+batches concatenated."""
+
+from dataclasses import replace
+from unittest import mock
+
+import torch
+
+from fitting.config import load_config
+from fitting.run_folder import prepare_run_dir
+from fitting.training_rays import RaySet, render_ray_sets, render_training_rays
+from narf.fields import PoseBatch
+from narf.fields.common import cat_poses
+from pipelines.runs.fit import start_run
+
+#: the unseen views' terms and the symmetry on, few virtual rays: every kind of set a step renders
+TERMS = ["train.mirror_weight=1.0", "train.mirror_rays=48", "train.entropy_weight=0.05", "train.virtual_rays=40"]
+TERMS += ["train.smoothness_weight=0.5", "train.virtual_patches=1"]
+
+
+def _trainer(data_root, folder, extra=()):
+    sets = [f"data.data_root={data_root}", "data.ratio=1.0", "train.steps=2", *TERMS, *extra]
+    trainer = start_run(prepare_run_dir(folder, False), torch.device("cpu"), load_config("tiny", sets), progress=False)
+    trainer.fit()  # a trained field and a refreshed occupancy grid
+    return trainer
+
+
+def _step(trainer, alone: bool):
+    """One training step's loss and the field's gradients, the optimiser not stepped; ``alone``: every set rendered by
+    a call of its own (the reference), counting the renders."""
+    calls = []
+
+    def count(*args, **kwargs):
+        calls.append(len(args[2]))
+        return render_training_rays(*args, **kwargs)
+
+    def separately(config, field, sets, n_coarse, n_fine):
+        return [render_ray_sets(config, field, [s], n_coarse, n_fine)[0] for s in sets]
+
+    state, seen = trainer.generator.get_state(), {}
+    trainer.field.zero_grad()
+
+    def keep(loss, colour):
+        loss.backward()
+        seen["loss"], seen["colour"] = loss.detach(), colour.detach()
+        return 0.0, 0.0
+
+    patches = [mock.patch.object(trainer, "optimise", keep)]
+    patches += [mock.patch("fitting.training_rays.render_training_rays", side_effect=count)]
+    if alone:
+        patches.append(mock.patch("fitting.trainer.render_ray_sets", side_effect=separately))
+    with patches[0], patches[1], patches[2] if alone else mock.patch.dict({}):
+        trainer.train_step()
+    trainer.generator.set_state(state)
+    grads = {k: p.grad.clone() for k, p in trainer.field.named_parameters() if p.grad is not None}
+    return seen, grads, calls
+
+
+def test_one_render_of_every_set_equals_each_set_alone(data_root_64, tmp_path):
+    """The step renders the training rays, the entropy's and the smoothness's virtual rays and the symmetry's rays
+    and their mirror images (5 sets) in one call, with the loss and every gradient of 5 calls. Tolerance: float32
+    sums over a few thousand samples whose matrix products are blocked differently in one batch than in five
+    (relative rounding about sqrt(n) eps, n ~ 10^4: 1e-5; 1e-4 leaves a factor 10)."""
+    trainer = _trainer(data_root_64, tmp_path / "run")
+    together, grads, calls = _step(trainer, alone=False)
+    reference, grads_alone, calls_alone = _step(trainer, alone=True)
+    assert len(calls) == 1 and len(calls_alone) == 5
+    assert calls[0] == sum(calls_alone)  # the same rays
+    torch.testing.assert_close(together["loss"], reference["loss"], rtol=1e-4, atol=0)
+    torch.testing.assert_close(together["colour"], reference["colour"], rtol=1e-4, atol=0)
+    assert grads.keys() == grads_alone.keys() and grads
+    for key, grad in grads.items():
+        scale = grads_alone[key].abs().max().item()
+        torch.testing.assert_close(grad, grads_alone[key], rtol=1e-4, atol=1e-4 * scale, msg=key)
+
+
+def test_each_set_gets_its_own_rays_hits_and_frames(data_root_64, tmp_path):
+    """Split back per set: a set whose rays all miss the body has no hits (C = 0, M = 0, no sample weights), the others'
+    hit indices count from their own first ray, and a set of other poses is rendered in its own frames (the same rays
+    in a pose moved 10 reaches away miss)."""
+    trainer = _trainer(data_root_64, tmp_path / "run", ["train.mirror_weight=0"])
+    poses, config = trainer.views.poses, trainer.config
+    pelvis = poses.world_from_part[0, 0, :3, 3]
+    n, generator = 16, torch.Generator().manual_seed(0)
+    origins = (pelvis + torch.tensor([0.0, -3.0, 0.0]) * poses.reach[0]).expand(n, 3)
+    dirs = torch.nn.functional.normalize(pelvis - origins + 0.05 * torch.randn(n, 3, generator=generator), dim=-1)
+    frames = torch.zeros(n, dtype=torch.long)
+    uniforms = [torch.rand(n, 8, generator=generator) for _ in range(2)]
+    moved = replace(poses, world_from_part=poses.world_from_part.clone())
+    moved.world_from_part[:, :, :3, 3] += 10 * poses.reach[:, None, None]
+    hits = RaySet(origins, dirs, frames, poses, uniforms)
+    misses = RaySet(origins, dirs, frames, moved, uniforms)
+    with torch.no_grad():
+        a, b, c = render_ray_sets(config, trainer.field, [hits, misses, hits], 8, 8)
+        (alone,) = render_ray_sets(config, trainer.field, [hits], 8, 8)
+    assert b.sample_weights is None and b.hit_ids is None
+    assert torch.equal(b.rgb, torch.zeros(n, 3)) and torch.equal(b.mask, torch.zeros(n))
+    assert alone.hit_ids.numel() == n and alone.mask.min() > 0  # every ray meets the body's boxes
+    for out in (a, c):
+        assert torch.equal(out.hit_ids, alone.hit_ids)
+        torch.testing.assert_close(out.rgb, alone.rgb, rtol=1e-5, atol=1e-6)  # float32, blocked differently
+        torch.testing.assert_close(out.sample_weights, alone.sample_weights, rtol=1e-5, atol=1e-6)
+
+
+def test_cat_poses_by_hand():
+    """Frames one after another; an appearance code missing from a batch is zeros there; world_from_joint only when
+    every batch has it."""
+
+    def batch(frames, value, appearance=None, joints=False):
+        eye = torch.eye(4).repeat(frames, 19, 1, 1)
+        eye[:, :, 0, 3] = value
+        wfj = torch.eye(4).repeat(frames, 24, 1, 1) if joints else None
+        zeros = (torch.zeros(frames, 19), torch.zeros(frames, 19, 6), torch.zeros(frames, 19, 3))
+        return PoseBatch(eye, torch.full((frames,), value), *zeros, wfj, appearance)
+
+    a, b = batch(2, 1.0, torch.ones(2, 3), joints=True), batch(1, 2.0)
+    both = cat_poses([a, b])
+    assert both.reach.tolist() == [1.0, 1.0, 2.0]
+    assert both.world_from_part[:, 0, 0, 3].tolist() == [1.0, 1.0, 2.0]
+    assert torch.equal(both.appearance, torch.tensor([[1.0] * 3, [1.0] * 3, [0.0] * 3]))
+    assert both.world_from_joint is None
+    assert cat_poses([a, a]).world_from_joint.shape == (4, 24, 4, 4)
+    assert cat_poses([b, b]).appearance is None
