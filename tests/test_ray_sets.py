@@ -8,6 +8,7 @@ from unittest import mock
 import torch
 
 from fitting.config import load_config
+from fitting.losses import ray_loss
 from fitting.run_folder import prepare_run_dir
 from fitting.training_rays import RaySet, render_ray_sets, render_training_rays
 from narf.fields import PoseBatch
@@ -122,3 +123,33 @@ def test_cat_poses_by_hand():
     assert both.world_from_joint is None
     assert cat_poses([a, a]).world_from_joint.shape == (4, 24, 4, 4)
     assert cat_poses([b, b]).appearance is None
+
+
+def test_the_loss_composites_a_white_background_as_the_renderer_does(data_root_64, tmp_path):
+    """Sets are rendered on black, and the loss composites the data's white background, C + (1 - M) bg: the loss and
+    colour MSE of rays rendered by the renderer's own compositing onto white (render_rays' background=1), by hand.
+    Tolerance: float32, the same sums in another order (one addition of (1 - M) per channel)."""
+    trainer = _trainer(data_root_64, tmp_path / "run", ["train.mirror_weight=0", "data.white_background=true"])
+    config, t, generator = trainer.config, trainer.config.train, torch.Generator().manual_seed(1)
+    batch = trainer.views.sample(4, 32, t.body_fraction, t.border_fraction, generator)
+    uniforms = [torch.rand(len(batch.frames), 8, generator=generator) for _ in range(2)]
+    poses = trainer.views.poses
+    with torch.no_grad():
+        loss, colour = ray_loss(config, trainer.field, batch, poses, None, 8, 8, uniforms=uniforms)
+        white = render_training_rays(
+            config,
+            trainer.field,
+            batch.origins,
+            batch.dirs,
+            batch.frames,
+            poses,
+            8,
+            8,
+            background=1.0,
+            uniforms=uniforms,
+        )
+    assert (white.mask < 0.99).any()  # the background shows
+    by_hand = (white.rgb - batch.rgb).square().sum() / white.rgb.numel()
+    mask_term = (batch.mask_weight * (white.mask - batch.mask).square()).sum() / batch.mask_weight.sum()
+    torch.testing.assert_close(colour, by_hand, rtol=1e-5, atol=0)
+    torch.testing.assert_close(loss, by_hand + t.mask_weight * mask_term, rtol=1e-5, atol=0)
