@@ -5,6 +5,7 @@ batches concatenated."""
 from dataclasses import replace
 from unittest import mock
 
+import pytest
 import torch
 
 from fitting.config import load_config
@@ -58,12 +59,18 @@ def _step(trainer, alone: bool):
     return seen, grads, calls
 
 
-def test_one_render_of_every_set_equals_each_set_alone(data_root_64, tmp_path):
+@pytest.fixture(scope="module")
+def trainer(data_root_64, tmp_path_factory):
+    """A tiny fit with every kind of set on, 2 steps trained (the tests below leave its weights and generator as
+    they found them)."""
+    return _trainer(data_root_64, tmp_path_factory.mktemp("ray_sets") / "run")
+
+
+def test_one_render_of_every_set_equals_each_set_alone(trainer):
     """The step renders the training rays, the entropy's and the smoothness's virtual rays and the symmetry's rays
     and their mirror images (5 sets) in one call, with the loss and every gradient of 5 calls. Tolerance: float32
     sums over a few thousand samples whose matrix products are blocked differently in one batch than in five
     (relative rounding about sqrt(n) eps, n ~ 10^4: 1e-5; 1e-4 leaves a factor 10)."""
-    trainer = _trainer(data_root_64, tmp_path / "run")
     together, grads, calls = _step(trainer, alone=False)
     reference, grads_alone, calls_alone = _step(trainer, alone=True)
     assert len(calls) == 1 and len(calls_alone) == 5
@@ -76,11 +83,10 @@ def test_one_render_of_every_set_equals_each_set_alone(data_root_64, tmp_path):
         torch.testing.assert_close(grad, grads_alone[key], rtol=1e-4, atol=1e-4 * scale, msg=key)
 
 
-def test_each_set_gets_its_own_rays_hits_and_frames(data_root_64, tmp_path):
+def test_each_set_gets_its_own_rays_hits_and_frames(trainer):
     """Split back per set: a set whose rays all miss the body has no hits (C = 0, M = 0, no sample weights), the others'
     hit indices count from their own first ray, and a set of other poses is rendered in its own frames (the same rays
     in a pose moved 10 reaches away miss)."""
-    trainer = _trainer(data_root_64, tmp_path / "run", ["train.mirror_weight=0"])
     poses, config = trainer.views.poses, trainer.config
     pelvis = poses.world_from_part[0, 0, :3, 3]
     n, generator = 16, torch.Generator().manual_seed(0)
