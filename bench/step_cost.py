@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import statistics
+import sys
 import tempfile
 import time
 from contextlib import nullcontext
@@ -85,7 +86,7 @@ def step_costs(subject: Path, preset: str, variants: dict[str, list[str]], steps
 def main(argv: list[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     if not (args.subject / "annots.npy").is_file():
-        print(f"bench.step_cost: {args.subject}: no annots.npy (not a prepared capture)")
+        print(f"bench.step_cost: {args.subject}: no annots.npy (not a prepared capture)", file=sys.stderr)
         return 2
     import torch
 

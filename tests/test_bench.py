@@ -66,3 +66,24 @@ def test_reuse_reaches_a_benchmark_that_keeps_its_configurations(tmp_path, monke
     monkeypatch.setitem(bench_main.BENCHMARKS, "kept", "kept_bench")
     assert bench_main._rows("kept", tmp_path / "a.json", reuse=True, machine="m") == [{"model": "kept", "reuse": True}]
     assert bench_main._rows("kept", tmp_path / "b.json", reuse=False, machine="m")[0]["reuse"] is False
+
+
+def test_step_cost_counts_fewer_operators_with_one_render(data_root_64, capsys):
+    """bench.step_cost: a row per variant; the symmetric step's sets rendered by a call each (render=alone) run more
+    operators than in one call (each call runs the field's per-part loops again), and a folder that is not a
+    prepared capture is a usage error naming it."""
+    from bench import step_cost
+
+    capture = data_root_64 / "synthetic" / "taichi"
+    mirror = "train.mirror_weight=0.1,train.mirror_rays=32"
+    argv = ["--subject", str(capture), "--preset", "tiny", "--steps", "2", "--warmup", "1"]
+    assert step_cost.main([*argv, f"one={mirror}", f"alone={mirror},render=alone"]) == 0
+    rows = [
+        line.split("|")
+        for line in capsys.readouterr().out.splitlines()
+        if line.startswith("| one") or line.startswith("| alone")
+    ]
+    operators = {row[1].strip(): int(row[4].replace(",", "")) for row in rows}
+    assert operators["alone"] > 1.5 * operators["one"], operators
+    assert step_cost.main(["--subject", str(data_root_64)]) == 2
+    assert str(data_root_64) in capsys.readouterr().err
