@@ -32,11 +32,12 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
-def _separately(config, field, sets, n_coarse, n_fine):
-    """``render_ray_sets`` as the fit did before: each set by a call of its own."""
-    from fitting.training_rays import render_ray_sets
+def _rendering(overrides: list[str]):
+    """The context a variant's steps run in: with ``render=alone``, each ray set by a call of its own."""
+    from fitting.training_rays import render_each_set
 
-    return [render_ray_sets(config, field, [s], n_coarse, n_fine)[0] for s in sets]
+    alone = "render=alone" in overrides
+    return mock.patch("fitting.trainer.render_ray_sets", render_each_set) if alone else nullcontext()
 
 
 def step_costs(subject: Path, preset: str, variants: dict[str, list[str]], steps: int, warmup: int) -> dict:
@@ -59,16 +60,14 @@ def step_costs(subject: Path, preset: str, variants: dict[str, list[str]], steps
             trainers[name], times[name] = start_run(run, torch.device("cpu"), config, progress=False), []
         for step in range(warmup + steps):
             for name, trainer in trainers.items():
-                alone = "render=alone" in variants[name]
-                with mock.patch("fitting.trainer.render_ray_sets", _separately) if alone else nullcontext():
+                with _rendering(variants[name]):
                     started = time.perf_counter()
                     trainer.train_step()
                     if step >= warmup:
                         times[name].append(time.perf_counter() - started)
         costs = {}
         for name, trainer in trainers.items():
-            alone = "render=alone" in variants[name]
-            with mock.patch("fitting.trainer.render_ray_sets", _separately) if alone else nullcontext():
+            with _rendering(variants[name]):
                 with torch.profiler.profile(activities=[torch.profiler.ProfilerActivity.CPU]) as prof:
                     for _ in range(3):
                         trainer.train_step()

@@ -75,6 +75,12 @@ def render_ray_sets(config: FitConfig, field, sets: list[RaySet], n_coarse: int,
     return split_output(out, [len(s.frames) for s in sets])
 
 
+def render_each_set(config: FitConfig, field, sets: list[RaySet], n_coarse: int, n_fine: int) -> list[RenderOutput]:
+    """:func:`render_ray_sets`' reference: each set rendered by a call of its own (as the fit rendered them before);
+    the same outputs up to rounding."""
+    return [render_ray_sets(config, field, [s], n_coarse, n_fine)[0] for s in sets]
+
+
 def split_output(out: RenderOutput, counts: list[int]) -> list[RenderOutput]:
     """A RenderOutput of consecutive ray sets of ``counts`` rays each, as one RenderOutput per set."""
     parts, start = [], 0

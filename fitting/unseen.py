@@ -18,7 +18,7 @@ import torch
 from torch import nn
 
 from fitting.config import FitConfig
-from fitting.training_rays import RaySet, render_ray_sets
+from fitting.training_rays import RaySet, render_each_set
 from narf.fields.common import PoseBatch
 from narf.renderer import RenderOutput
 
@@ -179,9 +179,8 @@ def unseen_views_loss(config: FitConfig, field, poses: PoseBatch, frames: torch.
 
 def terms_rendered_alone(config: FitConfig, field, terms: list[VirtualTerm]) -> torch.Tensor | float:
     """The sum of the terms' values, each of their ray sets rendered by a call of its own (0.0 for no terms)."""
-    r = config.render
-    sets = [s for term in terms for s in term.sets]
-    return terms_value(terms, [render_ray_sets(config, field, [s], r.train_coarse, r.train_fine)[0] for s in sets])
+    r, sets = config.render, [s for term in terms for s in term.sets]
+    return terms_value(terms, render_each_set(config, field, sets, r.train_coarse, r.train_fine))
 
 
 def terms_value(terms: list[VirtualTerm], outputs: list[RenderOutput]) -> torch.Tensor | float:

@@ -2,6 +2,7 @@
 gradient against each set rendered by a call of its own, the outputs split back per set, and the poses of several
 batches concatenated."""
 
+from contextlib import ExitStack
 from dataclasses import replace
 from unittest import mock
 
@@ -11,7 +12,7 @@ import torch
 from fitting.config import load_config
 from fitting.losses import ray_loss
 from fitting.run_folder import prepare_run_dir
-from fitting.training_rays import RaySet, render_ray_sets, render_training_rays
+from fitting.training_rays import RaySet, render_each_set, render_ray_sets, render_training_rays
 from narf.fields import PoseBatch
 from narf.fields.common import cat_poses
 from pipelines.runs.fit import start_run
@@ -37,9 +38,6 @@ def _step(trainer, alone: bool):
         calls.append(len(args[2]))
         return render_training_rays(*args, **kwargs)
 
-    def separately(config, field, sets, n_coarse, n_fine):
-        return [render_ray_sets(config, field, [s], n_coarse, n_fine)[0] for s in sets]
-
     state, seen = trainer.generator.get_state(), {}
     trainer.field.zero_grad()
 
@@ -48,11 +46,11 @@ def _step(trainer, alone: bool):
         seen["loss"], seen["colour"] = loss.detach(), colour.detach()
         return 0.0, 0.0
 
-    patches = [mock.patch.object(trainer, "optimise", keep)]
-    patches += [mock.patch("fitting.training_rays.render_training_rays", side_effect=count)]
-    if alone:
-        patches.append(mock.patch("fitting.trainer.render_ray_sets", side_effect=separately))
-    with patches[0], patches[1], patches[2] if alone else mock.patch.dict({}):
+    with ExitStack() as patches:
+        patches.enter_context(mock.patch.object(trainer, "optimise", keep))
+        patches.enter_context(mock.patch("fitting.training_rays.render_training_rays", side_effect=count))
+        if alone:
+            patches.enter_context(mock.patch("fitting.trainer.render_ray_sets", render_each_set))
         trainer.train_step()
     trainer.generator.set_state(state)
     grads = {k: p.grad.clone() for k, p in trainer.field.named_parameters() if p.grad is not None}
