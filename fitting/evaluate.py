@@ -154,7 +154,9 @@ def crop_error_breakdown(
         ``psnr_person_inner``: over the person pixels at least ``INNER_PX`` inside the mask's edge (every pixel of
         the (2 INNER_PX + 1)^2 square around them in the mask), the colour away from the outline (None without any);
         ``psnr_person_coarse``: over the person pixels, both images low-passed within them (:func:`masked_blur`,
-        sigma ``COARSE_PX``): the error of the colour and shading, without the detail's (None without any).
+        sigma ``COARSE_PX``): the error of the colour and shading, without the detail's (None without any);
+        ``psnr_person_gain``: over the person pixels once the render's channels are scaled by the gains that fit the
+        view best (:func:`best_gains`): what a camera's colour gain could not explain (None without any).
     """
     inner = cv2.erode((gt_mask >= 0.5).astype(np.uint8), np.ones((2 * INNER_PX + 1,) * 2, np.uint8))[region] > 0
     error = ((rgb - gt_rgb) ** 2).mean(-1)[region]
@@ -175,13 +177,24 @@ def crop_error_breakdown(
     out["psnr_person"] = float(psnr(torch.as_tensor(person_error.mean()))) if person_error.size else None
     inner_error = error[classes["person"] & inner]
     out["psnr_person_inner"] = float(psnr(torch.as_tensor(inner_error.mean()))) if inner_error.size else None
-    out["psnr_person_coarse"] = None
+    out["psnr_person_coarse"] = out["psnr_person_gain"] = None
     if person_error.size:
+        rendered, truth = rgb[region][classes["person"]], gt_rgb[region][classes["person"]]
+        gain_error = ((rendered * best_gains(rendered, truth) - truth) ** 2).mean()
+        out["psnr_person_gain"] = float(psnr(torch.as_tensor(gain_error)))
         where = np.zeros(region.shape, bool)
         where[region] = classes["person"]
         coarse = ((masked_blur(rgb, where, COARSE_PX) - masked_blur(gt_rgb, where, COARSE_PX)) ** 2).mean(-1)
         out["psnr_person_coarse"] = float(psnr(torch.as_tensor(coarse[where].mean())))
     return out
+
+
+def best_gains(rendered: np.ndarray, truth: np.ndarray) -> np.ndarray:
+    """g_c = sum(r_c t_c) / sum(r_c^2): each channel's gain that brings ``rendered`` (N, 3) closest to ``truth``
+    (N, 3) in squared error, as a camera's measured colour (docs/model.md §6, *Measured camera colour*) could apply
+    it; 1 for a channel rendered black. Returns (3,)."""
+    energy = (rendered**2).sum(0)
+    return np.where(energy > 0, (rendered * truth).sum(0) / np.maximum(energy, 1e-300), 1.0)
 
 
 def masked_blur(image: np.ndarray, where: np.ndarray, sigma: float) -> np.ndarray:
@@ -292,7 +305,8 @@ def _breakdown_line(split: str, breakdown: dict | None) -> str | None:
     return (
         f"{_SHORT[split]}: person pixels {share('person')} of the error "
         f"({dB('psnr_person')} over them, {dB('psnr_person_inner')} {INNER_PX} px or more inside the mask's edge, "
-        f"{dB('psnr_person_coarse')} low-passed at {COARSE_PX:g} px, {pixels('person')} of the crop); silhouette "
+        f"{dB('psnr_person_coarse')} low-passed at {COARSE_PX:g} px, {dB('psnr_person_gain')} with the view's best "
+        f"colour gains, {pixels('person')} of the crop); silhouette "
         f"disagreement {share('silhouette')} ({pixels('silhouette')} of the crop); the mask's boundary band "
         f"{share('band')} ({pixels('band')}); background {share('background')}"
     )

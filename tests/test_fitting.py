@@ -191,6 +191,27 @@ def test_the_coarse_person_psnr_keeps_the_colour_and_drops_the_detail():
             assert b["psnr_person_coarse"] == pytest.approx(coarse)
 
 
+def test_the_gain_person_psnr_takes_away_what_a_channel_gain_explains():
+    """A 20 x 20 opaque person: rendered at 1.25 / 0.8 / 1.1 times the image's colour, psnr_person_gain is at the
+    PSNR's floor (MSE clamped at 1e-12: float64 residuals of 1e-16); rendered as a constant 0.4 plus a 1-px
+    checkerboard of +-0.1, the best gain is 0.16 / 0.17 and the MSE left is 0.16 (1 - 0.16 / 0.17), by hand
+    (float64 sums of 400 terms: pytest.approx's default rtol 1e-6 is ample)."""
+    mask = np.zeros((30, 30))
+    mask[5:25, 5:25] = 1.0
+    gen = np.random.default_rng(3)
+    truth = gen.uniform(0.2, 0.8, (30, 30, 3)) * mask[..., None]
+    scaled = truth * np.array([1.25, 0.8, 1.1])
+    b = frame_metrics({"rgb": scaled, "mask": mask}, truth, mask, mask > 0, 0.0, mask < 0)["nb_crop"]["breakdown"]
+    assert b["psnr_person"] < 30.0
+    assert b["psnr_person_gain"] == pytest.approx(120.0)
+    flat = 0.4 * mask[..., None] * np.ones(3)
+    checker = 0.1 * (-1.0) ** np.add.outer(np.arange(30), np.arange(30))[..., None] * mask[..., None]
+    b = frame_metrics({"rgb": flat + checker, "mask": mask}, flat, mask, mask > 0, 0.0, mask < 0)
+    b = b["nb_crop"]["breakdown"]
+    assert b["psnr_person"] == pytest.approx(20.0)
+    assert b["psnr_person_gain"] == pytest.approx(-10 * np.log10(0.16 * (1 - 0.16 / 0.17)))
+
+
 def test_the_masked_blur_against_scipy():
     """masked_blur is scipy's Gaussian filter of I 1_P over that of 1_P, both zero outside the image: OpenCV and
     scipy both truncate the kernel at 4 sigma (33 taps at sigma 4); float64 sums of 33^2 terms."""
