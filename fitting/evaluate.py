@@ -179,11 +179,11 @@ def crop_error_breakdown(
     out["psnr_person_inner"] = float(psnr(torch.as_tensor(inner_error.mean()))) if inner_error.size else None
     out["psnr_person_coarse"] = out["psnr_person_gain"] = None
     if person_error.size:
-        rendered, truth = rgb[region][classes["person"]], gt_rgb[region][classes["person"]]
-        gain_error = ((rendered * best_gains(rendered, truth) - truth) ** 2).mean()
-        out["psnr_person_gain"] = float(psnr(torch.as_tensor(gain_error)))
         where = np.zeros(region.shape, bool)
         where[region] = classes["person"]
+        rendered, truth = rgb[where], gt_rgb[where]
+        gain_error = ((rendered * best_gains(rendered, truth) - truth) ** 2).mean()
+        out["psnr_person_gain"] = float(psnr(torch.as_tensor(gain_error)))
         coarse = ((masked_blur(rgb, where, COARSE_PX) - masked_blur(gt_rgb, where, COARSE_PX)) ** 2).mean(-1)
         out["psnr_person_coarse"] = float(psnr(torch.as_tensor(coarse[where].mean())))
     return out
