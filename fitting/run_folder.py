@@ -70,6 +70,24 @@ def write_config(run_dir: Path, config: FitConfig) -> None:
     atomic_write_text(Path(run_dir) / "config.yaml", yaml.safe_dump(config.to_dict(), sort_keys=False))
 
 
+def add_to_last_row(path: Path, step: int, values: dict) -> bool:
+    """Merge ``values`` into the last row of a ``log.jsonl`` when that row is ``step``'s, rewriting the file
+    atomically (each step appears once); False, and nothing written, when the last row is another step's or there is
+    none (the caller appends a row of its own)."""
+    if not path.is_file():
+        return False
+    lines = path.read_text().splitlines()
+    try:
+        last = json.loads(lines[-1]) if lines else None
+    except json.JSONDecodeError:
+        return False
+    if not isinstance(last, dict) or last.get("step") != step:
+        return False
+    lines[-1] = json.dumps({**last, **values})
+    atomic_write_text(path, "".join(f"{line}\n" for line in lines))
+    return True
+
+
 def trim_log(path: Path, step: int) -> None:
     """Drop the rows of a ``log.jsonl`` past ``step`` and a last row cut short, rewriting it atomically: a fit
     resumed from its checkpoint at ``step`` logs those steps again, and each step must appear once, in order."""

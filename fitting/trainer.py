@@ -23,7 +23,7 @@ from fitting.files import named_errors
 from fitting.losses import batch_loss, ray_loss
 from fitting.model_setup import encoding_window, make_field
 from fitting.plots import write_curve, write_validation
-from fitting.run_folder import trim_log, write_config
+from fitting.run_folder import add_to_last_row, trim_log, write_config
 from fitting.schedule import Budget, lr_factor
 from fitting.selection import selection_set
 from fitting.training_rays import RaySet, render_ray_sets
@@ -420,7 +420,10 @@ class Trainer:
                     self.checkpoint()
                     last_save = time.perf_counter()
             finished = self.step >= t.steps
-            self._select(True)  # the last step is scored too when the time budget ends the fit
+            # the last step is scored too when the time budget ends the fit, and its score is logged
+            last = self._select(True)
+            if last and not add_to_last_row(log_path, self.step, last):
+                self._log_row(log_path, {"loss": loss, "psnr": score, **last})
         finally:
             bar.close()
             self.checkpoint()

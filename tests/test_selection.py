@@ -76,3 +76,35 @@ def test_evaluation_loads_the_kept_weights_not_the_last(tiny_run, tmp_path):
         assert fitted.kept_step == step
         for name, value in fitted.field.state_dict().items():
             assert torch.equal(value, weights[name]), (keep, name)
+
+
+@pytest.mark.parametrize("stop", [6, 7])
+def test_a_fit_that_runs_out_of_time_logs_the_score_of_its_last_step(data_root_64, tmp_path, monkeypatch, stop):
+    """The time budget ends the fit after ``stop`` steps: its last step is scored, and that score is in the log,
+    in the row of that step (step 6 was logged by ``log_every``: the row gains the score; step 7 was not: a row is
+    added), each step once."""
+    import fitting.trainer
+
+    class Stops(fitting.trainer.Budget):
+        ticks = 0
+
+        def tick(self, agree=float):
+            Stops.ticks += 1
+
+        @property
+        def out_of_time(self):
+            return Stops.ticks > stop
+
+    monkeypatch.setattr(fitting.trainer, "Budget", Stops)
+    sets = [f"data.data_root={data_root_64}", "data.ratio=1.0", "train.steps=20", "train.holdout_every=4"]
+    config = load_config("tiny", [*sets, "train.select_every=4", "train.log_every=3"])
+    run = prepare_run_dir(tmp_path / "run", False)
+    trainer = start_run(run, torch.device("cpu"), config, progress=False)
+    result = trainer.fit(max_minutes=1.0)
+    assert result.step == stop and not result.finished
+    rows = [json.loads(line) for line in (run / "log.jsonl").read_text().splitlines()]
+    steps = [row["step"] for row in rows]
+    assert steps == sorted(set(steps)) and steps[-1] == stop  # each step once, in order, the last one last
+    assert [row["step"] for row in rows if "select_psnr" in row] == [4, stop]
+    assert rows[-1]["select_psnr"] == pytest.approx(trainer.selection.history[-1][1])
+    assert rows[-1]["loss"] == pytest.approx(result.loss)
