@@ -12,7 +12,6 @@ from pipelines.datasets.keypoints import TARGET_NAMES
 from pipelines.prepare.occlusion import (
     body_region,
     hidden_region,
-    in_front_of_others,
     leave_out_overlapped,
     overlap_share,
     person_mask,
@@ -176,54 +175,3 @@ def test_overlapped_views_are_left_out_with_their_keypoints():
     assert counts == [1, 0] and [n["overlapped"] for n in found.view_notes] == [1, 0]
     assert found.used.tolist() == [[False, True], [True, True]]
     assert (found.keypoints[0, 0, :, 2] == 0).all() and (found.keypoints[found.used][..., 2] == 1).all()
-
-
-def test_a_crops_mask_regains_the_limbs_in_front_of_somebody_from_the_whole_images_mask():
-    # the crop's mask of the person stops at the outline of somebody 1 m behind them (40 cm aside): with the whole
-    # image's mask, which holds both, the person's pixels over the other are theirs again, and nothing of the other's
-    camera = _camera("front", (0, -5, 1.0))
-    person, body = _person(), body_region(camera, _person())
-    behind = _person((0.4, 1, 0))
-    theirs = body_region(camera, behind)
-    crop, whole = body & ~theirs, body | theirs
-    assert (body & theirs).sum() > 1000  # the arm and the side over the other
-    mask, unknown = person_mask(crop, body, camera, person, [behind])
-    assert (mask == crop).all() and not unknown.any()  # without the whole image's mask: the crop's, as before
-    mask, unknown = person_mask(crop, body, camera, person, [behind], whole)
-    assert (mask == body).all() and not unknown.any()
-    assert (person_mask(crop, body, camera, person, [], whole)[0] == crop).all()  # nobody else: the crop's
-
-
-def test_the_whole_images_mask_gives_nothing_where_somebody_stands_in_front_or_beside_in_clothes():
-    # somebody 1 m in front, 40 cm aside, in clothes 6 px wider than their capsules: the whole image's mask adds
-    # none of the pixels they hide or their clothes (the person's body beside them stays the crop's verdict)
-    camera = _camera("front", (0, -5, 1.0))
-    person, body = _person(), body_region(camera, _person())
-    in_front = _person((0.4, -1, 0))
-    clothes = cv2.dilate(body_region(camera, in_front).astype(np.uint8), np.ones((13, 13), np.uint8)) > 0
-    crop, whole = body & ~clothes, body | clothes
-    assert (body & clothes & ~body_region(camera, in_front)).sum() > 100  # their clothes over the person's body
-    mask, unknown = person_mask(crop, body, camera, person, [in_front], whole)
-    assert not (mask & clothes).any() and (mask == crop & ~unknown).all()
-    # the growth is CLOTHES_GROWTH of a 6-cm capsule at the person's depth: 0.5 x 2 x 0.06 x 1000 / 5 = 12 px
-    front = in_front_of_others(camera, person, [in_front], body)
-    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (25, 25))
-    grown = cv2.dilate(body_region(camera, in_front).astype(np.uint8), disc) > 0
-    assert (front == body & ~grown).all() and (body & grown).any()
-
-
-def test_the_whole_images_mask_is_kept_once_before_a_crops_replaces_it(tmp_path):
-    from pipelines.prepare.crops import keep_whole_mask, whole_mask
-
-    raw = tmp_path / "mask_raw" / "cam01" / "000007.png"
-    raw.parent.mkdir(parents=True)
-    first = np.zeros((4, 6), np.uint8)
-    first[1:3, 2:5] = 1
-    cv2.imwrite(str(raw), first)
-    assert whole_mask(tmp_path, "cam01", 7) is None  # the view keeps its own
-    keep_whole_mask(tmp_path, "cam01", 7)
-    cv2.imwrite(str(raw), np.ones_like(first))  # a crop's mask replaces it; a second crop keeps the first
-    keep_whole_mask(tmp_path, "cam01", 7)
-    assert (whole_mask(tmp_path, "cam01", 7) == (first > 0)).all()
-    keep_whole_mask(tmp_path, "cam02", 7)  # no raw mask: nothing kept
-    assert whole_mask(tmp_path, "cam02", 7) is None

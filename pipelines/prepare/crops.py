@@ -8,7 +8,6 @@ the followed person unless somebody stands in front of them.
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -148,7 +147,6 @@ def crop_masks(folder: Path, seen, found, crops: dict, whole: dict, detector, th
                 if mask is not None and _shows(camera, targets, found.points[i], threshold):
                     pasted = np.zeros((camera.height, camera.width), np.uint8)
                     pasted[y0:y1, x0:x1] = mask
-                    keep_whole_mask(folder, camera.name, frame)
                     write_image(folder / "mask_raw" / camera.name / f"{frame:06d}.png", pasted)
                     break
             else:
@@ -156,23 +154,6 @@ def crop_masks(folder: Path, seen, found, crops: dict, whole: dict, detector, th
                     found.used[i, v] = False
                     dropped += 1
     return dropped
-
-
-def keep_whole_mask(folder: Path, camera: str, frame: int) -> None:
-    """Before a crop's mask replaces a view's raw mask, the whole image's goes to ``folder/mask_whole`` (once: a
-    second crop of the view finds it kept). It holds everybody the segmenter saw there, the followed person's
-    limbs in front of somebody else among them, which the crop's mask of one person leaves out
-    (``pipelines.prepare.occlusion.person_mask``)."""
-    raw, kept = folder / "mask_raw" / camera / f"{frame:06d}.png", folder / "mask_whole" / camera / f"{frame:06d}.png"
-    if raw.is_file() and not kept.is_file():
-        kept.parent.mkdir(parents=True, exist_ok=True)
-        shutil.copyfile(raw, kept)
-
-
-def whole_mask(folder: Path, camera: str, frame: int) -> np.ndarray | None:
-    """(H, W) bool: the whole image's mask kept by :func:`keep_whole_mask`, or None where the view kept its own."""
-    path = folder / "mask_whole" / camera / f"{frame:06d}.png"
-    return cv2.imread(str(path), cv2.IMREAD_GRAYSCALE) > 0 if path.is_file() else None
 
 
 def _shows(camera: Camera, targets: np.ndarray, points: np.ndarray, threshold: float) -> bool:

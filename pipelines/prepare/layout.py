@@ -22,7 +22,6 @@ from pipelines.datasets.floor import feet_against_floor
 from pipelines.datasets.keypoints import TARGET_NAMES
 from pipelines.datasets.zju_mocap import BODY_SURFACE, SmplParams, write_annots, write_body_surface, write_params
 from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, reprojection_notice
-from pipelines.prepare.crops import whole_mask
 from pipelines.prepare.multiview import projection_matrix, relative_errors
 from pipelines.prepare.occlusion import person_mask
 
@@ -77,8 +76,7 @@ def _check_pass(root: Path, seen, found, fitted, vertices, faces, ious: dict, pr
         for v, cam in enumerate(cameras):
             raw = cv2.imread(str(root / ".frames" / "mask_raw" / cam.name / f"{source:06d}.png"), cv2.IMREAD_GRAYSCALE)
             body = silhouette(cam, vertices[i], faces)
-            whole = whole_mask(root / ".frames", cam.name, source)
-            mask, unknown = person_mask(raw > 0, body, cam, found.points[i], found.others.get(source, []), whole)
+            mask, unknown = person_mask(raw > 0, body, cam, found.points[i], found.others.get(source, []))
             for folder in ("mask", "mask_cihp"):
                 write_image(root / folder / cam.name / f"{i:06d}.png", mask.astype(np.uint8))
             if unknown.any():  # somebody in front of the person (docs/formats.md §1.5)

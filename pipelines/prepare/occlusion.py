@@ -50,8 +50,6 @@ BONE_RADII = (
 )
 #: pieces each bone is cut in along its length for :func:`body_depth` (a thigh reaching back spans 60 cm of depth)
 DEPTH_PIECES = 4
-#: what a person's clothes add beside their capsules, as a share of a 6-cm capsule's width (:func:`in_front_of_others`)
-CLOTHES_GROWTH = 0.5
 #: the torso's quadrilateral, filled between the capsules of its sides
 TORSO = ("l_shoulder", "r_shoulder", "r_hip", "l_hip")
 
@@ -176,18 +174,6 @@ def _centre_depth(camera: Camera, points: np.ndarray) -> float:
     return float(camera.cam_from_world[2, :3] @ np.median(finite, axis=0) + camera.cam_from_world[2, 3])
 
 
-def _depths(camera: Camera, points: np.ndarray, others: list[np.ndarray], box, grow: int = 0):
-    """Within ``box``: the nearest depth of ``others``' :func:`body_depth` (each pixel the least within ``grow``
-    pixels of it: their regions grown by that much) and the person ``points``' own (their centre's where none of
-    their capsules lies), both (h, w) float32."""
-    theirs = np.minimum.reduce([body_depth(camera, o, box) for o in others])
-    if grow:
-        theirs = cv2.erode(theirs, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1)))
-    mine = body_depth(camera, points, box)
-    mine[np.isinf(mine)] = _centre_depth(camera, points)
-    return theirs, mine
-
-
 def hidden_region(camera: Camera, points: np.ndarray, others: list[np.ndarray], near: np.ndarray) -> np.ndarray:
     """(H, W) bool: the pixels within ``near`` (H, W) bool (the person's neighbourhood) where the :func:`body_region`
     of one of ``others`` ((T, 3) targets) lies nearer ``camera`` than the person ``points``: than the person's own
@@ -196,50 +182,23 @@ def hidden_region(camera: Camera, points: np.ndarray, others: list[np.ndarray], 
     if not others or not near.any():
         return hidden
     box = _box(near)
-    theirs, mine = _depths(camera, points, others, box)
+    theirs = np.minimum.reduce([body_depth(camera, o, box) for o in others])
+    mine = body_depth(camera, points, box)
+    mine[np.isinf(mine)] = _centre_depth(camera, points)
     hidden[box] = (theirs < mine) & near[box]
     return hidden
 
 
-def in_front_of_others(camera: Camera, points: np.ndarray, others: list[np.ndarray], body: np.ndarray) -> np.ndarray:
-    """(H, W) bool: the pixels of ``body`` (the person's fitted silhouette) where nobody else lies nearer
-    ``camera``, their regions (:func:`body_region` of each of ``others``, (T, 3) targets) grown by ``CLOTHES_GROWTH``
-    of their capsules' width: a person in clothes is wider than the capsules, and a pixel of the body beside
-    somebody in front may show their clothes."""
-    if not others or not body.any():
-        return body
-    centre = _centre_depth(camera, points)
-    grow = max(1, int(round(CLOTHES_GROWTH * 2 * 0.06 * camera.K[1, 1] / centre))) if np.isfinite(centre) else 1
-    box = _box(body, grow)  # grown so that a region just beside the body's box grows into it
-    theirs, mine = _depths(camera, points, others, box, grow)
-    front = np.zeros_like(body)
-    front[box] = body[box] & (theirs >= mine)
-    return front
-
-
 def person_mask(
-    raw: np.ndarray,
-    body: np.ndarray,
-    camera: Camera,
-    points: np.ndarray,
-    others: list[np.ndarray],
-    whole: np.ndarray | None = None,
+    raw: np.ndarray, body: np.ndarray, camera: Camera, points: np.ndarray, others: list[np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray]:
     """The followed person's mask and the pixels of unknown owner, both (H, W) bool, from a view's ``raw`` segmenter
     mask: the raw mask within the fitted ``body``'s neighbourhood (``checks.body_neighbourhood``), less the others
     outside the body (:func:`without_others`) and less the unknown pixels (:func:`hidden_region`). ``points``: the
-    person's (T, 3) targets; ``others``: the other people's; ``camera`` of the masks' size.
-
-    ``whole``: where ``raw`` is the mask of a crop around the person (one person's, which stops at the outline of
-    somebody they stand in front of), the whole image's mask, which holds everybody: its pixels on the body where
-    the person stands in front of everybody else (:func:`in_front_of_others`) are the person's too (their limbs in
-    front of somebody; docs/guides/real-captures.md, *People who overlap in the image*)."""
+    person's (T, 3) targets; ``others``: the other people's; ``camera`` of the masks' size."""
     near = body_neighbourhood(body)
     unknown = hidden_region(camera, points, others, near)
-    mask = without_others(raw & near, body, camera, others)
-    if whole is not None and others:
-        mask |= whole & in_front_of_others(camera, points, others, body)
-    return mask & ~unknown, unknown
+    return without_others(raw & near, body, camera, others) & ~unknown, unknown
 
 
 def leave_out_overlapped(cameras: list[Camera], found) -> list[int]:

@@ -11,33 +11,20 @@ import numpy as np
 
 from pipelines.body.silhouettes import SilhouetteSettings, SilhouetteTerm, silhouette_targets
 from pipelines.datasets.camera import Camera, silhouette
-from pipelines.prepare.crops import whole_mask
 from pipelines.prepare.occlusion import person_mask
 
 
 def reduced_mask(
-    camera: Camera,
-    raw: np.ndarray,
-    vertices: np.ndarray,
-    faces: np.ndarray,
-    height: int,
-    points,
-    others=(),
-    whole: np.ndarray | None = None,
+    camera: Camera, raw: np.ndarray, vertices: np.ndarray, faces: np.ndarray, height: int, points, others=()
 ) -> tuple[np.ndarray, np.ndarray]:
     """The raw mask near the body with the other people cut out, and the pixels of unknown owner
     (``pipelines.prepare.occlusion.person_mask``; ``points`` the person's (T, 3) targets, ``others`` the other
-    people's, ``whole`` the whole image's mask where ``raw`` is a crop's), both undistorted and reduced to
-    ``height`` rows: (h, w) bool each."""
+    people's), both undistorted and reduced to ``height`` rows: (h, w) bool each."""
     scale = min(1.0, height / camera.height)
     small = camera.scaled(scale)
     size = (small.width, small.height)
-
-    def reduced(full: np.ndarray) -> np.ndarray:
-        return cv2.resize(full.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
-
-    whole = None if whole is None else reduced(whole)
-    mask, unknown = person_mask(reduced(raw), silhouette(small, vertices, faces), small, points, list(others), whole)
+    mask = cv2.resize(raw.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
+    mask, unknown = person_mask(mask, silhouette(small, vertices, faces), small, points, list(others))
     if np.any(small.dist != 0):
         maps = cv2.initUndistortRectifyMap(small.K, small.dist, None, small.K, size, cv2.CV_32FC1)
         mask, unknown = (cv2.remap(m.astype(np.uint8), *maps, cv2.INTER_NEAREST) > 0 for m in (mask, unknown))
@@ -60,10 +47,7 @@ def silhouette_stage(root, cameras: list[Camera], found, faces: np.ndarray, P: n
                     continue
                 raw = cv2.imread(str(root / ".frames" / "mask_raw" / camera.name / f"{source:06d}.png"), 0) > 0
                 others = found.others.get(source, [])
-                whole = whole_mask(root / ".frames", camera.name, source)
-                row.append(
-                    reduced_mask(camera, raw, vertices[i], faces, settings.height, found.points[f], others, whole)
-                )
+                row.append(reduced_mask(camera, raw, vertices[i], faces, settings.height, found.points[f], others))
             masks.append([m for m, _ in row])
             unknown.append([u for _, u in row])
         return SilhouetteTerm(silhouette_targets(cameras, masks, settings, unknown), P, settings)
