@@ -1,9 +1,11 @@
 """People who overlap the followed person in a view (docs/guides/real-captures.md, *Other people in view*).
 
-The segmenter gives one mask for everybody in view, and where two people overlap in the image the detector finds
-whichever is more prominent, in a crop too. Both people are triangulated in every frame, so the overlap can be told
-from geometry: each person's region in a view is drawn as capsules around the bones between their projected targets
-(radii in metres, ``BONE_RADII``, scaled by focal length over depth) and a filled torso.
+The segmenter gives one mask a view, of the person the detector found, with whatever of the others touches them, and
+where two people overlap in the image the detector finds whichever is more prominent, in a crop too; the mask then
+lacks that person's limbs over the other (docs/results/real-capture.md, twenty-fourth session). Both people are
+triangulated in every frame, so the overlap can be told from geometry: each person's region in a view is drawn as
+capsules around the bones between their projected targets (radii in metres, ``BONE_RADII``, scaled by focal length
+over depth) and a filled torso.
 
 * A view where other people's regions cover more than ``OVERLAP_SHARE`` of the followed person's is left out of the
   body fit, the training and the evaluation, as views showing only somebody else are: in front, they hide the
