@@ -99,8 +99,9 @@ def _row(label: str, capture: Path, sets: list[str], out: Path, env: dict) -> di
 
 
 def measured(label: str, out: Path) -> dict:
-    """The row of a fitted and evaluated run folder ``out``: person PSNR (low-passed too, and with the view's best
-    colour gains: docs/model.md §7), NB crop and silhouette per split, the gap."""
+    """The row of a fitted and evaluated run folder ``out``: person PSNR (low-passed too, with the view's best
+    colour gains, and on the surfaces no training view saw, with their share of the person: docs/model.md §7), NB
+    crop and silhouette per split, the gap."""
     report = json.loads((out / "eval" / "metrics.json").read_text())
     log = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     row = {
@@ -119,6 +120,8 @@ def measured(label: str, out: Path) -> dict:
         row[f"{split} person PSNR, best gains"] = round(breakdown.get("psnr_person_gain") or float("nan"), 2)
         row[f"{split} NB PSNR"] = round(crop["psnr"], 2)
         row[f"{split} silhouette %"] = round(100 * breakdown.get("pixels_silhouette", float("nan")), 2)
+        row[f"{split} unseen surface %"] = round(100 * breakdown.get("pixels_unseen", float("nan")), 2)
+        row[f"{split} person PSNR, unseen surface"] = round(breakdown.get("psnr_person_unseen") or float("nan"), 2)
     row["gap SS - novel_view (dB)"] = round(person["same_pose_same_view"] - person["novel_view"], 2)
     return row
 

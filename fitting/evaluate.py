@@ -109,11 +109,11 @@ def ssim(prediction: np.ndarray, target: np.ndarray) -> float:
 
 
 def frame_metrics(
-    render: dict, gt_rgb: np.ndarray, gt_mask: np.ndarray, region: np.ndarray, bg: float, gt_band=None
+    render: dict, gt_rgb: np.ndarray, gt_mask: np.ndarray, region: np.ndarray, bg: float, gt_band=None, unseen=None
 ) -> dict:
     """Both protocols for one view: full image, and the Neural Body crop (PSNR, Mask L2 over R; SSIM on R's
     bounding rectangle with pixels outside R set to the background); with ``gt_band`` (H, W) bool, also the crop's
-    ``breakdown`` (:func:`crop_error_breakdown`)."""
+    ``breakdown`` (:func:`crop_error_breakdown`, which says what ``unseen`` is)."""
     rgb, mask = render["rgb"], render["mask"]
     t = lambda a: torch.as_tensor(a)  # noqa: E731
     full = {
@@ -132,12 +132,18 @@ def frame_metrics(
         "mask_l2": float(mask_l2(t(mask), t(gt_mask), t(region))),
     }
     if gt_band is not None:
-        crop["breakdown"] = crop_error_breakdown(rgb, mask, gt_rgb, gt_mask, gt_band, region)
+        crop["breakdown"] = crop_error_breakdown(rgb, mask, gt_rgb, gt_mask, gt_band, region, unseen)
     return {"full": full, "nb_crop": crop}
 
 
 def crop_error_breakdown(
-    rgb: np.ndarray, mask: np.ndarray, gt_rgb: np.ndarray, gt_mask: np.ndarray, gt_band: np.ndarray, region: np.ndarray
+    rgb: np.ndarray,
+    mask: np.ndarray,
+    gt_rgb: np.ndarray,
+    gt_mask: np.ndarray,
+    gt_band: np.ndarray,
+    region: np.ndarray,
+    unseen: np.ndarray | None = None,
 ) -> dict:
     """Where the NB crop's squared error lies (docs/model.md §7, *Error breakdown*).
 
@@ -147,6 +153,8 @@ def crop_error_breakdown(
 
     Args:
         rgb, gt_rgb: (H, W, 3) in [0, 1]. mask, gt_mask: (H, W) opacity and mask. gt_band, region: (H, W) bool.
+        unseen: optional (H, W) bool, the pixels that show a surface of the body no training view saw
+            (``pipelines.runs.subject.coverage``).
 
     Returns:
         ``share_<class>``: the class's part of the summed squared error over R (0 when R has no error);
@@ -157,6 +165,9 @@ def crop_error_breakdown(
         sigma ``COARSE_PX``): the error of the colour and shading, without the detail's (None without any);
         ``psnr_person_gain``: over the person pixels once the render's channels are scaled by the gains that fit the
         view best (:func:`best_gains`): what a camera's colour gain could not explain (None without any).
+        With ``unseen``: ``pixels_unseen``, its part of the person pixels; ``share_unseen``, its part of their
+        summed squared error; ``psnr_person_seen`` and ``psnr_person_unseen``, the PSNR over the person pixels
+        outside and inside it (None without any).
     """
     inner = cv2.erode((gt_mask >= 0.5).astype(np.uint8), np.ones((2 * INNER_PX + 1,) * 2, np.uint8))[region] > 0
     error = ((rgb - gt_rgb) ** 2).mean(-1)[region]
@@ -186,7 +197,21 @@ def crop_error_breakdown(
         out["psnr_person_gain"] = float(psnr(torch.as_tensor(gain_error)))
         coarse = ((masked_blur(rgb, where, COARSE_PX) - masked_blur(gt_rgb, where, COARSE_PX)) ** 2).mean(-1)
         out["psnr_person_coarse"] = float(psnr(torch.as_tensor(coarse[where].mean())))
+    if unseen is not None:
+        out.update(_seen_and_unseen(person_error, unseen[region][classes["person"]]))
     return out
+
+
+def _seen_and_unseen(person_error: np.ndarray, unseen: np.ndarray) -> dict:
+    """The person pixels' squared errors (N,) split by ``unseen`` (N,) bool (:func:`crop_error_breakdown`)."""
+    as_psnr = lambda e: float(psnr(torch.as_tensor(e.mean()))) if e.size else None  # noqa: E731
+    total = person_error.sum()
+    return {
+        "pixels_unseen": float(unseen.mean()) if unseen.size else 0.0,
+        "share_unseen": float(person_error[unseen].sum() / total) if total > 0 else 0.0,
+        "psnr_person_seen": as_psnr(person_error[~unseen]),
+        "psnr_person_unseen": as_psnr(person_error[unseen]),
+    }
 
 
 def best_gains(rendered: np.ndarray, truth: np.ndarray) -> np.ndarray:
@@ -302,13 +327,20 @@ def _breakdown_line(split: str, breakdown: dict | None) -> str | None:
     share = lambda k: f"{100 * breakdown[f'share_{k}']:.0f} %"  # noqa: E731
     pixels = lambda k: f"{100 * breakdown[f'pixels_{k}']:.1f} %"  # noqa: E731
     dB = lambda k: "-" if breakdown.get(k) is None else f"{breakdown[k]:.2f} dB"  # noqa: E731
+    seen = ""
+    if "pixels_unseen" in breakdown:
+        seen = (
+            f"; surfaces no training view saw face-on: {pixels('unseen')} of the person pixels, {share('unseen')} "
+            f"of their error ({dB('psnr_person_seen')} over the person pixels elsewhere, {dB('psnr_person_unseen')} "
+            "there)"
+        )
     return (
         f"{_SHORT[split]}: person pixels {share('person')} of the error "
         f"({dB('psnr_person')} over them, {dB('psnr_person_inner')} {INNER_PX} px or more inside the mask's edge, "
         f"{dB('psnr_person_coarse')} low-passed at {COARSE_PX:g} px, {dB('psnr_person_gain')} with the view's best "
         f"colour gains, {pixels('person')} of the crop); silhouette "
         f"disagreement {share('silhouette')} ({pixels('silhouette')} of the crop); the mask's boundary band "
-        f"{share('band')} ({pixels('band')}); background {share('background')}"
+        f"{share('band')} ({pixels('band')}); background {share('background')}{seen}"
     )
 
 

@@ -60,6 +60,8 @@ def test_tiny_fit_loss_falls_and_eval_writes_every_artefact(data_root_64, tmp_pa
     )
     markdown = (tmp_path / "run" / "eval" / "metrics.md").read_text()
     assert markdown.count("|") > 10 and "NN: person pixels" in markdown
+    assert "surfaces no training view saw face-on" in markdown  # the tiny capture's held-out cameras see some of them
+    assert 0.0 <= split["nb_crop"]["breakdown"]["pixels_unseen"] <= 1.0
     assert len(list((tmp_path / "run" / "eval" / "grids").rglob("*.png"))) == 4
 
 
@@ -155,6 +157,30 @@ def test_crop_error_breakdown_by_hand():
     )
     assert mean["breakdown"]["psnr_person"] == pytest.approx(20.0)
     assert mean["breakdown"]["pixels_band"] == pytest.approx(0.25)  # the band is the same in both views
+
+
+def test_the_unseen_surfaces_split_the_person_pixels_by_hand():
+    """Four opaque person pixels with colour errors 0.1, 0.2, 0.3 and 0.4 in every channel (squared 0.01, 0.04, 0.09,
+    0.16; sum 0.3): the last two show a surface no training view saw, so they are half the person pixels and 0.25 /
+    0.3 of their error, the PSNR elsewhere that of MSE 0.025 and there of MSE 0.125; pixels outside the person do not
+    count, even when marked (float64 sums of four terms: pytest.approx's default rtol 1e-6 is ample)."""
+    mask = np.zeros((12, 12))
+    mask[4, 4:8] = 1.0
+    truth = np.zeros((12, 12, 3))
+    pred = truth.copy()
+    pred[4, 4:8] = np.array([0.1, 0.2, 0.3, 0.4])[:, None]
+    unseen = np.zeros((12, 12), bool)
+    unseen[4, 6:8] = unseen[8, 8] = True
+    b = frame_metrics({"rgb": pred, "mask": mask}, truth, mask, np.ones((12, 12), bool), 0.0, mask < 0, unseen)
+    b = b["nb_crop"]["breakdown"]
+    assert b["pixels_unseen"] == 0.5
+    assert b["share_unseen"] == pytest.approx(0.25 / 0.3)
+    assert b["psnr_person_seen"] == pytest.approx(-10 * np.log10(0.025))
+    assert b["psnr_person_unseen"] == pytest.approx(-10 * np.log10(0.125))
+    everything_seen = frame_metrics({"rgb": pred, "mask": mask}, truth, mask, mask > 0, 0.0, mask < 0, unseen < 0)
+    b = everything_seen["nb_crop"]["breakdown"]
+    assert b["pixels_unseen"] == 0.0 and b["psnr_person_unseen"] is None
+    assert b["psnr_person_seen"] == pytest.approx(b["psnr_person"])
 
 
 def test_the_inner_person_pixels_lie_three_pixels_inside_the_mask():

@@ -63,3 +63,24 @@ def silhouette(camera: Camera, vertices: np.ndarray, faces: np.ndarray) -> np.nd
     for polygon in polygons:  # one call per triangle: fillPoly's even-odd rule would cancel overlaps
         cv2.fillConvexPoly(image, polygon, 1, lineType=cv2.LINE_8, shift=2)
     return image > 0
+
+
+def face_ids(camera: Camera, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(H, W) int32: the index of the mesh face each pixel shows, -1 where none (docs/model.md §7, *Surfaces the
+    training views saw*).
+
+    The faces are drawn far to near by the depth of their centroids (the painter's rule), each over the pixels that
+    ``silhouette`` would give it, so a nearer face overwrites the faces behind it; for a closed body mesh of small
+    triangles this agrees with a depth test except along the edges where two faces meet. Faces with a vertex
+    behind the camera are skipped.
+    """
+    depth = vertices @ camera.cam_from_world[2, :3] + camera.cam_from_world[2, 3]
+    pixels = project_distorted(camera, vertices)
+    inside = np.isfinite(pixels).all(-1) & (np.abs(pixels) < 1e5).all(-1)
+    drawn = np.nonzero((depth[faces] > 1e-3).all(axis=1) & inside[faces].all(axis=1))[0]
+    drawn = drawn[np.argsort(-depth[faces[drawn]].mean(axis=1), kind="stable")]
+    image = np.full((camera.height, camera.width), -1, np.int32)
+    polygons = np.round(pixels[faces[drawn]] * 4).astype(np.int32)  # 2 bits of sub-pixel precision
+    for index, polygon in zip(drawn.tolist(), polygons):
+        cv2.fillConvexPoly(image, polygon, index, lineType=cv2.LINE_8, shift=2)
+    return image

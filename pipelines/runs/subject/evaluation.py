@@ -24,11 +24,18 @@ from pipelines.body.locate import file_sha256
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.errors import CaptureError
 from pipelines.runs.requests import EvalRequest, refuse_options
+from pipelines.runs.subject.coverage import training_coverage, unseen_pixels
 from pipelines.runs.subject.session import capture_body_record, capture_gains, load_run, poses_for_frames
 
+#: the training views whose surfaces the error breakdown counts as seen are at most this many, evenly spread over
+#: the training split (docs/model.md §7, *Surfaces the training views saw*): neighbouring frames show nearly the same
+#: faces, and a capture of 23 cameras x 300 frames would otherwise take minutes
+COVERAGE_VIEWS = 240
 
-def _view_metrics(run, split: str, items, out_dir: Path, request: EvalRequest) -> list[dict]:
-    """Render every (frame, camera) of ``items`` and score it against the capture (full image and NB crop); the
+
+def _view_metrics(run, split: str, items, out_dir: Path, request: EvalRequest, coverage: np.ndarray) -> list[dict]:
+    """Render every (frame, camera) of ``items`` and score it against the capture (full image and NB crop, whose
+    breakdown tells apart the surfaces the training views saw: ``coverage`` (F,), from ``training_coverage``); the
     first ``request.grids`` views also go to ``out_dir/grids/<split>/``. Returns one record per view. The run's own
     capture is posed as the run shows it (corrected training frames); another capture (``run.other``) with its own
     poses."""
@@ -47,16 +54,17 @@ def _view_metrics(run, split: str, items, out_dir: Path, request: EvalRequest) -
         render = to_numpy(render_view(field, item.camera, pose, config))
         if gains is not None:
             render["rgb"] = np.clip(camera_response(render["rgb"], render["mask"], gains[cam], bg), 0.0, 1.0)
-        region = nb_crop_region(item.camera, capture.vertices(frame))
-        records.append(
-            {"frame": frame, "camera": cam, **frame_metrics(render, item.image, item.mask, region, bg, item.band)}
-        )
+        vertices = capture.vertices(frame)
+        region = nb_crop_region(item.camera, vertices)
+        unseen = unseen_pixels(item.camera, vertices, run.body_model.faces, coverage)
+        metrics = frame_metrics(render, item.image, item.mask, region, bg, item.band, unseen)
+        records.append({"frame": frame, "camera": cam, **metrics})
         if index < request.grids:
             save_png(out_dir / "grids" / split / f"frame{frame:05d}_cam{cam:02d}.png", grid(item.image, render))
     return records
 
 
-def _score_split(run, split: str, out_dir: Path, request: EvalRequest) -> dict:
+def _score_split(run, split: str, out_dir: Path, request: EvalRequest, coverage: np.ndarray) -> dict:
     """One split's report: the averages of both protocols, each view's record and, with ``request.mesh``, the
     surface against the true one (``pipelines.runs.subject.mesh.mesh_accuracy``, meshes in ``eval/meshes/``)."""
     if split == "capture":
@@ -66,7 +74,7 @@ def _score_split(run, split: str, out_dir: Path, request: EvalRequest) -> dict:
         items = spread(run.protocol.split(split), request.limit)
     if not items:
         raise ValueError(f"split '{split}' is empty for {run.capture.root} under the {run.protocol.name} protocol")
-    records = _view_metrics(run, split, items, out_dir, request)
+    records = _view_metrics(run, split, items, out_dir, request, coverage)
     result = {
         "n_views": len(records),
         "limit": request.limit,
@@ -116,7 +124,9 @@ def evaluate_run(run: Path | SavedRun, request: EvalRequest) -> dict:
             "poses": "corrected" if loaded.refined else "capture",
         }
 
-    score = lambda split: _score_split(loaded, split, out_dir, r)  # noqa: E731
+    views = spread(loaded.protocol.split("train"), COVERAGE_VIEWS)
+    coverage = training_coverage(loaded.capture, views, loaded.body_model.faces, r.progress)
+    score = lambda split: _score_split(loaded, split, out_dir, r, coverage)  # noqa: E731
     return evaluate_splits(out_dir, r.splits, score, header, markdown_table)
 
 
