@@ -153,7 +153,7 @@ def crop_error_breakdown(
 
     Args:
         rgb, gt_rgb: (H, W, 3) in [0, 1]. mask, gt_mask: (H, W) opacity and mask. gt_band, region: (H, W) bool.
-        unseen: optional (H, W) bool, the pixels that show a surface of the body no training view saw
+        unseen: optional (H, W) bool, the pixels that show a surface of the body no training view saw face-on
             (``pipelines.runs.subject.coverage``).
 
     Returns:

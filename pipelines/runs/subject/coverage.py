@@ -1,7 +1,7 @@
 """Surfaces the training views saw (docs/model.md §7, *Surfaces the training views saw*): which faces of the body
-model some training view shows inside the person's mask, and which pixels of an evaluated view show a face that none
-of them did. A held-out camera that sees the person's back, which no training camera saw, is scored there on colour
-the fit could only guess; the error breakdown reports those pixels apart."""
+model some training view shows inside the person's mask, facing it within 60 degrees, and which pixels of an
+evaluated view show a face that none of them did. A held-out camera that sees the person's back, which no training
+camera faced, is scored there on colour the fit could only guess; the error breakdown reports those pixels apart."""
 
 from __future__ import annotations
 
