@@ -52,25 +52,18 @@ def project_distorted(camera: Camera, points: np.ndarray) -> np.ndarray:
 
 
 def silhouette(camera: Camera, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
-    """(H, W) bool: pixels covered by the mesh's projected triangles (triangles behind the camera skipped)."""
-    depth = vertices @ camera.cam_from_world[2, :3] + camera.cam_from_world[2, 3]
-    pixels = project_distorted(camera, vertices)
-    front = faces[(depth[faces] > 1e-3).all(axis=1)]
-    image = np.zeros((camera.height, camera.width), np.uint8)
-    inside = np.isfinite(pixels).all(-1) & (np.abs(pixels) < 1e5).all(-1)
-    front = front[inside[front].all(axis=1)]
-    polygons = np.round(pixels[front] * 4).astype(np.int32)  # 2 bits of sub-pixel precision
-    for polygon in polygons:  # one call per triangle: fillPoly's even-odd rule would cancel overlaps
-        cv2.fillConvexPoly(image, polygon, 1, lineType=cv2.LINE_8, shift=2)
-    return image > 0
+    """(H, W) bool: pixels covered by the mesh's projected triangles (triangles behind the camera skipped): those
+    :func:`face_ids` gives a face."""
+    return face_ids(camera, vertices, faces) >= 0
 
 
 def face_ids(camera: Camera, vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     """(H, W) int32: the index of the mesh face each pixel shows, -1 where none (docs/model.md §7, *Surfaces the
     training views saw*).
 
-    The faces are drawn far to near by the depth of their centroids (the painter's rule), each over the pixels that
-    ``silhouette`` would give it, so a nearer face overwrites the faces behind it; for a closed body mesh of small
+    The faces are drawn far to near by the depth of their centroids (the painter's rule), each over the pixels its
+    projected triangle covers (one call a triangle: fillPoly's even-odd rule would cancel overlaps), so a nearer
+    face overwrites the faces behind it; for a closed body mesh of small
     triangles this agrees with a depth test except along the edges where two faces meet. Faces with a vertex
     behind the camera are skipped.
     """
