@@ -82,6 +82,11 @@ class ModelConfig:
     #: subject fits: size of a per-frame appearance code that the colour reads (NeRF-W's; 0: none). Evaluation and
     #: new poses use the zero code, the training frames' mean (docs/model.md §4, *Per-frame appearance*)
     appearance_dim: int = 0
+    #: subject fits: the colour's pose features xi of frames the fit did not train on (held-back and novel frames,
+    #: other recordings, new motions): ``nearest``, those of the trained frame whose pelvis stands nearest in the
+    #: world; ``own``, their own (the paper). Models whose density reads xi always use their own (docs/model.md §4,
+    #: *Colour of frames not trained on*)
+    novel_colour: Literal["nearest", "own"] = "nearest"
 
 
 @dataclass
@@ -324,6 +329,7 @@ KIND_ONLY = {
     "train.smoothness_weight": "subject",
     "train.mirror_weight": "subject",
     "model.appearance_dim": "subject",
+    "model.novel_colour": "subject",
     "train.appearance_decay": "subject",
 }
 #: The range of each numeric setting, as a test and its words (the message names the key, the range and the value).
@@ -445,8 +451,7 @@ def validate_config(config: FitConfig) -> None:
         raise ConfigError("render.occupancy: the occupancy grid is for per-subject fits (densities differ per person)")
     if config.train.colour_jitter and not spec.rays:
         raise ConfigError("train.colour_jitter: only the NeRF-type autoencoders use it")
-    model_class = getattr(spec.build, "func", spec.build)  # a constructor or a functools.partial of one
-    if getattr(model_class, "pose_in_density", True):  # the colour's pose settings would reach the geometry
+    if spec.pose_in_density:  # the colour's pose settings would reach the geometry
         for key, plain in (("pose_dropout", 0), ("pose_freqs", POSE_FREQS)):
             if getattr(config.model, key) != plain:
                 raise ConfigError(

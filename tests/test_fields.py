@@ -9,7 +9,7 @@ from kornia.geometry.linalg import transform_points
 from narf.encodings import frequency_window, positional_encoding, windowed
 from narf.fields import PoseBatch, build_field, model_names, paper_presets, paper_rows
 from narf.fields.base import masked_softmax, rescale_selection
-from narf.fields.common import part_box_coordinates, part_directions, part_local
+from narf.fields.common import colour_from_nearest_place, part_box_coordinates, part_directions, part_local
 from narf.geometry import se3_exp
 from narf.layers import EqualLinear, WNLinear, leaky_backward_relu, scaled_unit_rows
 from narf.renderer import render_image
@@ -629,3 +629,20 @@ def test_the_appearance_code_moves_the_colour_only_and_none_is_the_zero_code(nam
         field(points, dirs, PoseBatch(**{**pose.__dict__, "appearance": torch.zeros(4, 5)}))
     with pytest.raises(ValueError, match="not both"):
         _field(name, latent_dim=4, appearance_dim=3)
+
+
+def test_frames_not_trained_on_borrow_the_pose_features_of_the_trained_frame_standing_nearest():
+    """docs/model.md §4, *Colour of frames not trained on*, by hand: bank roots at x = 0, 1, 2 m (frame 3 also at 1 m:
+    the tie goes to the lower index); a frame at x = 1.4 takes bank frame 1's xi, one at x = 2.6 frame 2's, a kept
+    frame its own; the parts, reach, bones and offsets are the frame's own, exactly."""
+    bank, pose = _random_pose(n_frames=4, seed=1), _random_pose(n_frames=3, seed=2)
+    for batch, xs in ((bank, [0.0, 1.0, 2.0, 1.0]), (pose, [1.4, 2.6, 1.4])):
+        batch.world_from_part[:, 0, :3, 3] = torch.tensor([[x, 0.3, -0.2] for x in xs])
+    out = colour_from_nearest_place(pose, bank, torch.tensor([False, False, True]))
+    assert torch.equal(out.pose_features[0], bank.pose_features[1])
+    assert torch.equal(out.pose_features[1], bank.pose_features[2])
+    assert torch.equal(out.pose_features[2], pose.pose_features[2])
+    for key in ("world_from_part", "reach", "bone_lengths", "rest_offsets"):
+        assert torch.equal(getattr(out, key), getattr(pose, key))
+    with pytest.raises(ValueError, match="keep"):
+        colour_from_nearest_place(pose, bank, torch.tensor([True]))

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import nn
@@ -86,6 +86,31 @@ def cat_poses(batches: list[PoseBatch]) -> PoseBatch:
             ]
         fields[key] = None if any(v is None for v in values) else torch.cat(values)
     return PoseBatch(**fields)
+
+
+def colour_from_nearest_place(pose: PoseBatch, bank: PoseBatch, keep: torch.Tensor) -> PoseBatch:
+    """The colour's pose features of frames the fit did not train on, borrowed from the trained frame whose root part
+    stands nearest (docs/model.md §4, *Colour of frames not trained on*): frame b not kept takes
+    xi_b <- xi_n*, n* = argmin_n ||t_b - t_n|| with t the root part's world position (world_from_part[:, 0, :3, 3];
+    ties go to the lowest n). Only ``pose_features`` change: the parts, reach, bones and codes stay the frame's own.
+
+    Args:
+        pose: B frames to render.
+        bank: N >= 1 frames the fit trained on, with the same parts.
+        keep: (B,) bool, frames that are among the trained ones and keep their own xi.
+
+    Returns:
+        a PoseBatch of B frames.
+    """
+    check_shape("keep", keep, (pose.reach.shape[0],))
+    check_shape("bank pose_features", bank.pose_features, (-1, *pose.pose_features.shape[1:]))
+    if bank.reach.shape[0] == 0:
+        raise ValueError("colour_from_nearest_place: the bank of trained frames is empty")
+    roots, bank_roots = pose.world_from_part[:, 0, :3, 3], bank.world_from_part[:, 0, :3, 3].to(pose.reach)
+    distance = (roots[:, None] - bank_roots[None]).norm(dim=-1)  # (B, N), exact (cdist's matmul path is not)
+    borrowed = bank.pose_features.to(pose.pose_features).index_select(0, distance.argmin(dim=1))
+    features = torch.where(keep.to(pose.reach.device)[:, None, None], pose.pose_features, borrowed)
+    return replace(pose, pose_features=features)
 
 
 def part_local(points: torch.Tensor, dirs: torch.Tensor, pose: PoseBatch) -> tuple[torch.Tensor, torch.Tensor]:

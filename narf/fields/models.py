@@ -55,6 +55,12 @@ class ModelSpec:
         return self.family != "image"
 
     @property
+    def pose_in_density(self) -> bool:
+        """Its density reads the pose features xi (what the colour may do with xi would reach the geometry too); a
+        model whose class does not say (the CNN baseline) counts as reading them."""
+        return getattr(getattr(self.build, "func", self.build), "pose_in_density", True)
+
+    @property
     def meshes(self) -> bool:
         """A surface can be extracted from it (``narf-export-mesh``, ``narf-eval --mesh``), rigged included."""
         return self.family == "field"

@@ -104,6 +104,14 @@ def build_parser() -> argparse.ArgumentParser:
         "run's training poses and of the capture's own against it (RUN/eval/joints.json); alone, without --split, "
         "only this",
     )
+    parser.add_argument(
+        "--novel-colour",
+        choices=("nearest", "own"),
+        default=None,
+        help="subject runs: the colour's pose features of frames the fit did not train on (novel poses, held-back "
+        "frames, --capture): nearest, those of the trained frame whose pelvis stands nearest; own, their own (the "
+        "paper). Default: the run's model.novel_colour (nearest unless the fit set it)",
+    )
     add_smpl_dir(parser)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -144,6 +152,7 @@ def main(argv: list[str] | None = None) -> int:
         surreal=args.surreal,
         refine_steps=args.refine_steps,
         capture=args.capture,
+        novel_colour=args.novel_colour,
     )
     with folder_lock(args.run):  # not beside a fit (or another evaluation) of the same run
         report = kind.evaluate(run, request)

@@ -83,6 +83,8 @@ class ViewerData:
     full: int = 512
     settle_seconds: float = 0.25
     lock: threading.Lock = dataclass_field(default_factory=threading.Lock)
+    #: the pose features a subject run colours a shown pose with (``LoadedRun.colour_poses``); None: its own
+    colour: Callable | None = None
 
 
 class Session:
@@ -154,7 +156,8 @@ class Session:
         frame at the evaluation counts in bands of rows; None when a newer change (or closing) abandons it."""
         data, version, latent = self.data, self.version, self.latent()
         config = data.config if still else preview_config(data.config)
-        pose = self.pose.pose_batch().to(self.data.device)
+        pose = self.pose.pose_batch()
+        pose = (pose if data.colour is None else data.colour(pose)).to(data.device)
         bands, band_rows = [], max(16, camera.height // 4) if still else camera.height
         for top in range(0, camera.height, band_rows):
             rows = min(band_rows, camera.height - top)
@@ -430,7 +433,17 @@ def viewer_data(
     up = capture.floor.up if capture.floor is not None else camera_up(capture.cameras)
     out = run_folder(run_dir) / "viewer"
     return ViewerData(
-        run.field, run.config, sources, cameras, np.asarray(up, np.float64), device, out, [], preview, full
+        run.field,
+        run.config,
+        sources,
+        cameras,
+        np.asarray(up, np.float64),
+        device,
+        out,
+        [],
+        preview,
+        full,
+        colour=run.colour_poses,  # an edited pose is no capture frame: nearest-place colour (docs/model.md §4)
     )
 
 

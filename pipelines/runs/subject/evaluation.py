@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -25,7 +26,13 @@ from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.errors import CaptureError
 from pipelines.runs.requests import EvalRequest, refuse_options
 from pipelines.runs.subject.coverage import training_coverage, unseen_pixels
-from pipelines.runs.subject.session import capture_body_record, capture_gains, load_run, poses_for_frames
+from pipelines.runs.subject.session import (
+    borrows_colour,
+    capture_body_record,
+    capture_gains,
+    load_run,
+    poses_for_frames,
+)
 
 #: the training views whose surfaces the error breakdown counts as seen are at most this many, evenly spread over
 #: the training split (docs/model.md §7, *Surfaces the training views saw*): neighbouring frames show nearly the same
@@ -43,7 +50,7 @@ def _view_metrics(run, split: str, items, out_dir: Path, request: EvalRequest, c
     capture = run.capture if split != "capture" else run.other
     frames = sorted({f for f, _ in items})
     poses, _, _ = poses_for_frames(run if split != "capture" else capture, run.body_model, frames)
-    poses = poses.to(device)
+    poses = run.colour_poses(poses, frames if split != "capture" else None).to(device)
     bg = 1.0 if config.data.white_background else 0.0
     gains = capture_gains(capture, config)  # each camera's colour (docs/model.md §6)
     records = []
@@ -81,6 +88,7 @@ def _score_split(run, split: str, out_dir: Path, request: EvalRequest, coverage:
         "full": average_metrics(records, "full"),
         "nb_crop": average_metrics(records, "nb_crop"),
         "per_view": records,
+        "novel_colour": "nearest" if borrows_colour(run.config) else "own",  # docs/model.md §4
         **({"capture": str(run.other.root)} if split == "capture" else {}),
     }
     if request.mesh:
@@ -106,6 +114,9 @@ def evaluate_run(run: Path | SavedRun, request: EvalRequest) -> dict:
     if r.capture is not None and tuple(r.splits) != ("capture",):
         raise ValueError("--capture evaluates every frame and camera of the other recording as the split 'capture'")
     loaded = load_run(saved, r.device)
+    if r.novel_colour is not None:  # docs/model.md §4, *Colour of frames not trained on*
+        model = dataclasses.replace(loaded.config.model, novel_colour=r.novel_colour)
+        loaded.config = dataclasses.replace(loaded.config, model=model)
     if r.capture is not None:
         loaded.other = open_other_capture(loaded, run_dir, Path(r.capture))
     out_dir = run_dir / "eval"

@@ -59,7 +59,7 @@ def write_mesh(path: Path, mesh: ExtractedMesh) -> list[Path]:
 
 def _capture_pose(run: LoadedRun, frame: int, device: str):
     pose, _, _ = poses_for_frames(run, run.body_model, [frame])
-    return pose.to(device)
+    return run.colour_poses(pose, [frame]).to(device)  # the vertex colours' pose features (docs/model.md §4)
 
 
 def fit_level(run: LoadedRun, device: str, n_frames: int = 4, n_cameras: int = 4) -> LevelChoice:
@@ -117,7 +117,8 @@ def export_run_meshes(run: Path | SavedRun, request: ExportRequest) -> tuple[lis
     for k, p in enumerate(params):
         with torch.no_grad():
             body = run.body_model.pose_zju(*(torch.as_tensor(v)[None] for v in (p.poses, p.rh, p.th, p.shapes)))
-        mesh = extract_mesh(run.field, pose_batch(body).to(device), resolution, level, progress=progress)
+        pose = run.colour_poses(pose_batch(body))  # a new motion's colour (docs/model.md §4)
+        mesh = extract_mesh(run.field, pose.to(device), resolution, level, progress=progress)
         written += write_mesh(out.with_name(f"{out.stem}_{start + k:05d}{out.suffix}"), mesh)
     return written, record
 

@@ -118,7 +118,7 @@ def export_rigged(run: Path | SavedRun, request: ExportRequest) -> tuple[Path, d
     if r.motion is not None:
         animation, report = _animation(run, r, staged, stage_from_world)
     level, record = resolve_level(run, r.level, device)
-    pose = pose_batch(body).to(device)
+    pose = run.colour_poses(pose_batch(body), None if r.frame is None else [r.frame]).to(device)  # docs/model.md §4
     mesh = extract_mesh(run.field, pose, r.resolution, level, progress=r.progress)
     points = torch.as_tensor(mesh.vertices, dtype=torch.float32, device=device)
     probs = query_points(run.field, points, pose)["part_probs"]

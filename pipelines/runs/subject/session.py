@@ -24,7 +24,7 @@ from fitting.fitted import SavedRun, load_fitted, read_run
 from fitting.trainer import Trainer
 from fitting.trainers import trainer_class
 from narf.fields import model_spec
-from narf.fields.common import PoseBatch
+from narf.fields.common import PoseBatch, colour_from_nearest_place
 from pipelines.body.locate import (
     BODY_MODEL_RECORD,
     body_model_record,
@@ -104,9 +104,10 @@ def poses_for_frames(source, body_model: BodyModel, frames: list[int], template_
     return pose_batch(bodies), bodies, stack[3]
 
 
-def training_poses(capture: ZjuCapture, body_model: BodyModel, frames: list[int], chunk: int = 64) -> PoseBatch:
-    """PoseBatch of many frames, posed ``chunk`` at a time: the posed vertices (80 kB a frame) are never all held."""
-    parts = [poses_for_frames(capture, body_model, frames[i : i + chunk])[0] for i in range(0, len(frames), chunk)]
+def training_poses(source, body_model: BodyModel, frames: list[int], chunk: int = 64) -> PoseBatch:
+    """PoseBatch of many frames, posed ``chunk`` at a time: the posed vertices (80 kB a frame) are never all held;
+    ``source`` as for :func:`poses_for_frames`."""
+    parts = [poses_for_frames(source, body_model, frames[i : i + chunk])[0] for i in range(0, len(frames), chunk)]
     stacked = {k: [getattr(p, k) for p in parts] for k in PoseBatch.__dataclass_fields__}
     return PoseBatch(**{k: None if v[0] is None else torch.cat(v) for k, v in stacked.items()})
 
@@ -231,7 +232,9 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         capture_poses(source, body_model, frames) if config.train.pose_correction or refine else None,
         frames.index(held_frame),
         {"body_model": body_model_record(body_model.path), **gains_record(capture, gains)},
-        held_back_views(capture, protocol, body_model, held_back, device, progress),
+        held_back_views(
+            capture, protocol, body_model, held_back, device, progress, poses if borrows_colour(config) else None
+        ),
         None if gains is None else torch.as_tensor(gains[list(protocol.train_views)]),
         shells,
         mirrored,
@@ -272,11 +275,24 @@ def camera_views(capture, protocol, frames: list[int], poses, device, progress: 
     return TrainingSet(views, [i for i, _, _ in items], poses, device, store_dir=store, camera_of_view=slots)
 
 
-def held_back_views(capture, protocol, body_model: BodyModel, frames: list[int], device, progress: bool):
-    """The training cameras' views of the held-back ``frames``, in the capture's poses (None when none)."""
+def borrows_colour(config: FitConfig) -> bool:
+    """Frames the fit does not train on take their colour's pose features from the nearest trained frame
+    (``model.novel_colour``, docs/model.md §4, *Colour of frames not trained on*)."""
+    return config.model.novel_colour == "nearest" and not model_spec(config.model.name).pose_in_density
+
+
+def held_back_views(capture, protocol, body_model: BodyModel, frames: list[int], device, progress: bool, bank=None):
+    """The training cameras' views of the held-back ``frames``, in the capture's poses (None when none), coloured
+    as the evaluation colours them: with ``bank`` (the trained frames' poses, where :func:`borrows_colour`), the
+    pose features of the trained frame standing nearest."""
     if not frames:
         return None
-    return camera_views(capture, protocol, frames, training_poses(capture, body_model, frames), device, progress)
+    poses = training_poses(capture, body_model, frames)
+    if bank is not None:
+        poses = colour_from_nearest_place(
+            poses, bank.to(poses.reach.device), torch.zeros(len(frames), dtype=torch.bool)
+        )
+    return camera_views(capture, protocol, frames, poses, device, progress)
 
 
 def start(
@@ -309,11 +325,30 @@ class LoadedRun:
     refined: dict[int, SmplParams] = field(default_factory=dict)
     other: ZjuCapture | None = None  #: another capture being evaluated (``narf-eval --capture``)
     last_step: int | None = None  #: the fit's last step (``step`` is that of the weights kept: fitting.selection)
+    colour_bank: tuple | None = None  #: the trained frames' poses and numbers, once :meth:`colour_poses` needs them
 
     def params(self, frame: int) -> SmplParams:
         """A frame's body parameters as the run shows it: corrected for a training frame of a fit that corrected its
         poses, the capture's otherwise (held-out frames have no images to correct them with)."""
         return self.refined[frame] if frame in self.refined else self.capture.params(frame)
+
+    def trained_frames(self) -> list[int]:
+        """The capture frames the fit trained on (its training frames less those held back, :func:`split_holdout`)."""
+        return split_holdout(list(self.protocol.train_frames[:: self.config.data.frame_stride]), self.config.train)[0]
+
+    def colour_poses(self, poses: PoseBatch, frames: list[int] | None = None) -> PoseBatch:
+        """``poses`` with the colour's pose features the run renders them with (``model.novel_colour``, docs/model.md
+        §4, *Colour of frames not trained on*): ``frames``, the run's capture frames they pose (None: other frames,
+        such as another recording's or a new motion's); the trained ones keep their own, the others borrow those of
+        the trained frame standing nearest. Unchanged for ``own`` and for models whose density reads them."""
+        if not borrows_colour(self.config):
+            return poses
+        if self.colour_bank is None:
+            trained = self.trained_frames()
+            self.colour_bank = (training_poses(self, self.body_model, trained), set(trained))
+        bank, trained = self.colour_bank
+        keep = torch.tensor([f in trained for f in frames] if frames is not None else [False] * poses.reach.shape[0])
+        return colour_from_nearest_place(poses, bank, keep)
 
 
 def refined_params(state: dict, capture: ZjuCapture, path: Path) -> dict[int, SmplParams]:

@@ -154,20 +154,22 @@ def render_video(run: Path | SavedRun, request: VideoRequest) -> Path:
     shapes = torch.as_tensor(base.shapes)[None]
     frames_out = []
     if kind == "path":
-        params, cameras = path_views(run, r.camera_path, n_frames)
+        params, cameras, shown = path_views(run, r.camera_path, n_frames)
     elif kind == "poses" and r.motion is not None:
         params, report = motion_params(run, MotionClip(Path(r.motion), r.start, n_frames, r.fps, r.motion_fps))
         _report_motion(report, Path(out).with_suffix(".json"))
+        shown = [None] * len(params)  # a new motion: no capture frame
     elif kind == "poses":
-        params = [run.params(f) for f in list(protocol.novel_frames or protocol.train_frames)[:n_frames]]
+        shown = list(protocol.novel_frames or protocol.train_frames)[:n_frames]
+        params = [run.params(f) for f in shown]
     else:
-        params = [base] * n_frames
+        params, shown = [base] * n_frames, [held] * n_frames
     if kind == "orbit":
         cameras = orbit_cameras([c.scaled(capture.ratio) for c in capture.cameras], _pelvis(body_model, base), n_frames)
     elif kind != "path":
         cameras = [camera] * len(params)
-    for k, (p, cam) in enumerate(
-        tqdm(list(zip(params, cameras)), desc=f"video {kind}", unit="frame", disable=not progress)
+    for k, (p, cam, frame) in enumerate(
+        tqdm(list(zip(params, cameras, shown)), desc=f"video {kind}", unit="frame", disable=not progress)
     ):
         args = [torch.as_tensor(v)[None] for v in (p.poses, p.rh, p.th)]
         with torch.no_grad():
@@ -177,12 +179,14 @@ def render_video(run: Path | SavedRun, request: VideoRequest) -> Path:
                 pose = pose_batch(posed_from_rest_joints(args[0], rigid_from_rotvec_translation(*args[1:]), rest))
             else:
                 pose = pose_batch(body_model.pose_zju(*args, shapes))
+            pose = run.colour_poses(pose, None if frame is None else [frame])  # docs/model.md §4
         frames_out.append(video_frame(to_numpy(render_view(field, cam, pose.to(r.device), config))))
     return write_mp4(out, frames_out, r.fps)
 
 
-def path_views(run: LoadedRun, camera_path: Path | None, n_frames: int) -> tuple[list, list]:
-    """The capture parameters and cameras of ``n_frames`` views along a camera path (checked against the capture)."""
+def path_views(run: LoadedRun, camera_path: Path | None, n_frames: int) -> tuple[list, list, list[int]]:
+    """The capture parameters, cameras and capture frames of ``n_frames`` views along a camera path (checked against
+    the capture)."""
     if camera_path is None:
         raise ValueError("--kind path renders a camera path: give --camera-path FILE (saved by narf-view)")
     path = read_camera_path(camera_path)
@@ -203,7 +207,7 @@ def path_views(run: LoadedRun, camera_path: Path | None, n_frames: int) -> tuple
         )
         for v in views
     ]
-    return [run.params(v.frame) for v in views], cameras
+    return [run.params(v.frame) for v in views], cameras, [v.frame for v in views]
 
 
 def _report_motion(report: dict, path: Path) -> None:

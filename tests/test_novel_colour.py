@@ -1,0 +1,51 @@
+"""The colour of frames a fit did not train on (docs/model.md §4, *Colour of frames not trained on*)."""
+
+import dataclasses
+
+import torch
+
+from pipelines.runs.subject.session import load_run, poses_for_frames
+
+
+def test_novel_frames_take_the_nearest_trained_frames_pose_features_and_trained_frames_keep_theirs(tiny_run):
+    loaded = load_run(tiny_run)
+    trained = loaded.trained_frames()
+    novel = [f for f in range(loaded.capture.n_frames) if f not in trained]
+    assert trained and novel  # the tiny capture's narf protocol: frames 0..8 train, 9 is a novel pose
+    frames = [trained[0], novel[0], trained[-1]]
+    poses, _, _ = poses_for_frames(loaded, loaded.body_model, frames)
+    bank, _, _ = poses_for_frames(loaded, loaded.body_model, trained)
+    coloured = loaded.colour_poses(poses, frames)
+    assert torch.equal(coloured.pose_features[[0, 2]], poses.pose_features[[0, 2]])  # trained: their own, exactly
+    here = poses.world_from_part[1, 0, :3, 3].double()
+    gaps = [float((bank.world_from_part[k, 0, :3, 3].double() - here).norm()) for k in range(len(trained))]
+    nearest = min(range(len(trained)), key=gaps.__getitem__)  # by hand, in float64
+    assert torch.equal(coloured.pose_features[1], bank.pose_features[nearest])
+    assert not torch.equal(coloured.pose_features[1], poses.pose_features[1])
+    assert torch.equal(coloured.world_from_part, poses.world_from_part)  # the geometry's inputs are untouched
+    other = loaded.colour_poses(poses)  # no capture frames (another recording, a new motion): every frame borrows
+    assert torch.equal(other.pose_features[0], bank.pose_features[0])  # trained[0] stands at itself
+    model = dataclasses.replace(loaded.config.model, novel_colour="own")
+    loaded.config = dataclasses.replace(loaded.config, model=model)
+    assert loaded.colour_poses(poses, frames) is poses  # the paper's: each frame its own
+
+
+def test_narf_eval_records_the_novel_colour_and_its_flag_overrides_the_run(tiny_run, tmp_path):
+    """narf-eval --novel-colour: each split records which colour it was scored with; the training frames' own
+    views are the same either way, to the bit (they keep their own pose features)."""
+    import json
+    import shutil
+
+    from pipelines.cli import eval as cli_eval
+    from pipelines.cli.common import run_cli
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    shutil.rmtree(run / "eval", ignore_errors=True)
+    argv = ["--run", str(run), "--split", "same_pose_same_view", "--split", "novel_pose", "--limit", "1", "--quiet"]
+    reports = []
+    for extra in ([], ["--novel-colour", "own"]):
+        assert run_cli("narf-eval", cli_eval.main, [*argv, "--grids", "0", *extra]) == 0
+        reports.append(json.loads((run / "eval" / "metrics.json").read_text())["splits"])
+    assert [r["novel_pose"]["novel_colour"] for r in reports] == ["nearest", "own"]
+    assert reports[0]["same_pose_same_view"]["per_view"] == reports[1]["same_pose_same_view"]["per_view"]
