@@ -8,6 +8,7 @@ import sys
 from collections import deque
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 
 import numpy as np
@@ -336,6 +337,12 @@ class LoadedRun:
         """The capture frames the fit trained on (its training frames less those held back, :func:`split_holdout`)."""
         return split_holdout(list(self.protocol.train_frames[:: self.config.data.frame_stride]), self.config.train)[0]
 
+    @cached_property
+    def _colour_bank(self) -> tuple[PoseBatch, set[int]]:
+        """The trained frames' poses and numbers, posed once when :meth:`colour_poses` first needs them."""
+        trained = self.trained_frames()
+        return training_poses(self, self.body_model, trained), set(trained)
+
     def colour_poses(self, poses: PoseBatch, frames: list[int] | None = None) -> PoseBatch:
         """``poses`` with the colour's pose features the run renders them with (``model.novel_colour``, docs/model.md
         §4, *Colour of frames not trained on*): ``frames``, the run's capture frames they pose (None: other frames,
@@ -343,10 +350,7 @@ class LoadedRun:
         the trained frame standing nearest. Unchanged for ``own`` and for models whose density reads them."""
         if not borrows_colour(self.config):
             return poses
-        if self.colour_bank is None:
-            trained = self.trained_frames()
-            self.colour_bank = (training_poses(self, self.body_model, trained), set(trained))
-        bank, trained = self.colour_bank
+        bank, trained = self._colour_bank
         keep = torch.tensor([f in trained for f in frames] if frames is not None else [False] * poses.reach.shape[0])
         return colour_from_nearest_place(poses, bank, keep)
 
