@@ -157,6 +157,8 @@ class TrainConfig:
     select_every: int = 500  #: with a holdout: steps between scores of the held-back frames
     select_rays: int = 4096  #: with a holdout: the person pixels of the held-back frames each score renders
     keep: Literal["best", "last"] = "best"  #: with a holdout: evaluate the best-scoring weights or the last
+    #: >0: the weights scored, kept and evaluated are their moving average with this decay (docs/model.md §7; 0: off)
+    ema_decay: float = 0.0
     window_steps: int = 0  #: coarse-to-fine: steps over which gamma_10's frequencies open (0: all open from the start)
     window_start: float = 4.0  #: coarse-to-fine: the frequencies open at step 0 (docs/model.md §2)
 
@@ -325,6 +327,7 @@ KIND_ONLY = {
     "data.camera_gains": "subject",
     "train.random_background": "subject",
     "train.holdout_every": "subject",
+    "train.ema_decay": "subject",
     "train.entropy_weight": "subject",
     "train.smoothness_weight": "subject",
     "train.mirror_weight": "subject",
@@ -404,6 +407,7 @@ RANGES = {
     "train.holdout_every": (lambda v: v == 0 or v >= 2, "0 (none) or >= 2"),
     "train.select_every": (lambda v: v >= 1, ">= 1"),
     "train.select_rays": (lambda v: v >= 1, ">= 1"),
+    "train.ema_decay": (lambda v: 0 <= v < 1, "in [0, 1) (0: off)"),
     "train.window_steps": (lambda v: v >= 0, ">= 0 (0: off)"),
     "train.window_start": (lambda v: 0 <= v <= 10, "in [0, 10]"),
 }

@@ -15,7 +15,11 @@ from dataclasses import dataclass, field
 
 import torch
 
+from fitting.averaging import averaged_weights
+from fitting.config import FitConfig
 from fitting.data import RayBatch, TrainingSet
+from fitting.losses import ray_loss
+from narf.metrics import psnr
 
 #: seed of the selection rays' draw: the same pixels at every score and in a resumed fit
 SELECTION_SEED = 20211011
@@ -49,6 +53,30 @@ class Selection:
         self.best_model = {k: v.detach().to("cpu", copy=True) for k, v in model.state_dict().items()}
         return True
 
+    def score(self, config: FitConfig, field: torch.nn.Module, camera_colour=None) -> float:
+        """PSNR (dB) of ``field``'s colour at the fixed person pixels, deterministic samples at the evaluation counts,
+        the field in eval mode (no jitter or dropout); ``camera_colour`` as the training loss applies it."""
+        r, squared, count = config.render, 0.0, 0
+        training = field.training
+        field.eval()
+        with torch.no_grad():
+            for start in range(0, self.rays.origins.shape[0], r.chunk):
+                part = self.rays.take(slice(start, start + r.chunk))
+                _, colour = ray_loss(
+                    config,
+                    field,
+                    part,
+                    self.views.poses,
+                    None,
+                    r.eval_coarse,
+                    r.eval_fine,
+                    randomized=False,
+                    camera_colour=camera_colour,
+                )
+                squared, count = squared + float(colour) * part.rgb.numel(), count + part.rgb.numel()
+        field.train(training)
+        return float(psnr(torch.tensor(squared / max(count, 1))))
+
     def state(self) -> dict:
         """The checkpoint's ``selection`` entry."""
         return {
@@ -75,8 +103,10 @@ def selection_set(views: TrainingSet, n_rays: int) -> Selection:
 
 def kept_weights(state: dict, keep: str) -> tuple[dict, int]:
     """The weights a run is evaluated with and their step: the selection's best when ``keep`` is ``best`` and the
-    checkpoint has one, else the last."""
+    checkpoint has one (the average's, with ``train.ema_decay``), else the last (averaged when the fit kept an
+    average, ``fitting.averaging``)."""
     selection = state.get("selection") or {}
     if keep == "best" and selection.get("model") is not None:
         return selection["model"], int(selection["best_step"])
-    return state["model"], int(state["step"])
+    averaged = averaged_weights(state)
+    return (state["model"] if averaged is None else averaged), int(state["step"])

@@ -60,7 +60,8 @@ def test_a_fit_with_held_back_frames_scores_them_and_is_evaluated_at_its_best_st
         assert torch.equal(value, state["selection"]["model"][name]), name
     # the score is the field's: rendering the same fixed rays again gives the same PSNR (deterministic samples)
     trainer.field.load_state_dict(state["selection"]["model"])
-    assert trainer.score_selection() == pytest.approx(best, abs=1e-4)  # float32 sums over 4,096 rays
+    score = trainer.selection.score(config, trainer.field, trainer.colour_response)
+    assert score == pytest.approx(best, abs=1e-4)  # float32 sums over 4,096 rays
 
 
 def test_evaluation_loads_the_kept_weights_not_the_last(tiny_run, tmp_path):
