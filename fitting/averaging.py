@@ -43,10 +43,6 @@ class WeightAverage:
         self._update(list(self.average.values()), [current[name].detach() for name in self.average], self.updates)
         self.updates += 1
 
-    def weights(self, module: torch.nn.Module) -> dict:
-        """``module``'s state_dict with its parameters replaced by their averages (buffers as they are)."""
-        return {**module.state_dict(), **self.average}
-
     @contextlib.contextmanager
     def applied(self, module: torch.nn.Module) -> Iterator[None]:
         """Within the block ``module`` holds the averaged parameters; its own come back after it."""
