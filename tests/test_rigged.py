@@ -327,7 +327,7 @@ def test_khronos_validator_finds_no_issue(rigged):
     done = subprocess.run(
         ["node", "-e", VALIDATE, str(VALIDATOR), str(rigged[0])], capture_output=True, text=True, timeout=120
     )
-    issues = json.loads(done.stdout.strip().splitlines()[-1])
+    findings = json.loads(done.stdout.strip().splitlines()[-1])
     # no errors, and no warnings, infos or hints either (unused data, non-unit quaternions, unsorted times, ...)
-    assert issues.get("numErrors") == 0, issues
-    assert (issues["numWarnings"], issues["numInfos"], issues["numHints"]) == (0, 0, 0), issues["messages"]
+    assert findings.get("numErrors") == 0, findings
+    assert (findings["numWarnings"], findings["numInfos"], findings["numHints"]) == (0, 0, 0), findings["messages"]
