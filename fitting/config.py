@@ -156,6 +156,9 @@ class TrainConfig:
     holdout_every: int = 0  #: subject fits: every n-th training frame is held back to choose the step kept (0: none)
     select_every: int = 500  #: with a holdout: steps between scores of the held-back frames
     select_rays: int = 4096  #: with a holdout: the person pixels of the held-back frames each score renders
+    #: with a holdout: a later step is kept when its score lies within this many paired standard errors of the best
+    #: score's (0: the best score alone; fitting.selection)
+    select_margin: float = 0.0
     keep: Literal["best", "last"] = "best"  #: with a holdout: evaluate the best-scoring weights or the last
     #: >0: the weights scored, kept and evaluated are their moving average with this decay (docs/model.md §7; 0: off)
     ema_decay: float = 0.0
@@ -406,6 +409,7 @@ RANGES = {
     "train.virtual_patches": (lambda v: v >= 1, ">= 1"),
     "train.holdout_every": (lambda v: v == 0 or v >= 2, "0 (none) or >= 2"),
     "train.select_every": (lambda v: v >= 1, ">= 1"),
+    "train.select_margin": (lambda v: v >= 0, ">= 0"),
     "train.select_rays": (lambda v: v >= 1, ">= 1"),
     "train.ema_decay": (lambda v: 0 <= v < 1, "in [0, 1) (0: off)"),
     "train.window_steps": (lambda v: v >= 0, ">= 0 (0: off)"),

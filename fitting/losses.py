@@ -98,3 +98,12 @@ def batch_loss(
     robust = colour_error(partial(pseudo_huber, delta=delta)) if delta > 0 else colour
     mask_term = (batch.mask_weight * (out.mask - batch.mask).pow(2)).sum() / mask_count
     return robust + config.train.mask_weight * mask_term, colour
+
+
+def ray_colour_errors(config: FitConfig, out: RenderOutput, batch, camera_colour=None) -> torch.Tensor:
+    """(R,) each ray's squared colour error, the mean over its channels: C = T_c(sum w c) + (1 - M) bg against the
+    target, ``out`` rendered over black as :func:`ray_loss` renders it, ``camera_colour`` (T_c) applied as it applies
+    it. Their mean is :func:`ray_loss`'s colour MSE without random backgrounds."""
+    background = 1.0 if config.data.white_background else 0.0
+    rgb = out.rgb if camera_colour is None else camera_colour(out.rgb, out.mask, batch.cameras)
+    return (rgb + (1 - out.mask)[:, None] * background - batch.rgb).square().mean(dim=-1)

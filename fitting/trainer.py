@@ -27,7 +27,7 @@ from fitting.model_setup import encoding_window, make_field
 from fitting.plots import write_curve, write_validation
 from fitting.run_folder import add_to_last_row, trim_log, write_config
 from fitting.schedule import Budget, lr_factor
-from fitting.selection import selection_set
+from fitting.selection import paired_error_db, selection_set
 from fitting.training_rays import RaySet, render_ray_sets
 from fitting.unseen import VirtualTerm, mirror_terms, terms_value, unseen_terms
 from narf.fields.common import PoseBatch
@@ -101,7 +101,11 @@ class Trainer:
             self.field.forward = torch.compile(self.field.forward, dynamic=True)
         self._build_extra_modules()
         self._build_corrections(data)
-        self.selection = None if data.selection is None else selection_set(data.selection, config.train.select_rays)
+        self.selection = (
+            None
+            if data.selection is None
+            else selection_set(data.selection, config.train.select_rays, config.train.select_margin)
+        )
         decay = config.train.ema_decay  # the weights' moving average (fitting.averaging), from the initial weights
         self.average = WeightAverage(self.field, decay) if decay else None
         self.rays_per_step = config.train.images_per_step * config.train.rays_per_image
@@ -459,8 +463,10 @@ class Trainer:
 
     def _select(self, due: bool) -> dict:
         """When ``due`` and the fit holds frames back, score them (``fitting.selection``; once per step) and keep the
-        weights if they are the best: the log's ``select_psnr`` and ``best_step``, else {}. With ``train.ema_decay``
-        the weights scored and kept are the average (``fitting.averaging``), and the raw weights' score is logged
+        weights if they are the best or within ``train.select_margin`` of it: the log's ``select_psnr``,
+        ``select_se_db`` (the paired standard error against the best score so far,
+        ``fitting.selection.paired_error_db``) and ``best_step``, else {}. With ``train.ema_decay`` the weights
+        scored and kept are the average (``fitting.averaging``), and the raw weights' score is logged
         beside as ``select_psnr_raw``."""
         if not due or self.selection is None or not self.processes.is_main:
             return {}
@@ -470,9 +476,11 @@ class Trainer:
         if self.average is not None:
             raw = {"select_psnr_raw": self.selection.score(self.config, self.field, self.colour_response)}
         with self.kept_weights():
-            score = self.selection.score(self.config, self.field, self.colour_response)
-            self.selection.update(self.step, score, self.field)
-        return {"select_psnr": score, **raw, "best_step": self.selection.best_step}
+            errors = self.selection.errors(self.config, self.field, self.colour_response)
+            spread = paired_error_db(errors, self.selection.leader_errors)
+            self.selection.update(self.step, errors, self.field)
+        score = self.selection.history[-1][1]
+        return {"select_psnr": score, "select_se_db": spread, **raw, "best_step": self.selection.best_step}
 
     def kept_weights(self):
         """A block in which the field holds the weights a run is evaluated with: the average with

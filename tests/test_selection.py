@@ -2,6 +2,7 @@
 ``train.select_every`` steps, and the best-scoring weights are the ones evaluated (``train.keep``)."""
 
 import json
+import math
 
 import pytest
 import torch
@@ -9,8 +10,10 @@ import torch
 from fitting.checkpoint import load_checkpoint, save_checkpoint
 from fitting.config import load_config
 from fitting.fitted import load_fitted
+from fitting.losses import ray_loss
 from fitting.run_folder import prepare_run_dir
-from fitting.selection import Selection, kept_weights
+from fitting.selection import Selection, kept_weights, paired_error_db
+from narf.metrics import psnr
 from pipelines.runs.fit import start_run
 from pipelines.runs.subject.session import split_holdout
 
@@ -28,15 +31,58 @@ def test_split_holdout_takes_the_middle_of_every_n():
 def test_the_best_score_keeps_its_weights():
     model = torch.nn.Linear(2, 1)
     selection = Selection(views=None, rays=None)
-    assert selection.update(10, 12.0, model)
+    assert selection.update(10, torch.full((8,), 10 ** (-1.2)), model)  # 12 dB
     kept = {k: v.clone() for k, v in model.state_dict().items()}
     with torch.no_grad():
         model.weight += 1
-    assert not selection.update(20, 11.0, model)  # worse: the step-10 weights stay
+    assert not selection.update(20, torch.full((8,), 10 ** (-1.1)), model)  # 11 dB, worse: the step-10 weights stay
     assert selection.best_step == 10 and torch.equal(selection.best_model["weight"], kept["weight"])
+    assert selection.history == [(10, pytest.approx(12.0)), (20, pytest.approx(11.0))]
     state = {"model": model.state_dict(), "step": 20, "selection": selection.state()}
     assert kept_weights(state, "best")[1] == 10 and kept_weights(state, "last")[1] == 20
     assert kept_weights({"model": {}, "step": 7}, "best")[1] == 7  # no holdout: the last
+
+
+def test_the_paired_standard_error_by_hand():
+    """reference 0.01 on 4 rays, d = (2, 0, 2, 0) x 1e-3: mean(d) = 1e-3, std(d) = 1e-3 sqrt(4 / 3) (Bessel),
+    SE = std / 2 = 5.7735e-4, in dB 10 / ln 10 x SE / 0.01 = 0.25074 dB; the scores differ by 10 log10 1.1 =
+    0.41393 dB."""
+    reference = torch.full((4,), 0.01)
+    errors = reference + torch.tensor([2e-3, 0.0, 2e-3, 0.0])
+    assert paired_error_db(errors, reference) == pytest.approx(0.25074, rel=1e-4)  # float32 inputs, sums in float64
+    assert paired_error_db(errors, None) == 0.0 and paired_error_db(errors, reference[:3]) == 0.0
+
+
+@pytest.mark.parametrize("margin, kept", [(0.0, 10), (1.0, 10), (2.0, 20)])
+def test_a_later_score_within_the_margin_is_kept(margin, kept):
+    """The step-20 score lies 0.414 dB below the leader's, 1.65 paired standard errors (the values above): kept
+    with a margin of 2, not of 1 or 0. The leader stays step 10 either way, and a step 30 far below it (0 spread,
+    1.46 dB below) keeps what was kept."""
+    model = torch.nn.Linear(2, 1)
+    selection = Selection(views=None, rays=None, margin=margin)
+    reference = torch.full((4,), 0.01)
+    assert selection.update(10, reference, model)
+    assert selection.update(20, reference + torch.tensor([2e-3, 0.0, 2e-3, 0.0]), model) == (kept == 20)
+    assert not selection.update(30, reference * 1.4, model)
+    assert (selection.best_step, selection.leader_step) == (kept, 10)
+    assert selection.best_psnr == pytest.approx(20.0 if kept == 10 else 20 - 10 * math.log10(1.1))
+    assert selection.update(40, reference * 0.9, model)  # a new leader is kept at any margin
+    assert selection.best_step == selection.leader_step == 40
+
+
+def test_a_restored_selection_keeps_its_leader():
+    model = torch.nn.Linear(2, 1)
+    selection = Selection(views=None, rays=None, margin=2.0)
+    selection.update(10, torch.full((4,), 0.01), model)
+    selection.update(20, torch.full((4,), 0.01) + torch.tensor([2e-3, 0.0, 2e-3, 0.0]), model)
+    restored = Selection(views=None, rays=None, margin=2.0)
+    restored.restore(selection.state())
+    assert (restored.best_step, restored.leader_step) == (20, 10)
+    assert torch.equal(restored.leader_errors, selection.leader_errors)
+    # a checkpoint from before the margin: its best is the leader, with no errors to pair against
+    old = {"best_step": 10, "best_psnr": 20.0, "model": None, "history": [[10, 20.0]]}
+    restored.restore(old)
+    assert (restored.leader_step, restored.leader_psnr, restored.leader_errors) == (10, 20.0, None)
 
 
 def test_a_fit_with_held_back_frames_scores_them_and_is_evaluated_at_its_best_step(data_root_64, tmp_path):
@@ -62,6 +108,14 @@ def test_a_fit_with_held_back_frames_scores_them_and_is_evaluated_at_its_best_st
     trainer.field.load_state_dict(state["selection"]["model"])
     score = trainer.selection.score(config, trainer.field, trainer.colour_response)
     assert score == pytest.approx(best, abs=1e-4)  # float32 sums over 4,096 rays
+    # the rays' errors average to the training loss's colour MSE over the same rays (fitting.losses.ray_loss)
+    trainer.field.eval()
+    with torch.no_grad():
+        r = config.render
+        rays, poses = trainer.selection.rays, trainer.selection.views.poses
+        _, colour = ray_loss(config, trainer.field, rays, poses, None, r.eval_coarse, r.eval_fine, randomized=False)
+    assert psnr(colour).item() == pytest.approx(score, abs=1e-4)  # the same float32 sums, grouped otherwise
+    assert all(row["select_se_db"] >= 0 for row in rows if "select_psnr" in row)
 
 
 def test_evaluation_loads_the_kept_weights_not_the_last(tiny_run, tmp_path):
