@@ -159,7 +159,7 @@ class TrainConfig:
     #: with a holdout: a later step is kept when its score lies within this many paired standard errors of the best
     #: score's (0: the best score alone; fitting.selection)
     select_margin: float = 0.0
-    keep: Literal["best", "last"] = "best"  #: with a holdout: evaluate the best-scoring weights or the last
+    keep: Literal["best", "last"] = "best"  #: with a holdout: evaluate the weights the selection kept or the last
     #: >0: the weights scored, kept and evaluated are their moving average with this decay (docs/model.md §7; 0: off)
     ema_decay: float = 0.0
     window_steps: int = 0  #: coarse-to-fine: steps over which gamma_10's frequencies open (0: all open from the start)
