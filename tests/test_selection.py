@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from fitting.checkpoint import load_checkpoint, save_checkpoint
-from fitting.config import load_config
+from fitting.config import ConfigError, load_config
 from fitting.fitted import load_fitted
 from fitting.losses import ray_loss
 from fitting.run_folder import prepare_run_dir
@@ -163,3 +163,9 @@ def test_a_fit_that_runs_out_of_time_logs_the_score_of_its_last_step(data_root_6
     assert [row["step"] for row in rows if "select_psnr" in row] == [4, stop]
     assert rows[-1]["select_psnr"] == pytest.approx(trainer.selection.history[-1][1])
     assert rows[-1]["loss"] == pytest.approx(result.loss)
+
+
+def test_a_negative_margin_is_refused():
+    with pytest.raises(ConfigError, match="select_margin"):
+        load_config("tiny", ["train.select_margin=-1"])
+    assert load_config("cpu").train.select_margin == 2.0 and load_config("tiny").train.select_margin == 0.0
