@@ -371,6 +371,14 @@ class RowAdam(torch.optim.Optimizer):
         return None
 
 
+def composited_colour(out, batch, background: float | torch.Tensor, camera_colour=None) -> torch.Tensor:
+    """(R, 3) C = T_c(sum w c) + (1 - M) bg: ``out`` rendered over black, ``camera_colour`` (T_c, a
+    :class:`CameraColour`, or None) applied per ray's camera ``batch.cameras``, composited over ``background`` (a
+    value, or (R, 3) one colour per ray)."""
+    rgb = out.rgb if camera_colour is None else camera_colour(out.rgb, out.mask, batch.cameras)
+    return rgb + (1 - out.mask)[:, None] * background
+
+
 def corrected_colour_error(
     out, batch, background, camera_colour, backgrounds, colour_count, mask_count, penalty=torch.square
 ):
@@ -378,9 +386,8 @@ def corrected_colour_error(
     random backgrounds (R, 3): ``out`` was rendered on black, so C = T_c(sum w c) + (1 - M) bg, against the mask's
     colour inside it and bg outside; the band's rays leave the term when the backgrounds are random.
     ``colour_count`` / ``mask_count``: the normalisers of ``ray_loss``; ``penalty``: of each channel's residual."""
-    rgb = out.rgb if camera_colour is None else camera_colour(out.rgb, out.mask, batch.cameras)
     if backgrounds is None:
-        return penalty(rgb + (1 - out.mask)[:, None] * background - batch.rgb).sum() / colour_count
+        return penalty(composited_colour(out, batch, background, camera_colour) - batch.rgb).sum() / colour_count
     target = torch.where(batch.mask[:, None] > 0.5, batch.rgb, backgrounds)
-    error = penalty(rgb + (1 - out.mask)[:, None] * backgrounds - target).sum(dim=-1)
+    error = penalty(composited_colour(out, batch, backgrounds, camera_colour) - target).sum(dim=-1)
     return (batch.mask_weight * error).sum() / (3 * mask_count)

@@ -9,7 +9,7 @@ import torch
 from kornia.losses import charbonnier_loss
 
 from fitting.config import FitConfig
-from fitting.corrections import corrected_colour_error
+from fitting.corrections import composited_colour, corrected_colour_error
 from fitting.training_rays import render_training_rays
 from narf.renderer import RenderOutput
 
@@ -105,5 +105,4 @@ def ray_colour_errors(config: FitConfig, out: RenderOutput, batch, camera_colour
     target, ``out`` rendered over black as :func:`ray_loss` renders it, ``camera_colour`` (T_c) applied as it applies
     it. Their mean is :func:`ray_loss`'s colour MSE without random backgrounds."""
     background = 1.0 if config.data.white_background else 0.0
-    rgb = out.rgb if camera_colour is None else camera_colour(out.rgb, out.mask, batch.cameras)
-    return (rgb + (1 - out.mask)[:, None] * background - batch.rgb).square().mean(dim=-1)
+    return (composited_colour(out, batch, background, camera_colour) - batch.rgb).square().mean(dim=-1)

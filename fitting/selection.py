@@ -77,13 +77,12 @@ class Selection:
         """(R,) squared colour errors (channel mean) of ``field`` at the fixed person pixels, on the CPU:
         deterministic samples at the evaluation counts, the field in eval mode (no jitter or dropout),
         ``camera_colour`` as the training loss applies it. Their mean's PSNR is the score."""
-        r, parts = config.render, []
+        r, poses, parts = config.render, self.views.poses, []
         training = field.training
         field.eval()
         with torch.no_grad():
             for start in range(0, self.rays.origins.shape[0], r.chunk):
                 part = self.rays.take(slice(start, start + r.chunk))
-                poses = self.views.poses
                 out = render_training_rays(
                     config,
                     field,
