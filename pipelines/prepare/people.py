@@ -7,6 +7,10 @@ frames; tracks that follow one another in time, the second starting within that 
 one person, and so are tracks whose centres agree in every frame both have. ``--person`` then picks one track: the one
 seen best (most agreeing views over the recording), the largest in the images, or the one nearest a point of the
 world or a pixel of a camera.
+
+A person and their left/right mirror reproject alike in every view (a detector's labels swapped), so each frame's
+consensus may find either; a track's sides are made to hold from frame to frame (:func:`orient_sides`) before it
+guides the triangulation.
 """
 
 from __future__ import annotations
@@ -17,6 +21,7 @@ import numpy as np
 
 from pipelines.datasets.camera import Camera, project_distorted
 from pipelines.datasets.errors import CaptureError
+from pipelines.datasets.keypoints import TARGETS, mirror_index
 from pipelines.prepare.multiview import consensus, project, triangulate_robust
 
 #: metres a followed person may move per frame (a sprinter at 60 fps moves 0.2 m); beyond it, it is somebody else
@@ -32,14 +37,20 @@ JOIN_RADIUS = 1.0
 SAME_PERSON = 0.3
 #: the choices of ``--person`` besides a point or a pixel
 CHOICES = ("best-seen", "largest")
+#: a frame keeps the sides of the frame before it when one of its two orientations (as found, or mirrored left for
+#: right) lies at most this fraction of the other's distance from it; else the sides are undecided there and a new
+#: stretch of frames begins (:func:`orient_sides`)
+SIDE_RATIO = 0.5
 
 
 @dataclass
 class Track:
-    """One person over the frames: ``points[frame]`` (T, 3) triangulated targets, ``views[frame]`` agreeing views."""
+    """One person over the frames: ``points[frame]`` (T, 3) triangulated targets, ``views[frame]`` agreeing views,
+    ``sides[frame]`` the agreeing views whose detection was taken as labelled minus those taken mirrored (absent: 0)."""
 
     points: dict[int, np.ndarray] = field(default_factory=dict)
     views: dict[int, int] = field(default_factory=dict)
+    sides: dict[int, int] = field(default_factory=dict)
 
     @property
     def first(self) -> int:
@@ -120,17 +131,18 @@ def _centre_distance(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.linalg.norm(np.nanmedian(a, axis=0) - np.nanmedian(b, axis=0)))
 
 
-def link_tracks(per_frame: dict[int, list[tuple[np.ndarray, int]]]) -> list[Track]:
-    """Tracks from each frame's people (``per_frame[frame]``: (targets, agreeing views)), frames in order: each
-    person joins the open track whose centre is nearest, within :func:`reach` of the frames since it was last seen
-    (nearest pairs first), else starts one; then tracks that follow one another are joined (module docstring)."""
+def link_tracks(per_frame: dict[int, list[tuple]]) -> list[Track]:
+    """Tracks from each frame's people (``per_frame[frame]``: (targets, agreeing views) or (targets, agreeing views,
+    side votes as ``Track.sides``)), frames in order: each person joins the open track whose centre is nearest,
+    within :func:`reach` of the frames since it was last seen (nearest pairs first), else starts one; then tracks
+    that follow one another are joined (module docstring)."""
     tracks: list[Track] = []
     for frame in sorted(per_frame):
         people = per_frame[frame]
         open_tracks = [t for t in tracks if 0 < frame - t.last <= MAX_GAP]
         pairs = sorted(
-            (_centre_distance(points, t.points[t.last]), i, k)
-            for i, (points, _) in enumerate(people)
+            (_centre_distance(person[0], t.points[t.last]), i, k)
+            for i, person in enumerate(people)
             for k, t in enumerate(open_tracks)
         )
         taken_people, taken_tracks = set(), set()
@@ -138,13 +150,49 @@ def link_tracks(per_frame: dict[int, list[tuple[np.ndarray, int]]]) -> list[Trac
             track = open_tracks[k]
             if i in taken_people or k in taken_tracks or distance > reach(frame - track.last):
                 continue
-            track.points[frame], track.views[frame] = people[i]
+            _add(track, frame, *people[i])
             taken_people.add(i)
             taken_tracks.add(k)
-        for i, (points, views) in enumerate(people):
+        for i, person in enumerate(people):
             if i not in taken_people:
-                tracks.append(Track({frame: points}, {frame: views}))
+                tracks.append(_add(Track(), frame, *person))
     return _joined(tracks)
+
+
+def _add(track: Track, frame: int, points: np.ndarray, views: int, sides: int = 0) -> Track:
+    track.points[frame], track.views[frame], track.sides[frame] = points, views, sides
+    return track
+
+
+def orient_sides(track: Track) -> Track:
+    """The track with each frame's targets as found or mirrored left for right, so that its sides hold over time.
+
+    A person and their mirror reproject alike, so a frame's consensus may find either. Each frame takes the
+    orientation nearer the frame before it (median distance over the targets) when that one lies at most
+    ``SIDE_RATIO`` of the other's distance; else (a gap, a person standing in a mirror-symmetric pose) a new stretch
+    begins. Each stretch then takes, as a whole, the orientation most of its views' detections give
+    (``Track.sides`` summed): the detectors' labels decide which side is left, continuity which frames they
+    swapped. Returns a new Track (``sides`` as oriented); ``views`` are shared.
+    """
+    order = [mirror_index(t) for t in range(len(TARGETS))]
+    frames = sorted(track.points)
+    points, sides = dict(track.points), dict(track.sides)
+    stretches: list[list[int]] = []
+    for i, frame in enumerate(frames):
+        if i:
+            before = points[frames[i - 1]]
+            as_found, mirrored = _distance(points[frame], before), _distance(points[frame][order], before)
+            if np.isfinite(max(as_found, mirrored)) and min(as_found, mirrored) <= SIDE_RATIO * max(as_found, mirrored):
+                if mirrored < as_found:
+                    points[frame], sides[frame] = points[frame][order], -sides.get(frame, 0)
+                stretches[-1].append(frame)
+                continue
+        stretches.append([frame])
+    for stretch in stretches:
+        if sum(sides.get(f, 0) for f in stretch) < 0:
+            for frame in stretch:
+                points[frame], sides[frame] = points[frame][order], -sides.get(frame, 0)
+    return Track(points, track.views, sides)
 
 
 def _joined(tracks: list[Track]) -> list[Track]:
@@ -157,7 +205,7 @@ def _joined(tracks: list[Track]) -> list[Track]:
         if same:
             for frame, points in track.points.items():
                 if frame not in same[0].points:
-                    same[0].points[frame], same[0].views[frame] = points, track.views[frame]
+                    _add(same[0], frame, points, track.views[frame], track.sides.get(frame, 0))
             continue
         # the candidates within their own reach: a nearer track out of its reach is somebody else
         candidates = [
@@ -171,6 +219,7 @@ def _joined(tracks: list[Track]) -> list[Track]:
             earlier = out[min(candidates)[1]]
             earlier.points.update(track.points)
             earlier.views.update(track.views)
+            earlier.sides.update(track.sides)
         else:
             out.append(track)
     return out

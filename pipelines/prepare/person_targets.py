@@ -21,7 +21,15 @@ from pipelines.prepare.multiview import (
     triangulate_robust,
     undistort_points,
 )
-from pipelines.prepare.people import TRACK_RADIUS, Track, link_tracks, matches, people_in_frame, reach
+from pipelines.prepare.people import (
+    TRACK_RADIUS,
+    Track,
+    link_tracks,
+    matches,
+    orient_sides,
+    people_in_frame,
+    reach,
+)
 
 #: least detector confidence of a keypoint that is used
 MIN_CONFIDENCE = 0.3
@@ -97,16 +105,24 @@ def _nearest(P, undistorted, person, chosen, xyz) -> np.ndarray:
 
 
 def find_tracks(cameras: list[Camera], people, frames: list[int], threshold: float) -> list[Track]:
-    """Every person the views agree on in ``frames``, linked into tracks (``pipelines.prepare.people``); ``people``
-    and ``threshold`` as :func:`triangulate_people`'s."""
+    """Every person the views agree on in ``frames``, linked into tracks whose sides hold over time
+    (``pipelines.prepare.people``, ``orient_sides``); ``people`` and ``threshold`` as :func:`triangulate_people`'s."""
     P = np.stack([projection_matrix(c) for c in cameras])
     heights = np.array([c.height for c in cameras], np.float64)
     per_frame = {}
     for frame in frames:
         undistorted = _undistorted_people(cameras, [_with_mirrored(people[v].get(frame, [])) for v in range(len(P))])
         found = people_in_frame(P, undistorted, heights, threshold)
-        per_frame[frame] = [(xyz, sum(p >= 0 for p in person)) for xyz, person in found]
-    return link_tracks(per_frame)
+        per_frame[frame] = [
+            (xyz, sum(p >= 0 for p in person), _side_votes(undistorted, person)) for xyz, person in found
+        ]
+    return [orient_sides(track) for track in link_tracks(per_frame)]
+
+
+def _side_votes(undistorted: list[list[np.ndarray]], person: list[int]) -> int:
+    """The agreeing views whose detection was taken as labelled minus those taken mirrored (each view's list holds
+    its detections, then their mirrors: ``_with_mirrored``)."""
+    return sum(1 if p < len(found) // 2 else -1 for found, p in zip(undistorted, person) if p >= 0)
 
 
 def triangulate_people(
