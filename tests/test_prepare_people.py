@@ -51,6 +51,7 @@ def test_the_capture_follows_the_person_seen_best(recording, crowded):
     two = sum(len(read_openpose(path)) == 2 for path in files)
     assert two >= 2 * 10 and two < len(files)  # the passer-by is in two or more views of each frame, not in all
     assert report["person"]["people_seen"] == 2, report["person"]
+    assert report["person"]["frames_sides_turned"] == []  # the files label every side right
     assert report["frames"]["kept"] == 10 and not report["flagged_cameras"]
     # as the one-person capture (tests/test_prepare_capture.py): 1 px of noise is about 1 cm at these cameras
     error_cm = _error_cm(root / "out", true_joints(truth, BodyModel()))

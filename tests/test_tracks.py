@@ -125,6 +125,7 @@ def test_orient_sides_puts_back_frames_found_mirrored():
     for f in truth:
         np.testing.assert_array_equal(oriented.points[f], truth[f])
     assert oriented.sides == {f: 2 for f in truth} and oriented.views == {f: 4 for f in truth}
+    assert oriented.turned == {4, 7}
 
 
 def test_orient_sides_follows_the_detectors_labels_for_the_whole_stretch():
@@ -135,12 +136,14 @@ def test_orient_sides_follows_the_detectors_labels_for_the_whole_stretch():
     oriented = orient_sides(Track({f: _mirror(p) for f, p in truth.items()}, {}, {f: -1 for f in truth}))
     for f in truth:
         np.testing.assert_array_equal(oriented.points[f], truth[f])
+    assert oriented.turned == set(truth)
     found = {f: _mirror(p) if f >= 5 else p for f, p in truth.items()}
     found[5] = np.full_like(truth[5], np.nan)  # nothing triangulated: the sides are undecided there
     votes = {f: 1 if f < 5 else -3 for f in truth}
     oriented = orient_sides(Track(found, {}, votes))
     for f in (*range(5), *range(6, 10)):
         np.testing.assert_array_equal(oriented.points[f], truth[f])
+    assert oriented.turned == {5, 6, 7, 8, 9}  # frame 5 is a stretch of its own, turned by its own vote (-3)
     # the ratio that decides continuity: frames 0.01 m apart one way, 0.3 m the other, are well within it
     assert 0.01 <= SIDE_RATIO * 0.3
 

@@ -46,11 +46,13 @@ SIDE_RATIO = 0.5
 @dataclass
 class Track:
     """One person over the frames: ``points[frame]`` (T, 3) triangulated targets, ``views[frame]`` agreeing views,
-    ``sides[frame]`` the agreeing views whose detection was taken as labelled minus those taken mirrored (absent: 0)."""
+    ``sides[frame]`` the agreeing views whose detection was taken as labelled minus those taken mirrored (absent: 0),
+    ``turned`` the frames whose targets :func:`orient_sides` mirrored from what their consensus found."""
 
     points: dict[int, np.ndarray] = field(default_factory=dict)
     views: dict[int, int] = field(default_factory=dict)
     sides: dict[int, int] = field(default_factory=dict)
+    turned: set[int] = field(default_factory=set)
 
     @property
     def first(self) -> int:
@@ -172,11 +174,16 @@ def orient_sides(track: Track) -> Track:
     ``SIDE_RATIO`` of the other's distance; else (a gap, a person standing in a mirror-symmetric pose) a new stretch
     begins. Each stretch then takes, as a whole, the orientation most of its views' detections give
     (``Track.sides`` summed): the detectors' labels decide which side is left, continuity which frames they
-    swapped. Returns a new Track (``sides`` as oriented); ``views`` are shared.
+    swapped. Returns a new Track (``sides`` as oriented, ``turned`` the frames mirrored); ``views`` are shared.
     """
     order = [mirror_index(t) for t in range(len(TARGETS))]
     frames = sorted(track.points)
-    points, sides = dict(track.points), dict(track.sides)
+    points, sides, turned = dict(track.points), dict(track.sides), set()
+
+    def turn(frame: int) -> None:
+        points[frame], sides[frame] = points[frame][order], -sides.get(frame, 0)
+        turned.symmetric_difference_update({frame})
+
     stretches: list[list[int]] = []
     for i, frame in enumerate(frames):
         if i:
@@ -184,15 +191,15 @@ def orient_sides(track: Track) -> Track:
             as_found, mirrored = _distance(points[frame], before), _distance(points[frame][order], before)
             if np.isfinite(max(as_found, mirrored)) and min(as_found, mirrored) <= SIDE_RATIO * max(as_found, mirrored):
                 if mirrored < as_found:
-                    points[frame], sides[frame] = points[frame][order], -sides.get(frame, 0)
+                    turn(frame)
                 stretches[-1].append(frame)
                 continue
         stretches.append([frame])
     for stretch in stretches:
         if sum(sides.get(f, 0) for f in stretch) < 0:
             for frame in stretch:
-                points[frame], sides[frame] = points[frame][order], -sides.get(frame, 0)
-    return Track(points, track.views, sides)
+                turn(frame)
+    return Track(points, track.views, sides, turned)
 
 
 def _joined(tracks: list[Track]) -> list[Track]:

@@ -245,6 +245,7 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
         "followed": whom,
         "people_seen": len(tracks),
         "frames_per_person": sorted((len(t.points) for t in tracks), reverse=True),
+        "frames_sides_turned": sorted(tracks[chosen].turned),
         "views_detected_again": looked,
         "views_without_their_mask": without_mask,
         "views_overlapped_by_others": sum(overlapped),
