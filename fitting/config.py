@@ -153,6 +153,8 @@ class TrainConfig:
     virtual_patches: int = 4  #: with the smoothness: 8x8 patches of virtual cameras per step
     mirror_weight: float = 0.0  #: weight of the left-right colour symmetry on virtual rays (0: off)
     mirror_rays: int = 256  #: with the symmetry: virtual rays per step, each rendered with its mirror image
+    s3im_weight: float = 0.0  #: weight of the stochastic structural similarity over the training rays (0: off)
+    s3im_repeats: int = 10  #: with S3IM: random groupings of the batch's rays per step
     holdout_every: int = 0  #: subject fits: every n-th training frame is held back to choose the step kept (0: none)
     select_every: int = 500  #: with a holdout: steps between scores of the held-back frames
     select_rays: int = 4096  #: with a holdout: the person pixels of the held-back frames each score renders
@@ -334,6 +336,7 @@ KIND_ONLY = {
     "train.entropy_weight": "subject",
     "train.smoothness_weight": "subject",
     "train.mirror_weight": "subject",
+    "train.s3im_weight": "subject",
     "model.appearance_dim": "subject",
     "model.novel_colour": "subject",
     "train.appearance_decay": "subject",
@@ -405,6 +408,8 @@ RANGES = {
     "train.virtual_rays": (lambda v: v >= 1, ">= 1"),
     "train.mirror_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
     "train.mirror_rays": (lambda v: v >= 1, ">= 1"),
+    "train.s3im_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
+    "train.s3im_repeats": (lambda v: v >= 1, ">= 1"),
     "train.smoothness_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
     "train.virtual_patches": (lambda v: v >= 1, ">= 1"),
     "train.holdout_every": (lambda v: v == 0 or v >= 2, "0 (none) or >= 2"),
@@ -470,6 +475,6 @@ def validate_config(config: FitConfig) -> None:
     if config.model.surface_shell and not config.model.body_shell:
         raise ConfigError("model.surface_shell: shells are off (model.body_shell is 0); set both or neither")
     rays_only = ("pose_correction", "camera_colour", "random_background", "holdout_every", "entropy_weight")
-    for key in (*rays_only, "smoothness_weight", "mirror_weight"):
+    for key in (*rays_only, "smoothness_weight", "mirror_weight", "s3im_weight"):
         if getattr(config.train, key) and not spec.rays:
             raise ConfigError(f"train.{key}: the CNN baseline renders no rays; set it false (--set train.{key}=false)")

@@ -6,6 +6,7 @@ from dataclasses import replace
 from functools import partial
 
 import torch
+from kornia.filters import get_gaussian_kernel1d
 from kornia.losses import charbonnier_loss
 
 from fitting.config import FitConfig
@@ -106,3 +107,59 @@ def ray_colour_errors(config: FitConfig, out: RenderOutput, batch, camera_colour
     it. Their mean is :func:`ray_loss`'s colour MSE without random backgrounds."""
     background = 1.0 if config.data.white_background else 0.0
     return (composited_colour(out, batch, background, camera_colour) - batch.rgb).square().mean(dim=-1)
+
+
+#: S3IM's group: SIDE x SIDE rays under SSIM's Gaussian window (sigma 1.5), as a 4 x 4 kernel of stride 4 takes them
+SIDE = 4
+#: SSIM's stabilisers for values in [0, 1]: (0.01)^2 and (0.03)^2 (Wang et al., 2004)
+SSIM_C1, SSIM_C2 = 0.01**2, 0.03**2
+
+
+def grouped_ssim(x: torch.Tensor, y: torch.Tensor, side: int = SIDE) -> torch.Tensor:
+    """SSIM of each group of ``side``^2 consecutive rays, per channel, under a separable Gaussian window (sigma 1.5)
+    laid on the group as a side x side patch, row-major:
+
+    SSIM = (2 mu_x mu_y + C1)(2 s_xy + C2) / ((mu_x^2 + mu_y^2 + C1)(s_x^2 + s_y^2 + C2)), mu, s^2 and s_xy the
+    window's weighted means, variances and covariance. x, y: (G * side^2, C) values in [0, 1]. Returns (G, C).
+    On one side x side patch it is SSIM's value over a window of the patch's size (kornia's ``metrics.ssim`` with
+    ``padding="valid"``)."""
+    if x.shape != y.shape or x.shape[0] % side**2:
+        raise ValueError(
+            f"grouped_ssim: shapes {tuple(x.shape)} / {tuple(y.shape)}, rows not whole groups of {side**2}"
+        )
+    line = get_gaussian_kernel1d(side, 1.5, force_even=True, device=x.device, dtype=x.dtype)[0]
+    window = (line[:, None] * line[None, :]).reshape(1, side**2, 1)
+    gx, gy = x.reshape(-1, side**2, x.shape[-1]), y.reshape(-1, side**2, y.shape[-1])
+    mean_x, mean_y = (window * gx).sum(1), (window * gy).sum(1)
+    var_x = (window * gx.square()).sum(1) - mean_x.square()
+    var_y = (window * gy.square()).sum(1) - mean_y.square()
+    cov = (window * gx * gy).sum(1) - mean_x * mean_y
+    numerator = (2 * mean_x * mean_y + SSIM_C1) * (2 * cov + SSIM_C2)
+    return numerator / ((mean_x.square() + mean_y.square() + SSIM_C1) * (var_x + var_y + SSIM_C2))
+
+
+def stochastic_ssim_loss(
+    rendered: torch.Tensor, target: torch.Tensor, repeats: int, generator: torch.Generator
+) -> torch.Tensor:
+    """S3IM (Xie et al., ICCV 2023): 1 - the mean :func:`grouped_ssim` over ``repeats`` random orderings of the
+    rays, each cut into groups of SIDE^2 (the rays past the last whole group of an ordering are left out of it).
+    A ray's colour is then judged with others' from anywhere in the batch: their means, contrasts and correlation,
+    which a per-ray loss does not see. rendered, target: (R, 3). Returns a 0-dim tensor."""
+    count = rendered.shape[0] // SIDE**2 * SIDE**2
+    if count == 0:
+        return rendered.sum() * 0
+    orders = [torch.randperm(rendered.shape[0], generator=generator)[:count] for _ in range(repeats)]
+    order = torch.cat(orders).to(rendered.device)
+    return 1 - grouped_ssim(rendered[order], target[order]).mean()
+
+
+def structure_term(config: FitConfig, out: RenderOutput, batch, generator, camera_colour=None, backgrounds=None):
+    """``train.s3im_weight`` times :func:`stochastic_ssim_loss` of the rays' colours composited as :func:`batch_loss`
+    composites them (over ``backgrounds``, (R, 3), where given, whose colour then replaces the target outside the
+    mask), against their targets (docs/model.md §6, *Structure across rays*). A 0-dim tensor."""
+    background = 1.0 if config.data.white_background else 0.0
+    target = batch.rgb
+    if backgrounds is not None:
+        background, target = backgrounds, torch.where(batch.mask[:, None] > 0.5, batch.rgb, backgrounds)
+    rendered = composited_colour(out, batch, background, camera_colour)
+    return config.train.s3im_weight * stochastic_ssim_loss(rendered, target, config.train.s3im_repeats, generator)

@@ -22,7 +22,7 @@ from fitting.corrections import CameraColour, FrameAppearance, MeasuredColour, P
 from fitting.data import FitData
 from fitting.distributed import SINGLE, Processes, agreed_max, any_process, sum_gradients
 from fitting.files import named_errors
-from fitting.losses import batch_loss
+from fitting.losses import batch_loss, structure_term
 from fitting.model_setup import encoding_window, make_field
 from fitting.plots import write_curve, write_validation
 from fitting.run_folder import add_to_last_row, trim_log, write_config
@@ -325,6 +325,10 @@ class Trainer:
                 backgrounds=None if backgrounds is None else backgrounds[share],
             )
             loss = loss + terms_value(terms, out[1:]) / self.processes.world_size
+            if t.s3im_weight:  # over this process's rays (docs/model.md §6)
+                picked = None if backgrounds is None else backgrounds[share]
+                term = structure_term(self.config, out[0], mine, self.generator, self.colour_response, picked)
+                loss = loss + term / self.processes.world_size
         # every process adds the penalty; the summed gradients then hold it once
         loss = loss + self.correction_penalty(index) / self.processes.world_size
         return self.optimise(loss, colour)

@@ -1,0 +1,98 @@
+"""S3IM, the structural similarity over random groups of the training rays (fitting/losses.py; docs/model.md §6)."""
+
+from __future__ import annotations
+
+import kornia
+import pytest
+import torch
+
+from fitting.config import ConfigError, FitConfig, load_config
+from fitting.data import RayBatch
+from fitting.losses import SIDE, grouped_ssim, stochastic_ssim_loss, structure_term
+from narf.renderer import RenderOutput
+
+
+def _pair(groups: int, side: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    generator = torch.Generator().manual_seed(seed)
+    x = torch.rand(groups * side**2, 3, generator=generator, dtype=torch.float64)
+    noise = 0.3 * torch.rand(x.shape, generator=generator, dtype=torch.float64)
+    return x, (0.8 * x + noise).clamp(0, 1)
+
+
+def test_grouped_ssim_is_kornias_ssim_of_each_patch():
+    """Each group laid out as a 5 x 5 patch (kornia needs an odd window) is kornia's SSIM of that patch with a
+    window of its size and no padding. float64: the two differ by kornia's 1e-12 guard in the denominator only."""
+    x, y = _pair(4, 5)
+    ours = grouped_ssim(x, y, side=5)
+    for g in range(4):
+        patch = [t[g * 25 : (g + 1) * 25].T.reshape(1, 3, 5, 5) for t in (x, y)]
+        theirs = kornia.metrics.ssim(*patch, 5, padding="valid").reshape(3)
+        torch.testing.assert_close(ours[g], theirs, rtol=0, atol=1e-9)
+
+
+def test_grouped_ssim_by_hand_with_the_4x4_window():
+    """The default group (4 x 4 under a Gaussian of sigma 1.5, S3IM's kernel) against the formula written out
+    pixel by pixel; identical inputs give 1 exactly up to rounding (float64)."""
+    x, y = _pair(3, SIDE, seed=1)
+    g = torch.exp(-((torch.arange(4, dtype=torch.float64) - 1.5) ** 2) / (2 * 1.5**2))
+    w = (g[:, None] * g[None, :]).flatten() / (g.sum() ** 2)
+    expected = torch.empty(3, 3, dtype=torch.float64)
+    for group in range(3):
+        for c in range(3):
+            a, b = x[group * 16 : (group + 1) * 16, c], y[group * 16 : (group + 1) * 16, c]
+            ma, mb = (w * a).sum(), (w * b).sum()
+            va, vb = (w * (a - ma) ** 2).sum(), (w * (b - mb) ** 2).sum()
+            cov = (w * (a - ma) * (b - mb)).sum()
+            c1, c2 = 0.01**2, 0.03**2
+            expected[group, c] = (2 * ma * mb + c1) * (2 * cov + c2) / ((ma**2 + mb**2 + c1) * (va + vb + c2))
+    torch.testing.assert_close(grouped_ssim(x, y), expected, rtol=0, atol=1e-12)
+    torch.testing.assert_close(grouped_ssim(x, x), torch.ones(3, 3, dtype=torch.float64), rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="whole groups"):
+        grouped_ssim(x[:-1], y[:-1])
+
+
+def test_the_stochastic_loss_groups_rays_at_random():
+    """0 for a perfect render; one ordering's loss is 1 - the mean SSIM of its groups; rays past the last whole
+    group are left out of an ordering, and a batch smaller than a group gives 0 with a gradient path."""
+    x, y = _pair(8, SIDE, seed=2)
+    generator = torch.Generator().manual_seed(5)
+    assert float(stochastic_ssim_loss(x, x, 10, generator)) == pytest.approx(0.0, abs=1e-12)
+    order = torch.randperm(len(x), generator=torch.Generator().manual_seed(7))
+    expected = 1 - grouped_ssim(x[order], y[order]).mean()
+    torch.testing.assert_close(stochastic_ssim_loss(x, y, 1, torch.Generator().manual_seed(7)), expected)
+    extra = torch.cat([x, torch.rand(5, 3, dtype=torch.float64)])
+    value = stochastic_ssim_loss(extra, torch.cat([y, torch.rand(5, 3, dtype=torch.float64)]), 4, generator)
+    assert 0 < float(value) < 1
+    few = torch.rand(3, 3, requires_grad=True)
+    small = stochastic_ssim_loss(few, torch.rand(3, 3), 2, generator)
+    small.backward()
+    assert float(small.detach()) == 0.0 and few.grad is not None
+
+
+def test_the_term_composites_as_the_colour_loss_does():
+    """structure_term renders over the data's background (white here) and weighs by train.s3im_weight; a render
+    that matches its targets once composited costs nothing, the same render over black does."""
+    config = FitConfig()
+    config.train.s3im_weight = 0.5
+    config.data.white_background = True
+    n = 64
+    generator = torch.Generator().manual_seed(3)
+    mask = (torch.rand(n, generator=generator) > 0.5).float()
+    colour = torch.rand(n, 3, generator=generator) * mask[:, None]
+    target = colour + (1 - mask)[:, None]
+    frames = torch.zeros(n, dtype=torch.long)
+    batch = RayBatch(*(torch.zeros(n, 3),) * 2, frames, target, mask, torch.ones(n), frames)
+    out = RenderOutput(colour, mask, torch.zeros(n))
+    assert float(structure_term(config, out, batch, generator)) == pytest.approx(0.0, abs=1e-6)  # float32 sums
+    config.data.white_background = False
+    value = float(structure_term(config, out, batch, generator))
+    expected = 0.5 * float(stochastic_ssim_loss(colour, target, 10, torch.Generator().manual_seed(0)))
+    assert value > 0.1 and value == pytest.approx(expected, rel=0.2)  # other orderings: the same groups' spread
+
+
+def test_the_option_is_for_subject_fits_that_render_rays():
+    assert load_config("cpu", ["train.s3im_weight=0.2"]).train.s3im_weight == 0.2
+    with pytest.raises(ConfigError, match="s3im_weight"):
+        load_config("cpu", ["train.s3im_weight=-1"])
+    with pytest.raises(ConfigError, match="s3im_repeats"):
+        load_config("cpu", ["train.s3im_repeats=0"])
