@@ -70,10 +70,10 @@ format: $(STAMP)
 	$(VENV)/bin/ruff check --fix .
 
 test: lint
-	$(PY) -m pytest -q -rs -n 2 --durations=15 tests
+	$(PY) -m pytest -q -rs -n 2 --dist loadgroup --durations=15 tests
 
 test-fast: lint
-	$(PY) -m pytest -q -rs -n 2 -m "not slow" tests
+	$(PY) -m pytest -q -rs -n 2 --dist loadgroup -m "not slow" tests
 
 bench: $(STAMP)
 	$(PY) -m bench

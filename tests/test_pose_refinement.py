@@ -175,6 +175,7 @@ def exact_field(tiny_capture, tmp_path_factory):
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("exact_field")  # one worker fits the field for both (make test: --dist loadgroup)
 def test_the_photometric_gradient_points_to_the_true_poses(exact_field, perturbed):
     """With the field fixed, the loss's gradient with respect to the pose corrections points towards the true poses
     (the negated noise of ``narf-synth --degrade``), as a central finite difference along that direction does, and
@@ -220,6 +221,7 @@ def test_the_photometric_gradient_points_to_the_true_poses(exact_field, perturbe
 
 
 @pytest.mark.slow
+@pytest.mark.xdist_group("exact_field")  # one worker fits the field for both (make test: --dist loadgroup)
 def test_the_photometric_correction_recovers_the_poses_with_the_field_fixed(exact_field, perturbed, tiny_capture):
     """The fit's own correction (rays, loss, per-knot Adam, prior, the band-limited pose gradient) with the field held
     fixed brings the 4-degree, 2-cm poses of three frames a third of the way back in 300 steps (measured 4.60 ->

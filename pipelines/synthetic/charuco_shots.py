@@ -142,9 +142,10 @@ def _render_board(
     tex_y = (sub_local[..., 1] + _MARGIN) * ppm - 0.5
     sampled = cv2.remap(scaled, tex_x, tex_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     shading = 0.55 + 0.35 * abs(float(normal @ np.array([0.3, -0.4, -0.85])))
-    h, w = y1 - y0, x1 - x0
-    coverage = sub_inside.reshape(h, supersample, w, supersample).mean(axis=(1, 3), dtype=np.float32)
-    board = np.where(sub_inside, sampled, 0).reshape(h, supersample, w, supersample).mean(axis=(1, 3), dtype=np.float32)
+    # each pixel's mean over its supersample^2 sub-pixels: INTER_AREA at a whole factor is the block mean
+    size = (x1 - x0, y1 - y0)
+    coverage = cv2.resize(sub_inside.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    board = cv2.resize(np.where(sub_inside, sampled, 0).astype(np.float32), size, interpolation=cv2.INTER_AREA)
     image[y0:y1, x0:x1] = image[y0:y1, x0:x1] * (1 - coverage[..., None]) + (board * shading / 255.0)[..., None]
     return image
 
