@@ -96,3 +96,21 @@ def test_the_option_is_for_subject_fits_that_render_rays():
         load_config("cpu", ["train.s3im_weight=-1"])
     with pytest.raises(ConfigError, match="s3im_repeats"):
         load_config("cpu", ["train.s3im_repeats=0"])
+
+
+def test_a_step_adds_the_term_and_draws_nothing_without_it(data_root_64, tmp_path):
+    """One training step on the same batch with and without train.s3im_weight: the loss differs by the term (the
+    step's losses are logged), and the term's random orders come from the fit's generator only when it is on."""
+    from fitting.run_folder import prepare_run_dir
+    from pipelines.runs.fit import start_run
+
+    losses, states = [], []
+    for weight in (0.0, 1.0):
+        sets = [f"data.data_root={data_root_64}", "data.ratio=1.0", "train.steps=1", f"train.s3im_weight={weight}"]
+        folder = prepare_run_dir(tmp_path / f"run{weight}", False)
+        trainer = start_run(folder, torch.device("cpu"), load_config("tiny", sets), progress=False)
+        losses.append(trainer.train_step()[0])
+        states.append(trainer.generator.get_state())
+    # 1 - S3IM of a field a step old lies well above 0.05 (SSIM of noise against the images)
+    assert losses[1] > losses[0] + 0.05
+    assert not torch.equal(states[0], states[1])
