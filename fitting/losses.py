@@ -153,13 +153,9 @@ def stochastic_ssim_loss(
     return 1 - grouped_ssim(rendered[order], target[order]).mean()
 
 
-def structure_term(config: FitConfig, out: RenderOutput, batch, generator, camera_colour=None, backgrounds=None):
+def structure_term(config: FitConfig, out: RenderOutput, batch, generator, camera_colour=None):
     """``train.s3im_weight`` times :func:`stochastic_ssim_loss` of the rays' colours composited as :func:`batch_loss`
-    composites them (over ``backgrounds``, (R, 3), where given, whose colour then replaces the target outside the
-    mask), against their targets (docs/model.md §6, *Structure across rays*). A 0-dim tensor."""
+    composites them, against their targets (docs/model.md §6, *Structure across rays*). A 0-dim tensor."""
     background = 1.0 if config.data.white_background else 0.0
-    target = batch.rgb
-    if backgrounds is not None:
-        background, target = backgrounds, torch.where(batch.mask[:, None] > 0.5, batch.rgb, backgrounds)
     rendered = composited_colour(out, batch, background, camera_colour)
-    return config.train.s3im_weight * stochastic_ssim_loss(rendered, target, config.train.s3im_repeats, generator)
+    return config.train.s3im_weight * stochastic_ssim_loss(rendered, batch.rgb, config.train.s3im_repeats, generator)

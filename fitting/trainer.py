@@ -326,8 +326,7 @@ class Trainer:
             )
             loss = loss + terms_value(terms, out[1:]) / self.processes.world_size
             if t.s3im_weight:  # over this process's rays (docs/model.md §6)
-                picked = None if backgrounds is None else backgrounds[share]
-                term = structure_term(self.config, out[0], mine, self.generator, self.colour_response, picked)
+                term = structure_term(self.config, out[0], mine, self.generator, self.colour_response)
                 loss = loss + term / self.processes.world_size
         # every process adds the penalty; the summed gradients then hold it once
         loss = loss + self.correction_penalty(index) / self.processes.world_size

@@ -96,6 +96,8 @@ def test_the_option_is_for_subject_fits_that_render_rays():
         load_config("cpu", ["train.s3im_weight=-1"])
     with pytest.raises(ConfigError, match="s3im_repeats"):
         load_config("cpu", ["train.s3im_repeats=0"])
+    with pytest.raises(ConfigError, match="s3im_weight: not with train.random_background"):
+        load_config("cpu", ["train.s3im_weight=0.2", "train.random_background=true"])
 
 
 def test_a_step_adds_the_term_and_draws_nothing_without_it(data_root_64, tmp_path):
