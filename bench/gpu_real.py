@@ -36,6 +36,7 @@ from tqdm import tqdm
 VARIANTS = {
     "paper_fp32": ("paper", ["train.precision=fp32"]),
     "paper_tf32": ("paper", ["train.precision=tf32"]),
+    "paper_bf16_nondet": ("paper", ["train.precision=bf16", "train.deterministic=false"]),
     "pose_correction_tf32": ("paper", ["train.precision=tf32", "train.pose_correction=true"]),
     "cpu_levers_tf32": ("paper_sparse", ["train.precision=tf32"]),
     "cpu_levers_fp32": ("paper_sparse", ["train.precision=fp32"]),
@@ -266,9 +267,21 @@ def steps_for(rates: dict, variants: list[str], seconds: float, rays_per_step: i
     what it cost alone at its precision (no gain from sharing the GPU assumed)."""
     cost = 0.0
     for name in variants:
-        precision = next(o.split("=")[1] for o in VARIANTS[name][1] if o.startswith("train.precision="))
-        cost += rays_per_step / max(rates[precision]["rays_per_s"] or 1, 1)
+        rate = rates[speed_name(VARIANTS[name][1], rates)]["rays_per_s"]
+        cost += rays_per_step / max(rate or 1, 1)
     return max(10, round(seconds / cost))
+
+
+def speed_name(overrides: list[str], rates: dict) -> str:
+    """The stage-1 run that times a variant of ``overrides``: its precision with the suffixes whose overrides it
+    carries (``bf16+nondet`` for bf16 without deterministic kernels), else its precision alone; KeyError if stage 1
+    timed neither."""
+    precision = next(o.split("=")[1] for o in overrides if o.startswith("train.precision="))
+    suffixes = [suffix for suffix, override in SPEED_SUFFIXES.items() if override in overrides]
+    for name in ("+".join([precision, *suffixes]), precision):
+        if name in rates:
+            return name
+    raise KeyError(f"stage 1 timed no {precision} run for the variant's overrides {overrides}")
 
 
 def _person(split: dict) -> dict:
@@ -344,6 +357,15 @@ def _variants(args: argparse.Namespace) -> list[str]:
         speed_overrides(name)
     if variants and not args.steps and args.speed_seconds <= 0:
         raise ValueError("--fit-seconds sizes the pose correction's start from stage 1's rates: give --steps instead")
+    if variants and not args.steps:  # each variant's rate must come from stage 1, before the GPU's time is spent
+        timed = dict.fromkeys(filter(None, args.precisions.split(",")))
+        for name in variants:
+            try:
+                speed_name(VARIANTS[name][1], timed)
+            except KeyError as error:
+                raise ValueError(
+                    f"--variants {name}: {error.args[0]}; add it to --precisions or give --steps"
+                ) from None
     return variants
 
 

@@ -48,6 +48,13 @@ def test_steps_side_by_side_from_the_rates():
     0.3 s a round, so 30 s give 100 steps each."""
     rates = {"fp32": {"rays_per_s": 46_080}, "tf32": {"rays_per_s": 92_160}}
     assert steps_for(rates, ["paper_fp32", "paper_tf32"], 30.0, 9216) == 100
+    # a variant without deterministic kernels takes the rate timed with the same suffix, else its precision's
+    rates["bf16+nondet"] = {"rays_per_s": 92_160}
+    assert steps_for(rates, ["paper_fp32", "paper_bf16_nondet"], 30.0, 9216) == 100
+    with pytest.raises(KeyError):
+        steps_for({"fp32": {"rays_per_s": 1}}, ["paper_bf16_nondet"], 30.0, 9216)
+    rates["bf16"] = {"rays_per_s": 9_216}
+    assert steps_for({"bf16": rates["bf16"]}, ["paper_bf16_nondet"], 10.0, 9216) == 10
     assert all(any(o.startswith("train.precision=") for o in VARIANTS[name][1]) for name in VARIANTS)
 
 
@@ -85,6 +92,7 @@ def test_the_run_writes_each_stage_on_the_cpu(data_root_64, tmp_path):
         (["--variants", "paper_fp16"], "--variants: unknown paper_fp16; known: paper_fp32"),
         (["--speed-seconds", "0"], "--fit-seconds sizes the pose correction's start from stage 1's rates"),
         (["--precisions", "fp32+fast"], "--precisions: fp32+fast is not fp32, tf32 or bf16 with +compile or +nondet"),
+        (["--precisions", "tf32", "--variants", "paper_bf16_nondet"], "--variants paper_bf16_nondet: stage 1 timed no"),
     ],
 )
 def test_bad_arguments_stop_with_one_line_before_any_work(tmp_path, capsys, extra, message):
