@@ -93,7 +93,8 @@ gpu-check: $(STAMP)
 
 # The real demo on a lent GPU in one call of under 9 minutes (bench/gpu_real.py; docs/guides/speed.md, *On a GPU*):
 # `$(PY) -m bench.gpu_real pack CAPTURE .gpu/demo` here, then this there: rays/s of the paper preset in fp32, TF32
-# and bf16, and the paper preset with and without the CPU preset's levers and the pose correction, side by side.
+# and bf16, then the CPU preset's levers on the paper's network (paper_sparse) alone, with the colour's symmetry and
+# with the symmetry and the pose correction, side by side in bf16.
 GPU_REAL ?= --subject .gpu/demo
 gpu-real: $(STAMP)
 	$(PY) -m bench.gpu_real run $(GPU_REAL)

@@ -6,13 +6,14 @@ A lent GPU machine takes a working tree of at most 64 MiB and a few minutes, so 
   sets to the background (outside the mask and its boundary band, docs/formats.md §1) is black already, with a
   margin for the undistortion's and the resize's neighbours, and the image is written again as JPEG; the overlay
   folder stays behind. ``check`` reports how far the loaded views of the copy are from the original's.
-* ``run --subject OUT`` (there): (1) rays/s of the paper preset in fp32, TF32 and bf16 (``--precisions``: also with
-  torch.compile or without deterministic kernels), each fitted alone for a few seconds, and a profile of a few more
-  steps (:func:`profile`: where a step's time goes); (2) the paper preset alone, with the pose correction and with
-  the CPU preset's levers (``paper_sparse``; docs/results/real-capture.md, *The real demo on a GPU*), or in other
-  precisions (``--variants``), fitted side by side for the same time (or ``--steps``), then ``narf-eval`` on the
-  training images, the held-out camera and novel poses. Figures go to one JSON file after each stage, so what was
-  measured comes back even if the call is cut short.
+* ``run --subject OUT`` (there): (1) rays/s of the paper preset in fp32, TF32 and bf16, and bf16 without
+  deterministic kernels (``--precisions``: also with torch.compile), each fitted alone for a few seconds, and a
+  profile of a few more steps (:func:`profile`: where a step's time goes); (2) by default ``paper_sparse`` (the
+  CPU preset's levers on the paper's network; docs/results/real-capture.md, *The real demo on a GPU*) alone, with
+  the colour's left-right symmetry, and with the symmetry and the pose correction, all in bf16 (``--variants``:
+  the paper preset and other precisions too), fitted side by side for the same time (or ``--steps``), then
+  ``narf-eval`` on the training images, the held-out camera and novel poses. Figures go to one JSON file after each
+  stage, so what was measured comes back even if the call is cut short.
 """
 
 from __future__ import annotations
@@ -45,6 +46,10 @@ VARIANTS = {
         "paper_sparse",
         ["train.precision=bf16", "train.deterministic=false", "train.mirror_weight=0.1"],
     ),
+    "mirror_pose_bf16_nondet": (
+        "paper_sparse",
+        ["train.precision=bf16", "train.deterministic=false", "train.mirror_weight=0.1", "train.pose_correction=true"],
+    ),
 }
 #: Stage 1's suffixes: ``bf16+compile+nondet`` is bf16 with these overrides.
 SPEED_SUFFIXES = {"compile": "train.compile=true", "nondet": "train.deterministic=false"}
@@ -74,24 +79,24 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--speed-seconds", type=float, default=15.0, help="stage 1: seconds of fitting per precision")
     run.add_argument(
         "--precisions",
-        default="fp32,tf32,bf16",
+        default="fp32,tf32,bf16,bf16+nondet",
         help="stage 1: the precisions timed; +compile adds train.compile=true (torch.compile), +nondet "
         "train.deterministic=false (atomic index_add / scatter kernels on CUDA)",
     )
     run.add_argument("--compile-seconds", type=float, default=90.0, help="stage 1: extra seconds for a compile")
-    run.add_argument("--profile", default="tf32,bf16", help="stage 1: precisions profiled after their timing")
+    run.add_argument("--profile", default="bf16", help="stage 1: precisions profiled after their timing")
     run.add_argument("--profile-steps", type=int, default=10, help="stage 1: steps profiled")
     run.add_argument(
         "--fit-seconds",
         type=float,
-        default=200.0,
+        default=300.0,
         help="stage 2: each fit's time, side by side (with --steps: its cap)",
     )
     run.add_argument("--steps", type=int, default=0, help="stage 2: steps per fit instead (0: --fit-seconds)")
     run.add_argument("--limit", type=int, default=8, help="views evaluated per split")
     run.add_argument(
         "--variants",
-        default="paper_tf32,cpu_levers_tf32,pose_correction_tf32",
+        default="cpu_levers_bf16_nondet,mirror_bf16_nondet,mirror_pose_bf16_nondet",
         help=f"stage 2's fits, comma-separated, of {', '.join(VARIANTS)} (four at once outgrew an H200's 141 GB)",
     )
     run.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
