@@ -71,7 +71,7 @@ def test_row_adam_is_adam_per_row():
     assert rows.state[b]["step"].tolist() == [20, 20, 21, 20, 20]
 
 
-@pytest.fixture(scope="module")
+@pytest.fixture(scope="session")
 def perturbed(tiny_capture, tmp_path_factory):
     """The 256^2 tiny capture with every joint turned 4 degrees and the body moved 2 cm (``narf-synth --degrade``),
     trained on three of its four cameras (its own splits train on one, from which a silhouette cannot tell depth)."""
@@ -152,7 +152,9 @@ def test_refined_params_pose_as_recorded(perturbed):
         assert np.array_equal(params.poses[:3], capture.params(frame).poses[:3])
 
 
-@pytest.fixture(scope="module")
+# session-scoped, as ``perturbed``: a module's fixtures are torn down whenever its worker runs another module's
+# test in between, so the xdist group alone does not keep one fitted field for both tests below
+@pytest.fixture(scope="session")
 def exact_field(tiny_capture, tmp_path_factory):
     """A field fitted for 300 steps of the CPU preset on the tiny capture's exact poses, trained on the same three
     cameras as ``perturbed``."""
