@@ -277,14 +277,14 @@ def steps_for(rates: dict, variants: list[str], seconds: float, rays_per_step: i
     return max(10, round(seconds / cost))
 
 
-def speed_name(overrides: list[str], rates: dict) -> str:
-    """The stage-1 run that times a variant of ``overrides``: its precision with the suffixes whose overrides it
-    carries (``bf16+nondet`` for bf16 without deterministic kernels), else its precision alone; KeyError if stage 1
-    timed neither."""
+def speed_name(overrides: list[str], timed) -> str:
+    """The stage-1 run of ``timed`` (its names, or its rates keyed by name) that times a variant of ``overrides``:
+    its precision with the suffixes whose overrides it carries (``bf16+nondet`` for bf16 without deterministic
+    kernels), else its precision alone; KeyError if stage 1 timed neither."""
     precision = next(o.split("=")[1] for o in overrides if o.startswith("train.precision="))
     suffixes = [suffix for suffix, override in SPEED_SUFFIXES.items() if override in overrides]
     for name in ("+".join([precision, *suffixes]), precision):
-        if name in rates:
+        if name in timed:
             return name
     raise KeyError(f"stage 1 timed no {precision} run for the variant's overrides {overrides}")
 
@@ -358,12 +358,12 @@ def _variants(args: argparse.Namespace) -> list[str]:
     unknown = sorted(set(variants) - set(VARIANTS))
     if unknown:
         raise ValueError(f"--variants: unknown {', '.join(unknown)}; known: {', '.join(VARIANTS)}")
-    for name in filter(None, args.precisions.split(",")):
+    timed = [name for name in args.precisions.split(",") if name]
+    for name in timed:
         speed_overrides(name)
     if variants and not args.steps and args.speed_seconds <= 0:
         raise ValueError("--fit-seconds sizes the pose correction's start from stage 1's rates: give --steps instead")
     if variants and not args.steps:  # each variant's rate must come from stage 1, before the GPU's time is spent
-        timed = dict.fromkeys(filter(None, args.precisions.split(",")))
         for name in variants:
             try:
                 speed_name(VARIANTS[name][1], timed)
