@@ -120,6 +120,7 @@ class TrainConfig:
     lr_anneal: float = 0.0  #: the last fraction of the budget (steps or minutes) over which the rate falls (0: off)
     lr_anneal_to: float = 0.1  #: with lr_anneal: the rate's multiplier at the end of the budget
     adam_eps: float = 1e-12  #: Adam epsilon (upstream)
+    adam_beta2: float = 0.999  #: Adam's decay of the squared gradients' average (upstream 0.999; Instant-NGP 0.99)
     mask_weight: float = 1.0  #: lambda_mask (0: ablation)
     colour_delta: float = 0.0  #: >0: the colour loss is the pseudo-Huber of this scale (docs/model.md §6; 0: squared)
     checkpoint_minutes: float = 3.0  #: write a checkpoint at least this often
@@ -386,6 +387,7 @@ RANGES = {
     "train.lr_anneal": (lambda v: 0 <= v <= 1, "in [0, 1]"),
     "train.lr_anneal_to": (lambda v: 0 < v <= 1, "in (0, 1]"),
     "train.adam_eps": (lambda v: v > 0, "> 0"),
+    "train.adam_beta2": (lambda v: 0 < v < 1, "in (0, 1)"),
     "train.mask_weight": (lambda v: v >= 0, ">= 0"),
     "train.colour_delta": (lambda v: v >= 0, ">= 0 (0: the squared error)"),
     "train.checkpoint_minutes": (lambda v: v >= 0, ">= 0 (0: after every step)"),

@@ -408,6 +408,21 @@ def test_learning_rate_anneals_over_the_end_of_the_budget(data_root_64, tmp_path
             load_config("tiny", [bad])
 
 
+def test_adam_beta2_sets_the_squared_gradients_decay(data_root_64, tmp_path):
+    """After one step Adam's second moment is (1 - beta2) g^2 (torch.optim.Adam, from zero): the config's beta2
+    reaches the optimiser; a value outside (0, 1) is refused."""
+    trainer = _fit(data_root_64, tmp_path / "run", "train.steps=1", "train.adam_beta2=0.99")
+    trainer.train_step()
+    trained = [p for group in trainer.optimiser.param_groups for p in group["params"] if p.grad is not None]
+    assert trained
+    for parameter in trained:
+        # one float32 multiply each side: a relative error of a few ulps
+        expected = 0.01 * parameter.grad.square()
+        torch.testing.assert_close(trainer.optimiser.state[parameter]["exp_avg_sq"], expected, rtol=1e-5, atol=0)
+    with pytest.raises(ConfigError, match="train.adam_beta2"):
+        load_config("tiny", ["train.adam_beta2=1"])
+
+
 def test_save_checkpoint_removes_stale_temporaries(tmp_path):
     from fitting.checkpoint import save_checkpoint
 
