@@ -95,6 +95,11 @@ class RenderConfig:
     train_fine: int = 16  #: importance samples per ray in training (paper 48)
     eval_coarse: int = 16  #: coarse samples per ray in evaluation (paper 64)
     eval_fine: int = 16  #: importance samples per ray in evaluation (paper 128)
+    #: coarse and importance samples per ray of the fit's own validation renders: the held-back frames' score that
+    #: chooses the step kept (docs/model.md §7) and the previews in RUN/val/; val_coarse 0: both the evaluation's.
+    #: Every step is scored alike, so an estimator cheaper than the final renders' ranks them as well
+    val_coarse: int = 0
+    val_fine: int = 0
     chunk: int = 1024  #: rays per full-image rendering chunk: bounds memory; 1,024 kept a CPU faster than 4,096 (cache)
     occupancy: bool = False  #: per-subject fits: narrow each ray to its occupied stretch (docs/model.md §5)
     occupancy_resolution: int = 24  #: occupancy cells per axis of each part box
@@ -102,6 +107,13 @@ class RenderConfig:
     occupancy_every: int = 16  #: refresh the grid every n training steps
     occupancy_rounds: int = 4  #: a refresh measures 1/n of the cells, so every cell is measured every n refreshes
     grid_proposal: bool = False  #: training: importance samples follow the grid's density, no coarse field pass
+
+    def validation_samples(self) -> tuple[int, int]:
+        """(coarse, fine) samples per ray of the fit's validation renders: ``val_*``, or ``eval_*`` when val_coarse
+        is 0."""
+        if self.val_coarse == 0:
+            return self.eval_coarse, self.eval_fine
+        return self.val_coarse, self.val_fine
 
 
 @dataclass
@@ -368,6 +380,8 @@ RANGES = {
     "render.train_fine": (lambda v: v >= 0, ">= 0"),
     "render.eval_coarse": (lambda v: v >= 2, ">= 2"),
     "render.eval_fine": (lambda v: v >= 0, ">= 0"),
+    "render.val_coarse": (lambda v: v == 0 or v >= 2, "0 (the evaluation's) or >= 2"),
+    "render.val_fine": (lambda v: v >= 0, ">= 0"),
     "render.chunk": (lambda v: v >= 1, ">= 1"),
     "render.occupancy_resolution": (lambda v: v >= 2, ">= 2"),
     "render.occupancy_threshold": (lambda v: v >= 0, ">= 0"),

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -59,11 +60,13 @@ def to_numpy(render: dict) -> dict:
 
 
 def write_validation(field, config, image: np.ndarray, camera, pose, path: Path, latent=None) -> Path:
-    """Render ``camera`` / ``pose`` (and an autoencoder ``latent``) at evaluation samples and save
-    ground truth | render | depth | ... ."""
+    """Render ``camera`` / ``pose`` (and an autoencoder ``latent``) at the fit's validation samples
+    (``RenderConfig.validation_samples``) and save ground truth | render | depth | ... ."""
     from fitting.evaluate import render_view
 
-    save_png(path, grid(image, to_numpy(render_view(field, camera, pose, config, latent))))
+    coarse, fine = config.render.validation_samples()
+    preview = replace(config, render=replace(config.render, eval_coarse=coarse, eval_fine=fine))
+    save_png(path, grid(image, to_numpy(render_view(field, camera, pose, preview, latent))))
     return path
 
 

@@ -75,8 +75,8 @@ class Selection:
 
     def errors(self, config: FitConfig, field: torch.nn.Module, camera_colour=None) -> torch.Tensor:
         """(R,) squared colour errors (channel mean) of ``field`` at the fixed person pixels, on the CPU:
-        deterministic samples at the evaluation counts, the field in eval mode (no jitter or dropout),
-        ``camera_colour`` as the training loss applies it. Their mean's PSNR is the score."""
+        deterministic samples at the validation counts (``RenderConfig.validation_samples``), the field in eval mode
+        (no jitter or dropout), ``camera_colour`` as the training loss applies it. Their mean's PSNR is the score."""
         r, poses, parts = config.render, self.views.poses, []
         training = field.training
         field.eval()
@@ -90,8 +90,7 @@ class Selection:
                     part.dirs,
                     part.frames,
                     poses,
-                    r.eval_coarse,
-                    r.eval_fine,
+                    *r.validation_samples(),
                     randomized=False,
                 )
                 parts.append(ray_colour_errors(config, out, part, camera_colour).cpu())

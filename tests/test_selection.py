@@ -116,6 +116,15 @@ def test_a_fit_with_held_back_frames_scores_them_and_is_evaluated_at_its_best_st
         _, colour = ray_loss(config, trainer.field, rays, poses, None, r.eval_coarse, r.eval_fine, randomized=False)
     assert psnr(colour).item() == pytest.approx(score, abs=1e-4)  # the same float32 sums, grouped otherwise
     assert all(row["select_se_db"] >= 0 for row in rows if "select_psnr" in row)
+    # render.val_*: the score is the render at the validation's own counts, not the evaluation's
+    cheaper = load_config("tiny", [*sets, "render.val_coarse=4", "render.val_fine=2"])
+    assert config.render.validation_samples() == (r.eval_coarse, r.eval_fine) == (8, 8)
+    assert cheaper.render.validation_samples() == (4, 2)
+    with torch.no_grad():
+        _, colour = ray_loss(cheaper, trainer.field, rays, poses, None, 4, 2, randomized=False)
+    cheap_score = trainer.selection.score(cheaper, trainer.field, trainer.colour_response)
+    assert cheap_score == pytest.approx(psnr(colour).item(), abs=1e-4)  # as above
+    assert abs(cheap_score - score) > 1e-3  # another estimator of the same field: the counts were used
 
 
 def test_evaluation_loads_the_kept_weights_not_the_last(tiny_run, tmp_path):
@@ -169,3 +178,25 @@ def test_a_negative_margin_is_refused():
     with pytest.raises(ConfigError, match="select_margin"):
         load_config("tiny", ["train.select_margin=-1"])
     assert load_config("cpu").train.select_margin == 2.0 and load_config("tiny").train.select_margin == 0.0
+
+
+def test_the_validation_previews_render_at_the_validation_counts(monkeypatch, tmp_path):
+    """RUN/val/'s previews (fitting.plots.write_validation) are rendered with ``render.val_*``, the evaluation's
+    counts when ``val_coarse`` is 0; the config they are given is not changed."""
+    import numpy as np
+
+    import fitting.evaluate
+    from fitting.plots import write_validation
+
+    seen = []
+
+    def fake_render(field, camera, pose, config, latent=None):
+        seen.append((config.render.eval_coarse, config.render.eval_fine))
+        return {"rgb": torch.zeros(2, 3, 3), "mask": torch.zeros(2, 3), "depth": torch.zeros(2, 3)}
+
+    monkeypatch.setattr(fitting.evaluate, "render_view", fake_render)
+    image = np.zeros((2, 3, 3), np.float32)
+    for sets, counts in (([], (8, 8)), (["render.val_coarse=4", "render.val_fine=2"], (4, 2))):
+        config = load_config("tiny", sets)
+        write_validation(None, config, image, None, None, tmp_path / f"{counts[0]}.png")
+        assert seen[-1] == counts and (config.render.eval_coarse, config.render.eval_fine) == (8, 8)
