@@ -52,6 +52,7 @@ def test_tiny_fit_loss_falls_and_eval_writes_every_artefact(data_root_64, tmp_pa
     split = report["splits"]["novel_pose_novel_view"]
     assert split["n_views"] == 2 and set(split["full"]) == {"mask_l2", "psnr", "ssim"} and split["nb_crop"]
     assert report["versions"]["scikit-image"]
+    assert report["samples"] == [8, 8]  # the tiny preset's evaluation counts, named with the figures
     assert set(split["nb_crop"]["breakdown"]) >= {"share_person", "share_silhouette", "share_band", "psnr_person"}
     assert sum(
         split["nb_crop"]["breakdown"][f"pixels_{k}"] for k in ("person", "silhouette", "band", "background")
@@ -60,6 +61,7 @@ def test_tiny_fit_loss_falls_and_eval_writes_every_artefact(data_root_64, tmp_pa
     )
     markdown = (tmp_path / "run" / "eval" / "metrics.md").read_text()
     assert markdown.count("|") > 10 and "NN: person pixels" in markdown
+    assert markdown.startswith("# narf_d (width 16, 8 + 8 samples a ray), step 60:")
     assert "surfaces no training view saw face-on" in markdown  # the tiny capture's held-out cameras see some of them
     assert 0.0 <= split["nb_crop"]["breakdown"]["pixels_unseen"] <= 1.0
     assert len(list((tmp_path / "run" / "eval" / "grids").rglob("*.png"))) == 4

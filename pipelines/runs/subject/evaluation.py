@@ -130,6 +130,8 @@ def evaluate_run(run: Path | SavedRun, request: EvalRequest) -> dict:
             "model": config.model.name,
             "width": config.model.width,
             "image_size": config.model.image_size,
+            # the renders' estimator: coarse + importance samples a ray (a figure depends on it, docs/model.md §5)
+            "samples": [config.render.eval_coarse, config.render.eval_fine],
             "subject": str(loaded.capture.root),
             "protocol": loaded.protocol.name,
             "poses": "corrected" if loaded.refined else "capture",
