@@ -49,3 +49,31 @@ def test_narf_eval_records_the_novel_colour_and_its_flag_overrides_the_run(tiny_
         reports.append(json.loads((run / "eval" / "metrics.json").read_text())["splits"])
     assert [r["novel_pose"]["novel_colour"] for r in reports] == ["nearest", "own"]
     assert reports[0]["same_pose_same_view"]["per_view"] == reports[1]["same_pose_same_view"]["per_view"]
+
+
+def test_narf_eval_samples_override_the_runs_render_counts(tiny_run, tmp_path, capsys):
+    """narf-eval --samples COARSE FINE renders with those counts (recorded in metrics.json and named in metrics.md)
+    in place of the run's render.eval_*; the checkpoint is not changed, and bad counts are one line, exit 2."""
+    import json
+    import shutil
+
+    from pipelines.cli import eval as cli_eval
+    from pipelines.cli.common import run_cli
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    shutil.rmtree(run / "eval", ignore_errors=True)
+    checkpoint = (run / "checkpoint.pt").read_bytes()
+    argv = ["--run", str(run), "--split", "novel_pose", "--limit", "1", "--grids", "0", "--quiet"]
+    reports = []
+    for extra in ([], ["--samples", "4", "2"]):
+        assert run_cli("narf-eval", cli_eval.main, [*argv, *extra]) == 0
+        reports.append(json.loads((run / "eval" / "metrics.json").read_text()))
+    assert [r["samples"] for r in reports] == [[8, 8], [4, 2]]  # the tiny preset's counts, then the flag's
+    assert "4 + 2 samples a ray" in (run / "eval" / "metrics.md").read_text()
+    psnrs = [r["splits"]["novel_pose"]["full"]["psnr"] for r in reports]
+    assert psnrs[0] != psnrs[1]  # another estimator of the same field
+    assert (run / "checkpoint.pt").read_bytes() == checkpoint
+    capsys.readouterr()
+    assert run_cli("narf-eval", cli_eval.main, [*argv, "--samples", "1", "8"]) == 2
+    assert "--samples 1 8: COARSE must be >= 2" in capsys.readouterr().err

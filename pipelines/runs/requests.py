@@ -58,8 +58,8 @@ class EvalRequest:
     """An evaluation: ``splits`` (already expanded), at most ``limit`` views per split, ``grids`` image grids per
     split; per-subject runs: ``mesh`` (surface distance, at ``mesh_resolution`` / ``mesh_level``) and ``capture``
     (another recording of the person, split ``capture``); autoencoder runs: ``surreal`` (cross_dataset set) and
-    ``refine_steps``; ``novel_colour`` (subject runs) the colour of frames the fit did not train on, in place of
-    the run's setting."""
+    ``refine_steps``; ``novel_colour`` (subject runs) the colour of frames the fit did not train on, and
+    ``samples`` (subject runs) the renders' coarse and importance samples a ray, each in place of the run's setting."""
 
     splits: tuple[str, ...]
     limit: int | None = None
@@ -73,6 +73,7 @@ class EvalRequest:
     refine_steps: int = 0
     capture: Path | None = None
     novel_colour: str | None = None  #: subject runs: ``model.novel_colour`` for this evaluation (None: the run's)
+    samples: tuple[int, int] | None = None  #: subject runs: ``render.eval_coarse`` / ``eval_fine`` (None: the run's)
 
 
 @dataclass(frozen=True)

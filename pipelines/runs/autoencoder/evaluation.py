@@ -288,7 +288,7 @@ def evaluate_autoencoder_run(run: Path | SavedRun, request: EvalRequest) -> dict
     cross_dataset's refined-code row (``refine_code`` on the encoded frame)."""
     saved = read_run(run)
     run_dir, r = saved.run_dir, request
-    options = {"--mesh": r.mesh, "--capture": r.capture, "--novel-colour": r.novel_colour}
+    options = {"--mesh": r.mesh, "--capture": r.capture, "--novel-colour": r.novel_colour, "--samples": r.samples}
     refuse_options(
         run_dir, "autoencoder", options, "subject runs (an autoencoder run has no true surfaces or captures)"
     )

@@ -75,8 +75,8 @@ def evaluate_rigid_run(run: Path | SavedRun, request: EvalRequest) -> dict:
     saved = read_run(run)
     run_dir, r = saved.run_dir, request
     options = {"--mesh": r.mesh, "--surreal": r.surreal, "--refine-steps": r.refine_steps, "--capture": r.capture}
-    options["--novel-colour"] = r.novel_colour
     refuse_options(run_dir, "rigid", options, "subject and autoencoder runs")
+    refuse_options(run_dir, "rigid", {"--novel-colour": r.novel_colour, "--samples": r.samples}, "subject runs")
     fitted = load_fitted(saved, r.device, kind="rigid")
     config, field = fitted.config, fitted.field
     rigid: RigidSet = open_rigid(resolve_rigid(config, quiet=True, generate=False))

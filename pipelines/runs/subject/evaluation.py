@@ -117,6 +117,10 @@ def evaluate_run(run: Path | SavedRun, request: EvalRequest) -> dict:
     if r.novel_colour is not None:  # docs/model.md §4, *Colour of frames not trained on*
         model = dataclasses.replace(loaded.config.model, novel_colour=r.novel_colour)
         loaded.config = dataclasses.replace(loaded.config, model=model)
+    if r.samples is not None:  # the renders' estimator of the volume integral (docs/model.md §7)
+        coarse, fine = r.samples
+        render = dataclasses.replace(loaded.config.render, eval_coarse=coarse, eval_fine=fine)
+        loaded.config = dataclasses.replace(loaded.config, render=render)
     if r.capture is not None:
         loaded.other = open_other_capture(loaded, run_dir, Path(r.capture))
     out_dir = run_dir / "eval"
