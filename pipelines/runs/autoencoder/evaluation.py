@@ -288,10 +288,11 @@ def evaluate_autoencoder_run(run: Path | SavedRun, request: EvalRequest) -> dict
     cross_dataset's refined-code row (``refine_code`` on the encoded frame)."""
     saved = read_run(run)
     run_dir, r = saved.run_dir, request
-    options = {"--mesh": r.mesh, "--capture": r.capture, "--novel-colour": r.novel_colour, "--samples": r.samples}
+    options = {"--mesh": r.mesh, "--capture": r.capture}
     refuse_options(
         run_dir, "autoencoder", options, "subject runs (an autoencoder run has no true surfaces or captures)"
     )
+    refuse_options(run_dir, "autoencoder", {"--novel-colour": r.novel_colour, "--samples": r.samples}, "subject runs")
     if r.refine_steps and "cross_dataset" not in r.splits:
         raise ValueError(f"{run_dir}: --refine-steps refines SURREAL codes; it needs --split cross_dataset or all")
     loaded = load_autoencoder_run(saved, r.device)
