@@ -462,6 +462,8 @@ def validate_config(config: FitConfig) -> None:
         )
     if config.train.body_fraction + config.train.border_fraction > 1:
         raise ConfigError("train.body_fraction + train.border_fraction: the shares of body and border rays exceed 1")
+    if config.render.val_coarse == 0 and config.render.val_fine:
+        raise ConfigError("render.val_fine: set render.val_coarse too (val_coarse 0 takes both of the evaluation's)")
     defaults = FitConfig()
     for key, kind in KIND_ONLY.items():
         if config.kind != kind and get_value(config, key) != get_value(defaults, key):

@@ -51,6 +51,11 @@ def test_every_preset_loads_and_builds_its_model():
         ("data.ratio=0", "config key 'data.ratio': must be in (0, 1], got 0.0"),
         ("model.view_freqs=5", "config key 'model.view_freqs': must be in .0, 4., got 5"),
         ("model.pose_dropout=1", "config key 'model.pose_dropout': must be in .0, 1), got 1.0"),
+        (
+            "render.val_fine=4",
+            "render.val_fine: set render.val_coarse too (val_coarse 0 takes both of the evaluation's)",
+        ),
+        ("render.val_coarse=1", "config key 'render.val_coarse': must be 0 (the evaluation's) or >= 2, got 1"),
     ],
 )
 def test_bad_values_name_their_key(override, message):
