@@ -277,6 +277,12 @@ def preset_path(name_or_path: str) -> Path:
     return candidate
 
 
+def with_eval_samples(config: FitConfig, coarse: int, fine: int) -> FitConfig:
+    """``config`` whose renders of a fitted field (``render.eval_coarse`` / ``eval_fine``) take ``coarse`` + ``fine``
+    samples a ray; everything else as it was."""
+    return dataclasses.replace(config, render=dataclasses.replace(config.render, eval_coarse=coarse, eval_fine=fine))
+
+
 def load_config(preset: str | None = None, overrides: list[str] | None = None, base: dict | None = None) -> FitConfig:
     """Build a FitConfig from defaults, a base dict (a run's saved config), a preset and ``key=value`` overrides.
 

@@ -3,13 +3,13 @@
 from __future__ import annotations
 
 import json
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
+from fitting.config import with_eval_samples
 from fitting.files import atomic_output
 
 _PALETTE = np.array([[(i * 67) % 256, (i * 151 + 80) % 256, (i * 211 + 40) % 256] for i in range(32)]) / 255.0
@@ -64,8 +64,7 @@ def write_validation(field, config, image: np.ndarray, camera, pose, path: Path,
     (``RenderConfig.validation_samples``) and save ground truth | render | depth | ... ."""
     from fitting.evaluate import render_view
 
-    coarse, fine = config.render.validation_samples()
-    preview = replace(config, render=replace(config.render, eval_coarse=coarse, eval_fine=fine))
+    preview = with_eval_samples(config, *config.render.validation_samples())
     save_png(path, grid(image, to_numpy(render_view(field, camera, pose, preview, latent))))
     return path
 

@@ -26,6 +26,7 @@ import torch
 import viser
 from scipy.spatial.transform import Rotation
 
+from fitting.config import with_eval_samples
 from fitting.evaluate import render_view
 from fitting.files import atomic_write_bytes
 from fitting.fitted import SavedRun, run_folder
@@ -42,8 +43,9 @@ def preview_config(config):
     """The config a preview renders with: the training sample counts where they are smaller than the evaluation
     ones (the field was fitted at them; the CPU preset's 8 + 8 against 16 + 16 halves the work)."""
     render = config.render
-    coarse, fine = min(render.train_coarse, render.eval_coarse), min(render.train_fine, render.eval_fine)
-    return replace(config, render=replace(render, eval_coarse=coarse, eval_fine=fine))
+    return with_eval_samples(
+        config, min(render.train_coarse, render.eval_coarse), min(render.train_fine, render.eval_fine)
+    )
 
 
 @dataclass

@@ -9,6 +9,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from fitting.config import with_eval_samples
 from fitting.corrections import camera_response
 from fitting.evaluate import (
     average_metrics,
@@ -118,9 +119,7 @@ def evaluate_run(run: Path | SavedRun, request: EvalRequest) -> dict:
         model = dataclasses.replace(loaded.config.model, novel_colour=r.novel_colour)
         loaded.config = dataclasses.replace(loaded.config, model=model)
     if r.samples is not None:  # the renders' estimator of the volume integral (docs/model.md §7)
-        coarse, fine = r.samples
-        render = dataclasses.replace(loaded.config.render, eval_coarse=coarse, eval_fine=fine)
-        loaded.config = dataclasses.replace(loaded.config, render=render)
+        loaded.config = with_eval_samples(loaded.config, *r.samples)
     if r.capture is not None:
         loaded.other = open_other_capture(loaded, run_dir, Path(r.capture))
     out_dir = run_dir / "eval"
