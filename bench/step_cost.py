@@ -1,10 +1,11 @@
 """The cost of a training step: ``python -m bench.step_cost --subject CAPTURE [NAME=OVERRIDE,OVERRIDE ...]``.
 
 For each variant (a name and its config overrides on ``--preset``; ``render=alone`` renders each of a step's ray
-sets by a call of its own, as the fit did before) a fit of the capture is started; the fits are warmed up, then
-stepped in turn over ``--steps`` steps each (the median step: on a shared machine whose speed drifts, the variants
-are slowed alike), and their operators are counted over a few more steps under ``torch.profiler`` (each operator
-launch costs a roughly fixed time on a CPU, and a GPU's kernel launches follow them). Prints one Markdown
+sets by a call of its own, as the fit did before; ``draw=exact`` draws the rays' pixels from each view's pools listed
+in full, ``fitting.data.pool_pixels_exact``, as the fit did before) a fit of the capture is started; the fits are
+warmed up, then stepped in turn over ``--steps`` steps each (the median step: on a shared machine whose speed drifts,
+the variants are slowed alike), and their operators are counted over a few more steps under ``torch.profiler`` (each
+operator launch costs a roughly fixed time on a CPU, and a GPU's kernel launches follow them). Prints one Markdown
 row per variant: milliseconds a step, rays a second of the training rays, operators a step
 (docs/results/benchmark.md, *The step's renders in one call*).
 """
@@ -16,7 +17,7 @@ import statistics
 import sys
 import tempfile
 import time
-from contextlib import nullcontext
+from contextlib import ExitStack
 from pathlib import Path
 from unittest import mock
 
@@ -32,19 +33,28 @@ def _parser() -> argparse.ArgumentParser:
     return parser
 
 
+PATCHES = ("render=alone", "draw=exact")  # not config overrides: the step's code as it was before (see above)
+
+
 def _rendering(overrides: list[str]):
-    """The context a variant's steps run in: with ``render=alone``, each ray set by a call of its own."""
+    """The context a variant's steps run in: with ``render=alone``, each ray set by a call of its own; with
+    ``draw=exact``, the pixels drawn from pools listed in full."""
+    from fitting.data import pool_pixels_exact
     from fitting.training_rays import render_each_set
 
-    alone = "render=alone" in overrides
-    return mock.patch("fitting.trainer.render_ray_sets", render_each_set) if alone else nullcontext()
+    context = ExitStack()
+    if "render=alone" in overrides:
+        context.enter_context(mock.patch("fitting.trainer.render_ray_sets", render_each_set))
+    if "draw=exact" in overrides:
+        context.enter_context(mock.patch("fitting.data.pool_pixels", pool_pixels_exact))
+    return context
 
 
 def step_costs(subject: Path, preset: str, variants: dict[str, list[str]], steps: int, warmup: int) -> dict:
     """Each variant's median step (ms), training rays/s at that step and operators a step (over 3 profiled steps).
     The variants' fits are built first and then stepped in turn, one step each, so that a machine whose speed
     drifts (a shared one) slows them alike. The override ``render=alone`` renders each ray set of a step by a call
-    of its own (as before ``fitting.training_rays.render_ray_sets``)."""
+    of its own (as before ``fitting.training_rays.render_ray_sets``), ``draw=exact`` draws from pools listed in full."""
     import torch
 
     from fitting.config import load_config
@@ -55,7 +65,7 @@ def step_costs(subject: Path, preset: str, variants: dict[str, list[str]], steps
     trainers, times, folder = {}, {}, tempfile.TemporaryDirectory()
     with folder:
         for name, overrides in variants.items():
-            config = load_config(preset, [*base, *(o for o in overrides if o != "render=alone")])
+            config = load_config(preset, [*base, *(o for o in overrides if o not in PATCHES)])
             run = prepare_run_dir(Path(folder.name) / name, False)
             trainers[name], times[name] = start_run(run, torch.device("cpu"), config, progress=False), []
         for step in range(warmup + steps):

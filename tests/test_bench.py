@@ -68,16 +68,22 @@ def test_reuse_reaches_a_benchmark_that_keeps_its_configurations(tmp_path, monke
     assert bench_main._rows("kept", tmp_path / "b.json", reuse=False, machine="m")[0]["reuse"] is False
 
 
-def test_step_cost_counts_fewer_operators_with_one_render(data_root_64, capsys):
+def test_step_cost_counts_fewer_operators_with_one_render(data_root_64, capsys, monkeypatch):
     """bench.step_cost: a row per variant; the symmetric step's sets rendered by a call each (render=alone) run more
-    operators than in one call (each call runs the field's per-part loops again), and a folder that is not a
-    prepared capture is a usage error naming it."""
+    operators than in one call (each call runs the field's per-part loops again); ``draw=exact`` draws every step's
+    pixels with the reference draw and no other variant does; a folder that is not a prepared capture is a usage
+    error naming it."""
+    import fitting.data
     from bench import step_cost
 
+    exact_draws, reference = [], fitting.data.pool_pixels_exact
+    monkeypatch.setattr(fitting.data, "pool_pixels_exact", lambda *a: exact_draws.append(1) or reference(*a))
     capture = data_root_64 / "synthetic" / "taichi"
     mirror = "train.mirror_weight=0.1,train.mirror_rays=32"
     argv = ["--subject", str(capture), "--preset", "tiny", "--steps", "2", "--warmup", "1"]
     assert step_cost.main([*argv, f"one={mirror}", f"alone={mirror},render=alone"]) == 0
+    fallbacks = len(exact_draws)  # views whose smallest pool got too few of the fast draw's hits
+    assert fallbacks < 48 / 4, "48 views drawn (2 variants x 6 steps x 4 images), most by the fast draw"
     rows = [
         line.split("|")
         for line in capsys.readouterr().out.splitlines()
@@ -85,5 +91,7 @@ def test_step_cost_counts_fewer_operators_with_one_render(data_root_64, capsys):
     ]
     operators = {row[1].strip(): int(row[4].replace(",", "")) for row in rows}
     assert operators["alone"] > 1.5 * operators["one"], operators
+    assert step_cost.main([*argv, "exact=draw=exact"]) == 0
+    assert "| exact |" in capsys.readouterr().out and len(exact_draws) - fallbacks == 6 * 4  # every view
     assert step_cost.main(["--subject", str(data_root_64)]) == 2
     assert str(data_root_64) in capsys.readouterr().err

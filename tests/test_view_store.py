@@ -1,5 +1,6 @@
 """The disk-backed training views (fitting.view_store, fitting.data.TrainingSet) against the in-memory sampler they
-replace: the same random draws give the same rays and targets, bit for bit, and a view comes back as it went in."""
+replace: the same random draws give the same rays and targets, bit for bit, and a view comes back as it went in; the
+fast pool draw (fitting.data.pool_pixels) against its reference (pool_pixels_exact): the same distribution."""
 
 from types import SimpleNamespace
 
@@ -8,7 +9,7 @@ import numpy as np
 import pytest
 import torch
 
-from fitting.data import TrainingSet
+from fitting.data import TrainingSet, pool_pixels, pool_pixels_exact
 from fitting.view_store import BORDER_PX, ViewStore, sampling_labels
 
 
@@ -75,7 +76,7 @@ def _reference_sample(views, frame_of_view, n_images, rays_per_image, body_fract
 def test_sampling_from_disk_draws_what_the_in_memory_sampler_drew(seed, tmp_path):
     views, frames = _views()[:3], [2, 0, 1]  # the empty view is left out: the reference drew from padding there
     training = TrainingSet(iter(views), frames, SimpleNamespace(to=lambda device: None), "cpu", store_dir=tmp_path)
-    batch = training.sample(6, 20, 0.5, 0.25, torch.Generator().manual_seed(seed))
+    batch = training.sample(6, 20, 0.5, 0.25, torch.Generator().manual_seed(seed), exact=True)
     (images, rows, cols), rgb, mask, weight, frame = _reference_sample(
         views, frames, 6, 20, 0.5, 0.25, torch.Generator().manual_seed(seed)
     )
@@ -165,3 +166,54 @@ def test_no_ray_is_drawn_where_the_owner_is_unknown(tmp_path):
         .store.mask_and_unknown(1)[1]
         .any()
     )
+
+
+def _labels(height=30, width=20, body=(5, 25, 4, 16), border=2):
+    """A crop's pool labels (fitting.view_store): a rectangular body, a ``border``-px ring, background elsewhere."""
+    labels = np.full((height, width), 3, np.uint8)
+    y0, y1, x0, x1 = body
+    labels[max(y0 - border, 0) : y1 + border, max(x0 - border, 0) : x1 + border] = 2
+    labels[y0:y1, x0:x1] = 1
+    return labels
+
+
+@pytest.mark.parametrize(
+    "labels",
+    [_labels(), _labels(body=(0, 30, 0, 17), border=1)],  # the second: a border of 30 pixels, a 20th of the crop
+    ids=["ring", "thin-border"],
+)
+def test_the_fast_pool_draw_has_the_references_distribution(labels):
+    """Every pixel drawn lies in its pool, and over 4,000 draws of (14, 4, 2) rays each pool's pixels are drawn
+    uniformly: a chi-square against the uniform per pool, for the fast draw and, as a check of the check, for the
+    reference. A draw that favoured some pixels of a pool (say the first hits of a fixed scan) fails it."""
+    from scipy.stats import chi2
+
+    counts, flat = (14, 4, 2), labels.reshape(-1)
+    for draw in (pool_pixels, pool_pixels_exact):
+        generator, tallies = torch.Generator().manual_seed(3), [np.zeros(flat.size) for _ in counts]
+        for _ in range(4000):
+            for pool, (pixels, count) in enumerate(zip(draw(labels, counts, generator), counts)):
+                assert len(pixels) == count and (flat[pixels] == pool + 1).all(), (draw.__name__, pool)
+                np.add.at(tallies[pool], pixels, 1)
+        for pool, tally in enumerate(tallies):
+            observed = tally[flat == pool + 1]
+            expected = observed.sum() / observed.size
+            statistic = ((observed - expected) ** 2 / expected).sum()
+            # a false alarm once in a million runs for a uniform draw (the seed is fixed: the same every run)
+            assert statistic < chi2.ppf(1 - 1e-6, observed.size - 1), (draw.__name__, pool, statistic)
+
+
+def test_the_fast_pool_draw_falls_back_where_a_pool_is_small_or_empty():
+    """A pool of one pixel has too few candidates' hits: the reference draws it (every ray on that pixel); an empty
+    border draws from the body and a crop without a body from all of it, as the reference does."""
+    labels = _labels()
+    labels[labels == 2] = 3
+    labels[(labels == 3).nonzero()[0][0], (labels == 3).nonzero()[1][0]] = 2  # one border pixel
+    border = pool_pixels(labels, (14, 4, 2), torch.Generator().manual_seed(0))[1]
+    assert (border == np.flatnonzero(labels == 2)[0]).all()
+    no_border = np.where(labels == 2, 3, labels).astype(np.uint8)
+    for generator in (torch.Generator().manual_seed(s) for s in range(5)):
+        assert (no_border.reshape(-1)[pool_pixels(no_border, (14, 4, 2), generator)[1]] == 1).all()
+    nobody = np.full((6, 5), 3, np.uint8)
+    drawn = pool_pixels(nobody, (14, 4, 2), torch.Generator().manual_seed(0))
+    assert [len(d) for d in drawn] == [14, 4, 2] and all(((d >= 0) & (d < 30)).all() for d in drawn)
