@@ -203,6 +203,8 @@ def test_videos_of_encoded_people(sets, tmp_path, capsys):
     (tmp_path / "photo.png").write_bytes((sets / "thuman" / "synthetic.json").read_bytes())
     code = run_cli("narf-render-video", cli_video.main, [*base, "--input", str(tmp_path / "photo.png")])
     assert code == 2 and "an image without a skeleton" in capsys.readouterr().err
+    code = run_cli("narf-render-video", cli_video.main, [*base, "--input", render, "--samples", "4", "2"])
+    assert code == 2 and "--samples is for subject runs" in capsys.readouterr().err
 
 
 def test_code_refinement_recovers_a_code_and_leaves_the_field_alone(sets, body_model):

@@ -77,3 +77,30 @@ def test_narf_eval_samples_override_the_runs_render_counts(tiny_run, tmp_path, c
     capsys.readouterr()
     assert run_cli("narf-eval", cli_eval.main, [*argv, "--samples", "1", "8"]) == 2
     assert "--samples 1 8: COARSE must be >= 2" in capsys.readouterr().err
+
+
+def test_narf_render_video_samples_override_the_runs_render_counts(tiny_run, tmp_path, capsys, monkeypatch):
+    """narf-render-video --samples COARSE FINE renders every frame with those counts in place of the run's
+    render.eval_* (the tiny preset's 8 + 8 without it), as narf-eval --samples; bad counts are one line, exit 2."""
+    import shutil
+
+    import pipelines.runs.subject.video as subject_video
+    from pipelines.cli import render_video as cli_video
+    from pipelines.cli.common import run_cli
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    counts, render_view = [], subject_video.render_view
+
+    def counted(field, camera, pose, config, *rest, **kwargs):
+        counts.append((config.render.eval_coarse, config.render.eval_fine))
+        return render_view(field, camera, pose, config, *rest, **kwargs)
+
+    monkeypatch.setattr(subject_video, "render_view", counted)
+    argv = ["--run", str(run), "--kind", "orbit", "--frames", "2", "--quiet"]
+    assert run_cli("narf-render-video", cli_video.main, argv) == 0
+    assert run_cli("narf-render-video", cli_video.main, [*argv, "--samples", "4", "2"]) == 0
+    assert counts == [(8, 8)] * 2 + [(4, 2)] * 2
+    capsys.readouterr()
+    assert run_cli("narf-render-video", cli_video.main, [*argv, "--samples", "8", "-1"]) == 2
+    assert "--samples 8 -1: COARSE must be >= 2 and FINE >= 0" in capsys.readouterr().err

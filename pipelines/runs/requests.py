@@ -79,8 +79,9 @@ class EvalRequest:
 @dataclass(frozen=True)
 class VideoRequest:
     """A video of ``kind`` into ``out``: ``frames`` at ``fps``. Per-subject runs: ``motion`` (from ``start``, at
-    ``motion_fps`` when the file has no rate), ``camera``, bone ``scale``; autoencoder runs: ``inputs`` (people to
-    encode) and ``refine_steps``."""
+    ``motion_fps`` when the file has no rate), ``camera``, bone ``scale``, ``samples`` (the renders' coarse and
+    importance samples a ray in place of the run's); autoencoder runs: ``inputs`` (people to encode) and
+    ``refine_steps``."""
 
     kind: str
     out: Path
@@ -96,6 +97,7 @@ class VideoRequest:
     start: int = 0
     motion_fps: float | None = None
     camera_path: Path | None = None
+    samples: tuple[int, int] | None = None  #: subject runs: ``render.eval_coarse`` / ``eval_fine`` (None: the run's)
 
 
 @dataclass(frozen=True)

@@ -12,6 +12,7 @@ import torch
 from scipy.spatial.transform import Rotation
 from tqdm import tqdm
 
+from fitting.config import with_eval_samples
 from fitting.evaluate import render_view
 from fitting.files import atomic_write_bytes
 from fitting.fitted import SavedRun, run_folder
@@ -144,6 +145,8 @@ def render_video(run: Path | SavedRun, request: VideoRequest) -> Path:
     if kind not in VIDEO_KINDS:
         raise ValueError(f"unknown video kind '{kind}'; choose from {', '.join(VIDEO_KINDS)}")
     run = load_run(run, r.device)
+    if r.samples is not None:  # the renders' estimator of the volume integral (docs/model.md §7)
+        run.config = with_eval_samples(run.config, *r.samples)
     config, field, capture, protocol, body_model = run.config, run.field, run.capture, run.protocol, run.body_model
     held = (protocol.novel_frames or protocol.train_frames)[0]
     view = r.camera if r.camera is not None else (protocol.test_views or protocol.train_views)[0]
