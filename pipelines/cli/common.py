@@ -48,6 +48,30 @@ def add_motion_fps(parser: argparse.ArgumentParser, applies_to: str = "--motion"
     )
 
 
+def add_samples(parser: argparse.ArgumentParser, recorded: str = "") -> None:
+    """``--samples COARSE FINE``: a subject run's renders with other samples a ray than its ``render.eval_*``
+    (docs/model.md §7); ``recorded`` says where the counts are written down. Checked by :func:`samples_of`."""
+    parser.add_argument(
+        "--samples",
+        nargs=2,
+        type=int,
+        default=None,
+        metavar=("COARSE", "FINE"),
+        help="subject runs: render with COARSE coarse and FINE importance samples a ray in place of the run's "
+        f"render.eval_coarse / eval_fine (the CPU preset 16 16, the paper 64 128){recorded}. Default: the run's",
+    )
+
+
+def samples_of(args: argparse.Namespace) -> tuple[int, int] | None:
+    """The counts of :func:`add_samples`, or None; ValueError (one line) for counts no render takes."""
+    if args.samples is None:
+        return None
+    coarse, fine = args.samples
+    if coarse < 2 or fine < 0:
+        raise ValueError(f"--samples {coarse} {fine}: COARSE must be >= 2 and FINE >= 0")
+    return coarse, fine
+
+
 def add_smpl_dir(parser: argparse.ArgumentParser) -> None:
     """``--smpl-dir`` of a command that loads a run (:func:`use_smpl_dir`)."""
     parser.add_argument(

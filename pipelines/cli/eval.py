@@ -9,11 +9,13 @@ from pathlib import Path
 
 from pipelines.cli.common import (
     HelpFormatter,
+    add_samples,
     add_smpl_dir,
     at_least,
     own_context,
     positive_number,
     run_cli,
+    samples_of,
     use_smpl_dir,
 )
 
@@ -112,16 +114,7 @@ def build_parser() -> argparse.ArgumentParser:
         "frames, --capture): nearest, those of the trained frame whose pelvis stands nearest; own, their own (the "
         "paper). Default: the run's model.novel_colour (nearest unless the fit set it)",
     )
-    parser.add_argument(
-        "--samples",
-        nargs=2,
-        type=int,
-        default=None,
-        metavar=("COARSE", "FINE"),
-        help="subject runs: render with COARSE coarse and FINE importance samples a ray in place of the run's "
-        "render.eval_coarse / eval_fine (the CPU preset 16 16, the paper 64 128); recorded in metrics.json "
-        "(docs/model.md §7). Default: the run's",
-    )
+    add_samples(parser, "; recorded in metrics.json (docs/model.md §7)")
     add_smpl_dir(parser)
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -144,8 +137,7 @@ def main(argv: list[str] | None = None) -> int:
         raise FileNotFoundError(f"{args.capture}: no such capture folder")
     if args.reference_params is not None and not args.reference_params.is_dir():
         raise FileNotFoundError(f"{args.reference_params}: no such params folder")
-    if args.samples is not None and (args.samples[0] < 2 or args.samples[1] < 0):
-        raise ValueError(f"--samples {args.samples[0]} {args.samples[1]}: COARSE must be >= 2 and FINE >= 0")
+    samples = samples_of(args)
     use_smpl_dir(args.smpl_dir)
     kind, run = open_run(args.run)
     if args.reference_params is not None:
@@ -165,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         refine_steps=args.refine_steps,
         capture=args.capture,
         novel_colour=args.novel_colour,
-        samples=None if args.samples is None else tuple(args.samples),
+        samples=samples,
     )
     with folder_lock(args.run):  # not beside a fit (or another evaluation) of the same run
         report = kind.evaluate(run, request)

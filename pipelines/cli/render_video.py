@@ -10,11 +10,13 @@ from pathlib import Path
 from pipelines.cli.common import (
     HelpFormatter,
     add_motion_fps,
+    add_samples,
     add_smpl_dir,
     at_least,
     own_context,
     positive_number,
     run_cli,
+    samples_of,
     use_smpl_dir,
 )
 
@@ -87,16 +89,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_motion_fps(parser)
     parser.add_argument("--scale", type=positive_number, default=1.3, help="bones: largest leg-length factor")
     add_smpl_dir(parser)
-    parser.add_argument(
-        "--samples",
-        nargs=2,
-        type=int,
-        default=None,
-        metavar=("COARSE", "FINE"),
-        help="subject runs: render with COARSE coarse and FINE importance samples a ray in place of the run's "
-        "render.eval_coarse / eval_fine (the CPU preset 16 16, the paper 64 128), as narf-eval --samples. "
-        "Default: the run's",
-    )
+    add_samples(parser, ", as narf-eval --samples")
     parser.add_argument("--device", default="auto", help="auto, cpu or cuda[:N]")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     return parser
@@ -119,8 +112,7 @@ def main(argv: list[str] | None = None) -> int:
         args.kind = "orbit"
     elif args.kind == "path":
         raise ValueError("--kind path renders a camera path: give --camera-path FILE (saved by narf-view)")
-    if args.samples is not None and (args.samples[0] < 2 or args.samples[1] < 0):
-        raise ValueError(f"--samples {args.samples[0]} {args.samples[1]}: COARSE must be >= 2 and FINE >= 0")
+    samples = samples_of(args)
     out = args.out or args.run / "videos" / f"{args.kind}.mp4"
     if not args.run.is_dir():
         raise FileNotFoundError(f"{args.run}: no such run folder")
@@ -147,7 +139,7 @@ def main(argv: list[str] | None = None) -> int:
         start=args.start,
         motion_fps=args.motion_fps,
         camera_path=args.camera_path,
-        samples=None if args.samples is None else tuple(args.samples),
+        samples=samples,
     )
     with folder_lock(out):  # one writer per video file
         written = kind.render(run, request)
