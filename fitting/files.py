@@ -136,6 +136,28 @@ def remove_stale(path: Path) -> None:
 _OUTPUTS = itertools.count()
 
 
+def remove_orphaned_partials(path: Path) -> None:
+    """Remove the temporary files of :func:`atomic_output` for ``path`` whose writer no longer runs (killed
+    mid-write: ``.<stem>.partial-<process id>-<n><suffix>`` of a process id that is gone); a live writer's stay."""
+    path = Path(path)
+    pattern = f"{glob.escape(f'.{path.stem}.partial-')}*-*{glob.escape(path.suffix)}"
+    for partial in path.parent.glob(pattern):
+        writer = partial.name[len(f".{path.stem}.partial-") :].split("-", 1)[0]
+        if writer.isdigit() and not _process_runs(int(writer)):
+            partial.unlink(missing_ok=True)
+
+
+def _process_runs(pid: int) -> bool:
+    """Whether a process ``pid`` exists (another user's counts: signal 0 is refused, not unanswered)."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except (PermissionError, OverflowError):
+        return True
+    return True
+
+
 @contextlib.contextmanager
 def atomic_output(path: Path) -> Iterator[Path]:
     """A hidden file name beside ``path`` with its suffix (``.<stem>.partial-<process id>-<n><suffix>``, one per
@@ -143,6 +165,7 @@ def atomic_output(path: Path) -> Iterator[Path]:
     onto ``path`` when the block ends without error, removed in every case otherwise."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_orphaned_partials(path)
     tmp = path.with_name(f".{path.stem}.partial-{os.getpid()}-{next(_OUTPUTS)}{path.suffix}")
     try:
         yield tmp

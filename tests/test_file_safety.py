@@ -195,6 +195,26 @@ def test_two_writers_of_one_file_never_share_a_temporary_file(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["orbit.mp4"]
 
 
+def test_a_killed_writers_temporary_file_is_removed_by_the_next_writer(tmp_path):
+    """A writer killed mid-write leaves ``.<stem>.partial-<pid>-<n><suffix>``; the next ``atomic_output`` of the same
+    file removes it when that process is gone, and keeps a live writer's and other files' temporary files. (Checked
+    against atomic_output without the removal: the dead writer's file stayed beside the finished video.)"""
+    import subprocess
+    import sys
+
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
+    dead, live = int(gone.stdout), os.getppid()
+    path = tmp_path / "orbit.mp4"
+    left = [tmp_path / f".orbit.partial-{dead}-0.mp4", tmp_path / f".orbit.partial-{live}-3.mp4"]
+    other = tmp_path / f".orbit2.partial-{dead}-0.mp4"  # another file's: not this writer's to remove
+    for stale in (*left, other):
+        stale.write_bytes(b"half")
+    with atomic_output(path) as tmp:
+        tmp.write_bytes(b"whole")
+    assert path.read_bytes() == b"whole"
+    assert not left[0].exists() and left[1].exists() and other.exists()
+
+
 @pytest.mark.parametrize(
     ("command", "main", "argv", "locked"),
     [
