@@ -95,14 +95,12 @@ class TrainingSet:
         border_fraction: float,
         generator: torch.Generator,
         views_per_frame: int = 1,
-        exact: bool = False,
     ) -> RayBatch:
         """Draw ``n_images`` images and mask-guided pixels from each (body, border ring, background in the box); an
         empty pool draws from the body pool, and an image with no body pixel from its whole box. ``views_per_frame``
-        k > 1: the images are k views each of n_images / k frames (:meth:`choose_images`). ``exact``: the pixels
-        drawn by the reference :func:`pool_pixels_exact` (the same distribution, other draws)."""
+        k > 1: the images are k views each of n_images / k frames (:meth:`choose_images`)."""
         chosen = self.choose_images(n_images, views_per_frame, generator)
-        return self.sample_images(chosen, rays_per_image, body_fraction, border_fraction, generator, exact)
+        return self.sample_images(chosen, rays_per_image, body_fraction, border_fraction, generator)
 
     def sample_images(
         self,
@@ -111,19 +109,16 @@ class TrainingSet:
         body_fraction: float,
         border_fraction: float,
         generator: torch.Generator,
-        exact: bool = False,
     ) -> RayBatch:
-        """Mask-guided pixels of the images ``chosen``, as :meth:`sample` draws them (``exact``: each pool listed in
-        full first, :func:`pool_pixels_exact`; else by :func:`pool_pixels`, the same distribution)."""
+        """Mask-guided pixels of the images ``chosen``, as :meth:`sample` draws them (by :func:`pool_pixels`)."""
         n_body = int(round(rays_per_image * body_fraction))
         n_border = int(round(rays_per_image * border_fraction))
         counts = (n_body, n_border, rays_per_image - n_body - n_border)
-        draw = pool_pixels_exact if exact else pool_pixels
         images, rows, cols, rgb, labels = [], [], [], [], []
         for image in chosen:
             crop, crop_labels = self.store.read(image)
             y0, x0, _, width = self.store.box(image)
-            pixels = np.concatenate(draw(crop_labels, counts, generator))
+            pixels = np.concatenate(pool_pixels(crop_labels, counts, generator))
             v, u = pixels // width, pixels % width
             rows.append(v + y0)
             cols.append(u + x0)
@@ -210,7 +205,7 @@ def pool_pixels(labels: np.ndarray, counts: tuple[int, int, int], generator: tor
         if count == 0:
             continue
         hits = candidates[pool_of == pool][:count]
-        if len(hits) < count:  # a pool too small for the candidates: the reference draws the rest of the image
+        if len(hits) < count:  # a pool too small for the candidates: the reference draws every pool again
             return pool_pixels_exact(labels, counts, generator)
         drawn.append(hits)
     return drawn

@@ -115,8 +115,13 @@ def render_autoencoder_video(run: Path | SavedRun, request: VideoRequest) -> Pat
     entry point: options of subject runs are refused."""
     r = request
     run_dir = run_folder(run)
-    options = {"--motion": r.motion, "--camera": r.camera is not None, "--start": r.start, "--motion-fps": r.motion_fps}
-    options["--samples"] = r.samples
+    options = {
+        "--motion": r.motion,
+        "--camera": r.camera is not None,
+        "--start": r.start,
+        "--motion-fps": r.motion_fps,
+        "--samples": r.samples,
+    }
     refuse_options(run_dir, "autoencoder", options, "subject runs")
     kind, inputs, n_frames, device, refine_steps = r.kind, list(r.inputs), r.frames, r.device, r.refine_steps
     if kind not in AUTOENCODER_VIDEO_KINDS:
