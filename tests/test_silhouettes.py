@@ -165,7 +165,8 @@ def test_a_slightly_turned_camera_is_corrected(tmp_path):
     """A camera of the synthetic recording's calibration turned by 0.6 degrees about its centre: the silhouette stage
     turns it back at least 40 % of the way and reports the correction; with --keep-calibration it stays as given.
     Not all the way: the prior (scale 1 degree) pulls the camera towards the calibration, and the body, fitted at
-    the same time, meets a turned camera part of the way (measured: 0.30 degrees left of 0.6)."""
+    the same time, meets a turned camera part of the way (measured: 0.30 degrees left of 0.6). The check of each
+    camera's distance at full size (``pipelines.prepare.camera_depth``) leaves these 256-px cameras alone."""
     from pipelines.cli import prepare_capture
     from pipelines.cli.common import run_cli
     from pipelines.datasets.rig_files import read_qualisys, write_qualisys
@@ -201,6 +202,10 @@ def test_a_slightly_turned_camera_is_corrected(tmp_path):
         angle(fixed, turned), abs=1e-3
     )
     np.testing.assert_allclose(ZjuCapture(tmp_path / "kept").cameras[2].cam_from_world, turned, atol=1e-9)
+    # at 256 px the person is under DEPTH_MIN_HEIGHT tall: no camera's distance is searched, none moves along its axis
+    for camera in report["cameras"].values():
+        assert camera["calibration_correction"]["depth_cm"] == 0.0
+        assert camera["calibration_correction"]["depth_skipped"].startswith("the person is ")
 
 
 def test_pixels_of_unknown_owner_hold_the_body_and_give_no_outline():

@@ -294,15 +294,25 @@ def _print_summary(report: dict, out) -> None:
     for name, camera in report["cameras"].items():
         error, share = camera["body_reprojection_px"], camera["body_reprojection_pct_height"]
         flag = f"  FLAGGED: {camera['flag']}" if "flag" in camera else ""
-        moved = camera.get("calibration_correction")
-        moved = (
-            f", calibration corrected by {moved['turn_degrees']:.2f} deg / {moved['shift_cm']:.1f} cm" if moved else ""
-        )
+        moved = _correction_text(camera.get("calibration_correction"))
         source = f" ({camera['recording']}, matched by {camera['matched_by']})" if "recording" in camera else ""
         print(
             f"  {name}{source}: reprojection {error:.1f} px ({share:.2f} %), IoU {camera['iou_mean']:.2f}, views used "
             f"{camera['views_used']}{moved}{flag}"
         )
+
+
+def _correction_text(moved: dict | None) -> str:
+    """The summary's words for a camera's ``calibration_correction`` (docs/guides/real-captures.md, step 6)."""
+    if not moved:
+        return ""
+    text = f", calibration corrected by {moved['turn_degrees']:.2f} deg / {moved['shift_cm']:.1f} cm"
+    depth = moved.get("depth_cm", 0.0)
+    if depth:
+        text += f", then moved {abs(depth):.1f} cm {'nearer the person' if depth > 0 else 'further away'}"
+    if "depth_skipped" in moved:
+        text += f", distance not checked ({moved['depth_skipped']})"
+    return text
 
 
 def _person(text: str):

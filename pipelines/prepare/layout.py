@@ -138,6 +138,8 @@ def _camera_report(seen, found, triangulated, body, ious) -> dict:
         if cam.name in seen.corrections:  # how far the body fit moved the camera (docs/guides/real-captures.md)
             turn, shift = seen.corrections[cam.name]
             per_camera[cam.name]["calibration_correction"] = {"turn_degrees": turn, "shift_cm": shift}
+        if cam.name in seen.depths:  # then moved along its axis (pipelines.prepare.camera_depth)
+            per_camera[cam.name].setdefault("calibration_correction", {}).update(seen.depths[cam.name])
     return per_camera
 
 

@@ -45,6 +45,8 @@ class Observations:
         people: ``people[v][f]`` a list of (T, 3) target arrays (x, y, confidence) in output pixels.
         notes: per camera, lines for the report (size mismatches, resizing).
         corrections: per camera, how far the body fit moved it: (turn in degrees, centre shift in cm).
+        depths: per camera, the check of its distance to the person after the body fit
+            (``pipelines.prepare.camera_depth.DepthCheck.record``); empty when the calibration is kept.
         recordings: per camera, its recording's file or folder name and how the two were matched.
         unused_recordings: recordings that no calibrated camera took (left out of the capture).
         frame_rates: per camera, its video's frame rate as the container states it (None: images, or not stated).
@@ -62,6 +64,7 @@ class Observations:
     people: list[dict[int, list[np.ndarray]]]
     notes: dict[str, list[str]] = field(default_factory=dict)
     corrections: dict[str, tuple[float, float]] = field(default_factory=dict)
+    depths: dict[str, dict] = field(default_factory=dict)
     recordings: dict[str, dict] = field(default_factory=dict)
     unused_recordings: list[str] = field(default_factory=list)
     frame_rates: dict[str, float | None] = field(default_factory=dict)

@@ -22,6 +22,7 @@ from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.floor import Floor, camera_up, floor_from_feet, write_floor
 from pipelines.datasets.rig_files import read_rig
 from pipelines.prepare.body_fit import FitSettings, fit_body, fit_steps, fitted_vertices
+from pipelines.prepare.camera_depth import check_camera_depths
 from pipelines.prepare.layout import finish_capture, write_sequence
 from pipelines.prepare.observe import observe
 from pipelines.prepare.people import choose_track, guide
@@ -189,9 +190,10 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
     rig = (np.stack([c.K for c in seen.cameras]), np.stack([c.cam_from_world for c in seen.cameras]))
     with tqdm(total=steps, desc="fitting the body", disable=not request.progress) as bar:
         fitted = fit_body(body, *inputs, settings, lambda done, total: bar.update(1), masks, rig, start)
+    vertices = fitted_vertices(body, fitted)
     if fitted.cam_from_world is not None:  # the capture's cameras are the corrected ones (docs/guides/real-captures.md)
         seen = corrected_cameras(seen, fitted.cam_from_world)
-    vertices = fitted_vertices(body, fitted)
+        seen = check_camera_depths(staging, seen, found, vertices, body.faces)
     write_sequence(staging, seen.cameras, found, fitted, vertices)
     floor = request.floor or floor_from_feet(vertices, camera_up(seen.cameras))
     write_floor(staging, floor)
