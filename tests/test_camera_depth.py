@@ -142,3 +142,48 @@ def test_the_summary_says_how_far_a_camera_moved_along_its_axis():
     assert _correction_text(None) == ""
     skipped = {**moved, "depth_cm": 0.0, "depth_skipped": "the person is 150 px tall"}
     assert _correction_text(skipped).endswith("distance not checked (the person is 150 px tall)")
+
+
+def _look_at(name: str, centre: np.ndarray, f=1500.0, size=800) -> Camera:
+    """A camera at ``centre`` looking at the world's origin, the image's down axis along -z."""
+    forward = -centre / np.linalg.norm(centre)
+    right = np.cross(forward, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    down = np.cross(forward, right)
+    pose = np.eye(4)
+    pose[:3, :3] = np.stack([right, down, forward])
+    pose[:3, 3] = -pose[:3, :3] @ centre
+    K = np.array([[f, 0, (size - 1) / 2], [0, f, (size - 1) / 2], [0, 0, 1.0]])
+    return Camera(name, K, np.zeros(5), pose, size, size)
+
+
+def test_the_prepare_moves_the_one_camera_that_stands_off(tmp_path):
+    """Three cameras 3 m from a standing ellipsoid; the masks of the second drawn as if it stood 2 % nearer than
+    its calibration (the raw masks where the prepare keeps them, ``.frames/mask_raw``): that camera alone is moved,
+    within a step of the 6 cm, and each camera's check is in the records."""
+    from types import SimpleNamespace
+
+    import cv2
+
+    from pipelines.prepare.camera_depth import check_camera_depths
+    from pipelines.prepare.observe import Observations
+
+    cameras = [_look_at(f"cam{v}", 3.0 * np.array([np.cos(a), np.sin(a), 0.0])) for v, a in enumerate((0.0, 1.9, 4.0))]
+    mesh = trimesh.creation.icosphere(subdivisions=3)
+    vertices = np.stack([mesh.vertices * [0.2, 0.15, 0.6] + [0.05 * f, -0.03 * f, 0.0] for f in range(4)])
+    faces = np.asarray(mesh.faces)
+    truth = list(cameras)
+    truth[1] = moved_along_axis(cameras[1], 0.06)
+    for camera, true in zip(cameras, truth):
+        folder = tmp_path / ".frames" / "mask_raw" / camera.name
+        folder.mkdir(parents=True)
+        for f in range(4):
+            cv2.imwrite(str(folder / f"{10 + f:06d}.png"), silhouette(true, vertices[f], faces).astype(np.uint8) * 255)
+    seen = Observations(cameras, [list(range(10, 14))] * 3, [{}] * 3)
+    found = SimpleNamespace(used=np.ones((4, 3), bool), frames=[10, 11, 12, 13], points=vertices[:, :24], others={})
+    checked = check_camera_depths(tmp_path, seen, found, vertices, faces)
+    moved = [(c.centre - before.centre) @ before.cam_from_world[2, :3] for c, before in zip(checked.cameras, cameras)]
+    assert moved[0] == 0.0 and moved[2] == 0.0
+    assert moved[1] == pytest.approx(0.06, abs=DEPTH_STEP * 3.0)
+    assert checked.depths["cam1"]["depth_cm"] == pytest.approx(100 * moved[1])
+    assert set(checked.depths) == {"cam0", "cam1", "cam2"}
