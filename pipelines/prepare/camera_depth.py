@@ -22,11 +22,10 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from pipelines.datasets.camera import Camera, silhouette
-from pipelines.prepare.occlusion import person_mask
+from pipelines.prepare.layout import staged_person_mask
 
 #: the distances tried: within this fraction of the camera's distance to the body, either way ...
 DEPTH_RANGE = 0.03
@@ -146,16 +145,13 @@ def spread_views(used: np.ndarray, count: int = DEPTH_VIEWS) -> list[int]:
 def check_camera_depths(root: Path, seen, found, vertices: np.ndarray, faces: np.ndarray):
     """``seen`` with every camera checked and moved as the module docstring says, on its used views of ``found`` (the
     raw masks in ``root/.frames/mask_raw``, reduced to the person's as the capture's own masks are,
-    ``pipelines.prepare.occlusion.person_mask``) against the fitted ``vertices`` (F, N, 3); the checks' records in
+    ``pipelines.prepare.layout.staged_person_mask``) against the fitted ``vertices`` (F, N, 3); the checks' records in
     ``seen.depths`` (a camera not searched: ``{"depth_cm": 0.0, "depth_skipped": why}``)."""
 
     def views_of(v: int, camera: Camera) -> list[View]:
         views = []
         for i in spread_views(found.used[:, v]):
-            source = found.frames[i]
-            raw = cv2.imread(str(root / ".frames" / "mask_raw" / camera.name / f"{source:06d}.png"), 0) > 0
-            body = silhouette(camera, vertices[i], faces)
-            mask, unknown = person_mask(raw, body, camera, found.points[i], found.others.get(source, []))
+            mask, unknown = staged_person_mask(root, camera, found, i, silhouette(camera, vertices[i], faces))
             views.append((vertices[i], mask, unknown))
         return views
 

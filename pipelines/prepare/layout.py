@@ -61,6 +61,15 @@ def splits(n_frames: int, names: list[str], holdout: str | None, novel_fraction:
     }
 
 
+def staged_person_mask(root: Path, camera, found, i: int, body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The person's mask and the pixels of unknown owner (``pipelines.prepare.occlusion.person_mask``) of frame ``i``
+    of ``found`` in ``camera``, from its raw mask staged in ``root/.frames/mask_raw`` and the fitted ``body``'s
+    silhouette (H, W) bool."""
+    source = found.frames[i]
+    raw = cv2.imread(str(root / ".frames" / "mask_raw" / camera.name / f"{source:06d}.png"), cv2.IMREAD_GRAYSCALE)
+    return person_mask(raw > 0, body, camera, found.points[i], found.others.get(source, []))
+
+
 def _check_pass(root: Path, seen, found, fitted, vertices, faces, ious: dict, progress=None):
     """Final masks (``pipelines.prepare.occlusion.person_mask``: the raw ones limited to the body's neighbourhood,
     less the other people; the pixels of unknown owner in ``mask_unknown/``), overlays and IoU (of the known pixels)
@@ -71,12 +80,11 @@ def _check_pass(root: Path, seen, found, fitted, vertices, faces, ious: dict, pr
         ious.setdefault(cam.name, [])
         for folder in ("mask", "mask_cihp", "overlay"):
             (root / folder / cam.name).mkdir(parents=True, exist_ok=True)
-    for i, source in enumerate(found.frames):
+    for i in range(len(found.frames)):
         tiles = []
         for v, cam in enumerate(cameras):
-            raw = cv2.imread(str(root / ".frames" / "mask_raw" / cam.name / f"{source:06d}.png"), cv2.IMREAD_GRAYSCALE)
             body = silhouette(cam, vertices[i], faces)
-            mask, unknown = person_mask(raw > 0, body, cam, found.points[i], found.others.get(source, []))
+            mask, unknown = staged_person_mask(root, cam, found, i, body)
             for folder in ("mask", "mask_cihp"):
                 write_image(root / folder / cam.name / f"{i:06d}.png", mask.astype(np.uint8))
             if unknown.any():  # somebody in front of the person (docs/formats.md §1.5)
