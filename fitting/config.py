@@ -166,6 +166,9 @@ class TrainConfig:
     virtual_patches: int = 4  #: with the smoothness: 8x8 patches of virtual cameras per step
     mirror_weight: float = 0.0  #: weight of the left-right colour symmetry on virtual rays (0: off)
     mirror_rays: int = 256  #: with the symmetry: virtual rays per step, each rendered with its mirror image
+    outline_weight: float = 0.0  #: weight of the bodies' outline seen by virtual cameras (0: off; docs/model.md §6)
+    outline_rays: int = 128  #: with the outline: rays of the virtual cameras' outline bands per step
+    outline_beside: float = 1.0  #: with the outline: weight of its rays that pass beside the body (0: through it only)
     s3im_weight: float = 0.0  #: weight of the stochastic structural similarity over the training rays (0: off)
     s3im_repeats: int = 10  #: with S3IM: random groupings of the batch's rays per step
     holdout_every: int = 0  #: subject fits: every n-th training frame is held back to choose the step kept (0: none)
@@ -355,6 +358,7 @@ KIND_ONLY = {
     "train.entropy_weight": "subject",
     "train.smoothness_weight": "subject",
     "train.mirror_weight": "subject",
+    "train.outline_weight": "subject",
     "train.s3im_weight": "subject",
     "model.appearance_dim": "subject",
     "model.novel_colour": "subject",
@@ -430,6 +434,9 @@ RANGES = {
     "train.virtual_rays": (lambda v: v >= 1, ">= 1"),
     "train.mirror_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
     "train.mirror_rays": (lambda v: v >= 1, ">= 1"),
+    "train.outline_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
+    "train.outline_rays": (lambda v: v >= 1, ">= 1"),
+    "train.outline_beside": (lambda v: 0 <= v <= 1, "in [0, 1]"),
     "train.s3im_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
     "train.s3im_repeats": (lambda v: v >= 1, ">= 1"),
     "train.smoothness_weight": (lambda v: v >= 0, ">= 0 (0: off)"),
@@ -501,6 +508,6 @@ def validate_config(config: FitConfig) -> None:
     if config.train.s3im_weight and config.train.random_background:  # the band's targets hold the recording's colour
         raise ConfigError("train.s3im_weight: not with train.random_background; set one of them off")
     rays_only = ("pose_correction", "camera_colour", "random_background", "holdout_every", "entropy_weight")
-    for key in (*rays_only, "smoothness_weight", "mirror_weight", "s3im_weight"):
+    for key in (*rays_only, "smoothness_weight", "mirror_weight", "outline_weight", "s3im_weight"):
         if getattr(config.train, key) and not spec.rays:
             raise ConfigError(f"train.{key}: the CNN baseline renders no rays; set it false (--set train.{key}=false)")

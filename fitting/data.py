@@ -212,6 +212,21 @@ def pool_pixels(labels: np.ndarray, counts: tuple[int, int, int], generator: tor
 
 
 @dataclass
+class OutlineRays:
+    """Rays of virtual cameras through the band along the outline of a training frame's body (docs/model.md §6,
+    *The bodies' outline from unseen views*): origins and unit dirs (N, 3), frames (N,) long indices into the
+    training poses, and inside (N,) 1.0 where the ray meets the body, 0.0 where it passes beside it."""
+
+    origins: torch.Tensor
+    dirs: torch.Tensor
+    frames: torch.Tensor
+    inside: torch.Tensor
+
+    def to(self, device) -> OutlineRays:
+        return OutlineRays(*(t.to(device) for t in (self.origins, self.dirs, self.frames, self.inside)))
+
+
+@dataclass
 class FitData:
     """Everything a Trainer needs from a capture.
 
@@ -233,6 +248,8 @@ class FitData:
         shells: (P, N, N, N) bool, the part boxes' shells (docs/model.md §1, *Body shells*), or None: whole boxes.
         mirrored_poses: the training frames' bodies in their mirror-image poses (docs/model.md §6, *Left-right
             symmetry*), on the training device, or None: the symmetry term is off.
+        outline_rays: the bodies' outlines from virtual cameras, on the training device, or None: the outline term is
+            off.
     """
 
     training: TrainingSet
@@ -247,3 +264,4 @@ class FitData:
     camera_gains: torch.Tensor | None = None
     shells: torch.Tensor | None = None
     mirrored_poses: PoseBatch | None = None
+    outline_rays: OutlineRays | None = None

@@ -29,7 +29,7 @@ from fitting.run_folder import add_to_last_row, trim_log, write_config
 from fitting.schedule import Budget, lr_factor
 from fitting.selection import paired_error_db, selection_set
 from fitting.training_rays import RaySet, render_ray_sets
-from fitting.unseen import VirtualTerm, mirror_terms, terms_value, unseen_terms
+from fitting.unseen import VirtualTerm, mirror_terms, outline_terms, terms_value, unseen_terms
 from narf.fields.common import PoseBatch
 from narf.metrics import psnr
 from narf.occupancy import refresh_cells
@@ -335,11 +335,14 @@ class Trainer:
     def virtual_terms(self, poses: PoseBatch, frames: torch.Tensor, index: torch.Tensor | None) -> list[VirtualTerm]:
         """The step's terms on virtual rays (``fitting.unseen``), drawn after the training rays': the unseen views'
         around the frames ``frames`` of ``poses``, and the colour's symmetry around the capture's poses and their
-        mirror images (docs/model.md §6), by training frame (``index`` maps a corrected batch's frames to them)."""
+        mirror images (docs/model.md §6), by training frame (``index`` maps a corrected batch's frames to them), and
+        the bodies' outlines from virtual cameras."""
         drawn = frames if index is None else index[frames]
         mirrored = getattr(self.fit_data, "mirrored_poses", None)  # subject fits only
         unseen = unseen_terms(self.config, poses, frames, self.generator)
-        return unseen + mirror_terms(self.config, self.views.poses, mirrored, drawn, self.generator)
+        symmetry = mirror_terms(self.config, self.views.poses, mirrored, drawn, self.generator)
+        outlines = getattr(self.fit_data, "outline_rays", None)  # subject fits only
+        return unseen + symmetry + outline_terms(self.config, outlines, self.views.poses, self.generator)
 
     def autocast(self):
         """bf16 autocast of a training forward pass when ``train.precision`` is bf16 (a no-op for fp32)."""

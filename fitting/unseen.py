@@ -18,6 +18,7 @@ import torch
 from torch import nn
 
 from fitting.config import FitConfig
+from fitting.data import OutlineRays
 from fitting.training_rays import RaySet, render_each_set
 from narf.fields.common import PoseBatch
 from narf.renderer import RenderOutput
@@ -254,6 +255,38 @@ def mirror_colour_loss(
     """The :func:`mirror_terms`' value, each set rendered alone (the reference the trainer's one render of every set
     is tested against); 0 when the weight is 0."""
     return terms_rendered_alone(config, field, mirror_terms(config, poses, mirrored, frames, generator))
+
+
+def outline_terms(
+    config: FitConfig, outlines: OutlineRays | None, poses: PoseBatch, generator: torch.Generator
+) -> list[VirtualTerm]:
+    """``train.outline_weight`` times the outline error (docs/model.md §6, *The bodies' outline from unseen views*)
+    over ``train.outline_rays`` rays drawn uniformly from ``outlines`` (from those that meet the body alone where
+    ``train.outline_beside`` is 0), each rendered in its training frame's pose (``poses``, indexed by training
+    frame). No term when the weight is 0 or there are no outline rays (nothing drawn). Returns a list of at most one
+    VirtualTerm."""
+    t = config.train
+    if t.outline_weight <= 0 or outlines is None:
+        return []
+    pool = outlines.inside.new_ones(len(outlines.inside)) if t.outline_beside > 0 else outlines.inside
+    pick = torch.multinomial(pool.cpu(), t.outline_rays, replacement=True, generator=generator).to(pool.device)
+    rays = virtual_set(config, outlines.origins[pick], outlines.dirs[pick], outlines.frames[pick], poses, generator)
+    inside = outlines.inside[pick]
+    weights = inside + t.outline_beside * (1 - inside)
+
+    def outline(out: list[RenderOutput]) -> torch.Tensor:
+        return t.outline_weight * outline_error(out[0].mask, inside, weights)
+
+    return [VirtualTerm([rays], outline)]
+
+
+def outline_error(opacity: torch.Tensor, inside: torch.Tensor, weights: torch.Tensor | None = None) -> torch.Tensor:
+    """sum_r w_r (M_r - B_r)^2 / sum_r w_r: the rays' opacities M (R,) against B (R,), 1 where the ray meets the body
+    and 0 where it passes beside it, weighed by w (R,) (None: all 1); the mask term's form
+    (``fitting.losses.batch_loss``) on rays no camera recorded."""
+    if weights is None:
+        return (opacity - inside).square().mean()
+    return (weights * (opacity - inside).square()).sum() / weights.sum().clamp_min(1e-6)
 
 
 def symmetry_error(rgb: torch.Tensor, mask: torch.Tensor, rgb_mirror: torch.Tensor, mask_mirror: torch.Tensor):

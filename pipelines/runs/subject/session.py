@@ -44,6 +44,7 @@ from pipelines.datasets.smpl_files import cache_dir
 from pipelines.datasets.subjects import data_root, find_subject, real_candidates, stand_in_notice, synthetic_path
 from pipelines.datasets.zju_mocap import SmplParams
 from pipelines.runs.subject.body_refine import RefinedCapture, RefineSettings, corrected_frames, refine_to_masks
+from pipelines.runs.subject.outlines import outline_rays
 from pipelines.synthetic.capture import SYNTHETIC_SUBJECTS, SynthConfig, generate_capture, is_complete
 
 
@@ -214,6 +215,13 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
     mirrored = None
     if config.train.mirror_weight > 0:  # the bodies the fit trains on, in their mirror-image poses
         mirrored = training_poses(MirroredSource(source), body_model, frames).to(device)
+    outlines = None
+    if config.train.outline_weight > 0:  # the bodies the fit trains on, from cameras nobody recorded
+
+        def pose_bodies(indices: list[int]):
+            return poses_for_frames(source, body_model, [frames[i] for i in indices], surface)[1]
+
+        outlines = outline_rays(pose_bodies, len(frames), body_model.faces, config.train.seed).to(device)
     _, bodies, shapes = poses_for_frames(source, body_model, box_frames(frames, config.data.box_frames), surface)
     boxes, shells = fit_boxes(body_model, bodies, shapes, config.model, surface)
     held_frame = frames[len(frames) // 2]
@@ -239,6 +247,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         None if gains is None else torch.as_tensor(gains[list(protocol.train_views)]),
         shells,
         mirrored,
+        outlines,
     )
 
 
