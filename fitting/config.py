@@ -155,6 +155,9 @@ class TrainConfig:
     pose_knot_every: int = 1  #: capture frames between pose-correction knots (1: every frame its own)
     pose_gradient_freqs: int = 4  #: encoding frequencies that pass the pose's gradient (10: all; docs/model.md §6)
     mask_body_iterations: int = 150  #: subject fits (NeRF-type): refine the bodies against the masks first (0: off)
+    #: with the refinement: refine also bodies that wear the capture's fitted surface (``body_surface.npy``, fitted by
+    #: narf-prepare-capture to every camera's masks with the poses); off: those bodies are kept as the capture has them
+    refine_surface_bodies: bool = False
     camera_colour: bool = False  #: subject fits: a colour gain and bias per training camera, in the loss only
     colour_lr: float = 1e-3  #: Adam learning rate of the camera colour transforms
     colour_prior: float = 1e-3  #: pull of each camera's transform towards the identity
@@ -246,7 +249,8 @@ def migrate_saved(saved: dict, checkpoint_kind: str | None = None) -> dict:
     rigid; the autoencoder's checkpoint also said ``kind: autoencoder``) and kept the process count in
     ``train.world_size``; both are read here, so every run folder written since loads as it was fitted. A saved
     config without ``train.mask_body_iterations`` predates the refinement of the bodies against the masks: 0; one
-    without ``train.pose_gradient_freqs`` corrected its poses through every frequency: 10."""
+    without ``train.pose_gradient_freqs`` corrected its poses through every frequency: 10; one without
+    ``train.refine_surface_bodies`` refined bodies that wear the capture's surface too: true."""
     if not isinstance(saved, dict):
         raise ConfigError(f"saved config: expected a mapping, got {type(saved).__name__}")
     saved = {k: dict(v) if isinstance(v, dict) else v for k, v in saved.items()}
@@ -258,6 +262,8 @@ def migrate_saved(saved: dict, checkpoint_kind: str | None = None) -> dict:
         train.setdefault("mask_body_iterations", 0)
         # ... and those fitted before the pose's gradient was band-limited passed it through every frequency
         train.setdefault("pose_gradient_freqs", 10)
+        # ... and those fitted before the capture's fitted surface kept its bodies refined them as well
+        train.setdefault("refine_surface_bodies", True)
     if "kind" not in saved and (legacy is not None or checkpoint_kind is not None):
         name = checkpoint_kind if checkpoint_kind == "autoencoder" else legacy
         if name not in LEGACY_KINDS and name not in LEGACY_KINDS.values():

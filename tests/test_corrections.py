@@ -504,3 +504,28 @@ def test_a_resumed_fit_trains_on_the_bodies_it_started_with(data_root_64, tmp_pa
     monkeypatch.setattr("pipelines.runs.subject.session.refine_to_masks", refined_again)
     resumed = resume_run(run, torch.device("cpu"), ["train.steps=3"], progress=False)
     assert torch.allclose(resumed.views.poses.world_from_part, first, atol=1e-5)
+
+
+@pytest.mark.slow
+def test_bodies_that_wear_the_captures_surface_are_kept(data_root_64, tmp_path, monkeypatch):
+    """A capture whose bodies wear a fitted surface (body_surface.npy: narf-prepare-capture fits it to every camera's
+    masks with the poses) keeps its bodies: the refinement against the training masks does not run, unless
+    train.refine_surface_bodies; without the file it runs. (Checked against the rule removed: refined every time.)"""
+    from pipelines.body.model import BodyModel
+    from pipelines.datasets.zju_mocap import BODY_SURFACE, write_body_surface
+    from pipelines.runs.subject import session
+
+    subject = tmp_path / "taichi"
+    shutil.copytree(data_root_64 / "synthetic" / "taichi", subject)
+    _split(subject, [0, 1, 2])  # the refinement needs two training cameras or more
+    write_body_surface(subject / BODY_SURFACE, np.zeros(BodyModel().n_vertices))
+    calls, refine = [], session.refine_to_masks
+    monkeypatch.setattr(session, "refine_to_masks", lambda *args, **kw: calls.append(1) or refine(*args, **kw))
+    sets = ["train.steps=1", "train.mask_body_iterations=5"]
+    kept = _tiny_fit(subject, tmp_path / "kept", *sets)
+    assert not calls and kept.fit_data.capture_poses is None
+    _tiny_fit(subject, tmp_path / "asked", *sets, "train.refine_surface_bodies=true")
+    assert len(calls) == 1
+    (subject / BODY_SURFACE).unlink()
+    plain = _tiny_fit(subject, tmp_path / "plain", *sets)
+    assert len(calls) == 2 and plain.fit_data.capture_poses is not None

@@ -183,6 +183,28 @@ def fit_body_model(capture: ZjuCapture, state: dict | None) -> BodyModel:
     return body
 
 
+def refines_bodies(config: FitConfig, n_cameras: int, surface: bool, progress: bool) -> bool:
+    """Whether a fit refines its training frames' bodies against the training masks (docs/model.md §6, *Input
+    corrections*): ``train.mask_body_iterations`` > 0 and a NeRF-type model, with two training cameras or more (one
+    silhouette cannot place a body in depth: measured on a 1-view synthetic capture, 5.5 -> 9.0 cm of joint error),
+    and, unless ``train.refine_surface_bodies``, bodies that do not wear the capture's fitted surface (``surface``:
+    fitted by narf-prepare-capture to every camera's masks with the poses, so that the training cameras' masks alone
+    only pull the bodies their way). Says why on stderr when it does not refine."""
+    if config.train.mask_body_iterations <= 0 or not model_spec(config.model.name).rays:
+        return False
+    why = None
+    if n_cameras < 2:
+        why = "one training camera: the bodies are not refined against the masks"
+    elif surface and not config.train.refine_surface_bodies:
+        why = (
+            "the capture's bodies wear a surface fitted to its masks (body_surface.npy): they are not refined against "
+            "the training masks again (train.refine_surface_bodies=true does)"
+        )
+    if why and progress:
+        print(f"narf: {why}", file=sys.stderr)
+    return why is None
+
+
 def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict | None = None) -> FitData:
     """Load the protocol's training views (Neural Body order) into the view store, their poses and the part boxes.
     ``state``: the checkpoint of a fit being resumed (its body model is the recorded one)."""
@@ -199,11 +221,7 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
     surface = body_model.surface_offsets(capture.surface_displacement(body_model.n_vertices))
     poses = training_poses(capture, body_model, frames)
     training = camera_views(capture, protocol, frames, poses, device, progress)
-    source, refine = capture, config.train.mask_body_iterations > 0 and model_spec(config.model.name).rays
-    if refine and len(protocol.train_views) < 2:  # one silhouette cannot place a body in depth: it would move it
-        refine = False  # (measured on a 1-view synthetic capture: 5.5 -> 9.0 cm of joint error)
-        if progress:
-            print("narf: one training camera: the bodies are not refined against the masks", file=sys.stderr)
+    source, refine = capture, refines_bodies(config, len(protocol.train_views), surface is not None, progress)
     if refine:  # a resumed fit trains on the bodies its checkpoint holds, never on a second refinement's
         kept = None if state is None else saved_bodies(state, capture)
         if kept is None:
