@@ -268,8 +268,11 @@ def outline_terms(
     t = config.train
     if t.outline_weight <= 0 or outlines is None:
         return []
-    pool = outlines.inside.new_ones(len(outlines.inside)) if t.outline_beside > 0 else outlines.inside
-    pick = torch.multinomial(pool.cpu(), t.outline_rays, replacement=True, generator=generator).to(pool.device)
+    if t.outline_beside > 0:
+        pick = torch.randint(0, len(outlines.inside), (t.outline_rays,), generator=generator)
+    else:  # the rays through the body alone
+        pick = torch.multinomial(outlines.inside.cpu(), t.outline_rays, replacement=True, generator=generator)
+    pick = pick.to(outlines.inside.device)
     rays = virtual_set(config, outlines.origins[pick], outlines.dirs[pick], outlines.frames[pick], poses, generator)
     inside = outlines.inside[pick]
     weights = inside + t.outline_beside * (1 - inside)

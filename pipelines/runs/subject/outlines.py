@@ -84,7 +84,7 @@ def outline_rays(pose_bodies, frame_count: int, faces: np.ndarray, seed: int, vi
             keep = rng.choice(len(u), size=min(RAYS_PER_VIEW, len(u)), replace=False)
             pixels = torch.as_tensor(np.stack([u[keep], v[keep]], axis=1), dtype=torch.float64)
             o, d = rays_from_pixels(torch.as_tensor(camera.K), torch.as_tensor(camera.cam_from_world), pixels)
-            # the label from the mesh itself: the rasteriser's pixels reach up to half a pixel past the outline
+            # the label from the mesh itself: the rasteriser also draws the pixels its polygons' edges touch
             mesh = trimesh.Trimesh(vertices, faces, process=False)
             inside.append(mesh.ray.intersects_any(o.numpy(), d.numpy()))
             origins.append(o), dirs.append(d), frames.append(np.full(len(keep), frame))
