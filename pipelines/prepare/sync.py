@@ -14,6 +14,14 @@ static part) is taken off before the residuals are scored (the median distance o
 calibration error no longer favours any d, and the d that lowers the score is the one the motion asks for. The best
 whole d is refined on a grid of tenths, the others' points interpolated linearly in time.
 
+An error of the intrinsics (focal length, principal point, distortion) moves a joint's projection by an amount that
+changes with where the joint lies in the image, so as the person crosses the view it leaves a mark the static part
+does not remove. The estimate is therefore made twice: with the static part alone, and with a positional part too
+(the residual's best robust fit, per camera, by a 2 x 2 matrix times each joint's image position about its own median
+position). The positional part can also take up motion where the person's place in the image and their speed move
+together, so its estimate is kept only where it agrees with the static part's within ``POSITION_AGREEMENT`` frames for
+every camera; otherwise the static part's is.
+
 A camera out of step spoils the triangulation that every other camera is judged by, so whole-frame shifts are chosen
 for the capture as a whole: among each camera's best whole shifts (and their neighbours), the one that lowers the
 capture's error (the mean over cameras of the score in step) most is made, if it lowers it by ``MIN_TOTAL_GAIN`` at
@@ -60,6 +68,13 @@ MIN_CORRELATION = 0.3
 #: each target's left/right counterpart
 MIRRORED = [mirror_index(t) for t in range(len(TARGETS))]
 METHOD = "reprojection of the others' triangulation, each joint's static part removed"
+METHOD_POSITIONAL = METHOD + ", and a part that grows with the joint's place in the image"
+#: the most (frames) the estimate with the positional part may differ from the static part's, for any camera, to be
+#: kept: on Pose2Sim's two takes it agrees within 0.9 frame wherever it is right and departs by 2.5-4 frames where the
+#: man's place and speed move together in cam03 (docs/results/real-capture.md, thirty-ninth session)
+POSITION_AGREEMENT = 1.0
+#: rounds of reweighting in the positional part's robust fit
+POSITION_ROUNDS = 5
 
 
 def _keypoints(cameras, frames, people) -> tuple[list[int], np.ndarray]:
@@ -113,6 +128,8 @@ class _Rig:
     P: np.ndarray
     heights: np.ndarray
     keypoints: np.ndarray
+    #: whether the residual's positional part is taken off too (module docstring)
+    positional: bool = False
 
     def others_points(self, v: int) -> np.ndarray:
         """(N, T, 3) the triangulation of every camera but v (NaN where fewer than two see a joint)."""
@@ -128,7 +145,10 @@ class _Rig:
         residual = _residuals(self.P[v], self.heights[v], _shifted(points, d), self.keypoints[v])
         with warnings.catch_warnings():  # a joint never seen gives an all-NaN median
             warnings.simplefilter("ignore", RuntimeWarning)
-            length = np.linalg.norm(residual - np.nanmedian(residual, axis=0, keepdims=True), axis=-1)
+            residual = residual - np.nanmedian(residual, axis=0, keepdims=True)
+        if self.positional:
+            residual = residual - positional_part(residual, self.keypoints[v][..., :2] / self.heights[v])
+        length = np.linalg.norm(residual, axis=-1)
         usable = np.isfinite(length)
         return (float(np.median(length[usable])) if usable.sum() >= MIN_PAIRS else np.inf), int(usable.sum())
 
@@ -167,6 +187,30 @@ def _residuals(P: np.ndarray, height: float, points: np.ndarray, keypoints: np.n
         warnings.simplefilter("ignore", RuntimeWarning)
         nearer = np.nanmedian(np.linalg.norm(swapped, axis=-1), 1) < np.nanmedian(np.linalg.norm(plain, axis=-1), 1)
     return np.where(nearer[:, None, None], swapped, plain)
+
+
+def positional_part(residual: np.ndarray, position: np.ndarray) -> np.ndarray:
+    """(N, T, 2) the part of a camera's residuals (N, T, 2; each joint's static part already taken off; NaN where
+    missing) that a 2 x 2 matrix A explains from each joint's image position (N, T, 2, over the height) about that
+    joint's median position over the frames: r ~ A (x - median_n x), fitted by least squares reweighted
+    ``POSITION_ROUNDS`` times (weights sqrt(min(1, s / |e|)), s 1.5 x the median |e|: a Huber-like fit that outliers do
+    not pull). Zero where fewer than ``MIN_PAIRS`` pairs are known."""
+    known = np.isfinite(residual).all(-1) & np.isfinite(position).all(-1)
+    out = np.zeros_like(residual)
+    if known.sum() < MIN_PAIRS:
+        return out
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        centred = position - np.nanmedian(np.where(known[..., None], position, np.nan), axis=0, keepdims=True)
+    x, y = centred[known], residual[known]
+    weights = np.ones(len(x))
+    for _ in range(POSITION_ROUNDS):
+        A = np.linalg.lstsq(x * weights[:, None], y * weights[:, None], rcond=None)[0]
+        error = np.linalg.norm(y - x @ A, axis=-1)
+        scale = 1.5 * np.median(error) + 1e-12
+        weights = np.sqrt(np.minimum(1.0, scale / np.maximum(error, 1e-12)))
+    out[known] = x @ A
+    return out
 
 
 def speed_lags(keypoints: np.ndarray, heights: np.ndarray, max_offset: int = MAX_OFFSET) -> list[tuple]:
@@ -224,12 +268,12 @@ def find_offsets(cameras, frames, people, max_offset: int = MAX_OFFSET) -> dict[
     """Every camera's time offset and how sure it is (module docstring), in frames of the timeline read.
 
     Returns, per camera: ``whole_frames`` (the whole-frame shift the capture asks for), ``offset_frames`` (that plus
-    what is left below a frame), ``status`` (``in step``, ``out of step``, or ``uncertain``: its own error asks for
-    an offset that the capture's does not confirm), ``confidence`` (``high`` or ``low``), ``evidence`` (the share of
-    the capture's error its shift takes off, or of its own error its remaining offset would), ``method``,
-    ``error_in_step_pct`` / ``error_at_offset_pct`` (its score, % of the height, after the shifts) and ``pairs``,
-    and Pose2Sim's ``speed_correlation`` (lag, peak) with whether it agrees; a camera that cannot be scored (fewer
-    than three cameras, too few joints seen) gets a ``note``."""
+    what is left below a frame), ``status`` (``in step``, ``out of step``, or ``uncertain``: its own error asks for an
+    offset that the capture's does not confirm), ``confidence`` (``high`` or ``low``), ``evidence`` (the share of the
+    capture's error its shift takes off, or of its own error its remaining offset would), ``method`` (which of the two
+    estimates was kept), ``error_in_step_pct`` / ``error_at_offset_pct`` (its score, % of the height, after the shifts)
+    and ``pairs``, and Pose2Sim's ``speed_correlation`` (lag, peak) with whether it agrees; a camera that cannot be
+    scored (fewer than three cameras, too few joints seen) gets a ``note``."""
     _, keypoints = _keypoints(cameras, frames, people)
     rig = _Rig(
         np.stack([projection_matrix(c) for c in cameras]), np.array([c.height for c in cameras], float), keypoints
@@ -240,21 +284,48 @@ def find_offsets(cameras, frames, people, max_offset: int = MAX_OFFSET) -> dict[
             n: {"offset_frames": 0.0, "whole_frames": 0, "note": "fewer than three cameras: not estimated"}
             for n in names
         }
+    static = _search(rig, names, max_offset)
+    positional = _search(replace(rig, positional=True), names, max_offset)
+    chosen, method = static, METHOD
+    if _agree(static, positional, names):
+        chosen, method = positional, METHOD_POSITIONAL
+    estimates, whole, drops = chosen
+    speed = speed_lags(keypoints, rig.heights, max_offset)
+    return {n: _entry(estimates[v], speed[v], whole[n], drops.get(n), method) for v, n in enumerate(names)}
+
+
+def _search(rig: _Rig, names: list[str], max_offset: int) -> tuple[list[dict], dict[str, int], dict[str, float]]:
+    """The whole-frame shifts made one at a time while the best lowers the capture's error by ``MIN_TOTAL_GAIN`` (the
+    module docstring): (each camera's estimate after them, the shifts by camera name, the share of the capture's
+    error each shifted camera's shifts took off)."""
     whole, drops = {n: 0 for n in names}, {}
     current = rig.capture_error()
-    estimates = [rig.estimate(v, max_offset) for v in range(len(cameras))]  # always those of the current shifts
-    for _ in range(len(cameras)):
+    estimates = [rig.estimate(v, max_offset) for v in range(len(names))]  # always those of the current shifts
+    for _ in range(len(names)):
         best = _best_shift(rig, estimates, max_offset, whole)
         if best is None or not np.isfinite(current) or best[0] > current * (1 - MIN_TOTAL_GAIN):
             break
         error, v, shift = best
-        rig.keypoints = shifted_keypoints(rig.keypoints, v, shift)
+        rig = replace(rig, keypoints=shifted_keypoints(rig.keypoints, v, shift))
         whole[names[v]] += shift
         drops[names[v]] = drops.get(names[v], 0.0) + 1 - error / current
         current = error
-        estimates = [rig.estimate(u, max_offset) for u in range(len(cameras))]
-    speed = speed_lags(keypoints, rig.heights, max_offset)
-    return {n: _entry(estimates[v], speed[v], whole[n], drops.get(n)) for v, n in enumerate(names)}
+        estimates = [rig.estimate(u, max_offset) for u in range(len(names))]
+    return estimates, whole, drops
+
+
+def _agree(static: tuple, positional: tuple, names: list[str]) -> bool:
+    """Whether every camera's offset (whole shift plus what is left) from the two searches (:func:`_search`) lies
+    within ``POSITION_AGREEMENT`` frames; a camera either cannot score counts as disagreeing."""
+    for v, name in enumerate(names):
+        ends = []
+        for estimates, whole, _ in (static, positional):
+            if not estimates[v]:
+                return False
+            ends.append(whole[name] + estimates[v]["offset"])
+        if abs(ends[0] - ends[1]) > POSITION_AGREEMENT:
+            return False
+    return True
 
 
 def _best_shift(rig: _Rig, estimates: list[dict], max_offset: int, whole: dict[str, int]):
@@ -269,14 +340,15 @@ def _best_shift(rig: _Rig, estimates: list[dict], max_offset: int, whole: dict[s
         shifts = {int(round(estimate["offset"])) + k for k in (-1, 0, 1)} - {0}
         for shift in (s for s in shifts if abs(so_far + s) <= max_offset):
             candidates.append(
-                (_Rig(rig.P, rig.heights, shifted_keypoints(rig.keypoints, v, shift)).capture_error(), v, shift)
+                (replace(rig, keypoints=shifted_keypoints(rig.keypoints, v, shift)).capture_error(), v, shift)
             )
     return min(candidates) if candidates else None
 
 
-def _entry(estimate: dict, speed: tuple, whole: int, drop: float | None) -> dict:
+def _entry(estimate: dict, speed: tuple, whole: int, drop: float | None, method: str = METHOD) -> dict:
     """A camera's record (:func:`find_offsets`) from its estimate after the shifts (:meth:`_Rig.estimate`), its
-    speed-correlation lag and peak, its whole shift and the share of the capture's error that shift took off."""
+    speed-correlation lag and peak, its whole shift, the share of the capture's error that shift took off and the
+    method that made the estimate."""
     if not estimate:
         return {
             "offset_frames": float(whole),
@@ -302,7 +374,7 @@ def _entry(estimate: dict, speed: tuple, whole: int, drop: float | None) -> dict
         "status": status,
         "confidence": confidence,
         "evidence": round(float(evidence), 3),
-        "method": METHOD,
+        "method": method,
         "error_in_step_pct": 100 * estimate["in_step"],
         "error_at_offset_pct": 100 * estimate["at_offset"],
         "pairs": estimate["pairs"],
