@@ -316,7 +316,7 @@ def _search(rig: _Rig, names: list[str], max_offset: int) -> tuple[list[dict], d
 
 def _agree(static: tuple, positional: tuple, names: list[str]) -> bool:
     """Whether every camera's offset (whole shift plus what is left) from the two searches (:func:`_search`) lies
-    within ``POSITION_AGREEMENT`` frames; a camera either cannot score counts as disagreeing."""
+    within ``POSITION_AGREEMENT`` frames; a camera that either search cannot score counts as disagreeing."""
     for v, name in enumerate(names):
         ends = []
         for estimates, whole, _ in (static, positional):
