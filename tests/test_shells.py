@@ -126,6 +126,46 @@ def test_shells_keep_the_body_surface_and_cut_the_space_beside_it(rest, body_mod
     assert field.in_parts(u_out)[boxed].any(dim=1).float().mean() < 0.01
 
 
+def _shells_every_cell(bodies, faces, centres, half_extents, n, margin):
+    """The reference for :func:`part_shells`: every cell's centre measured in every frame (all of each batch here)."""
+    steps = (np.arange(n) + 0.5) * (2.0 / n) - 1.0
+    u = np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), axis=-1).reshape(-1, 3)
+    local = centres.double().numpy()[:, None] + u[None] * half_extents.double().numpy()[:, None]
+    half_diagonal = np.linalg.norm(half_extents.double().numpy(), axis=1) / n
+    visible = ~hidden_vertices(bodies[0].vertices[0].double().numpy(), faces)
+    inside = np.zeros((N_PARTS, n**3), bool)
+    for body in bodies:
+        for f in range(len(body.reach)):
+            reach, world_from_part = float(body.reach[f]), body.world_from_part[f].double().numpy()
+            world = (
+                np.einsum("pij,pnj->pni", world_from_part[:, :3, :3], local * reach) + world_from_part[:, None, :3, 3]
+            )
+            vertices = body.vertices[f].double().numpy()
+            distance = signed_distance_to_vertices(world.reshape(-1, 3), vertices, faces, visible).reshape(N_PARTS, -1)
+            inside |= distance < margin + half_diagonal[:, None] * reach
+    return torch.from_numpy(inside.reshape(N_PARTS, n, n, n))
+
+
+def test_shells_measure_each_cell_until_a_frame_keeps_it(body_model):
+    """The shells measure only the cells no earlier frame kept: the same cells as measuring every cell in every frame
+    (a union does not depend on its order; both paths compare the same float64 numbers with the same threshold, so
+    equality is exact)."""
+    poses = torch.zeros(3, 72, dtype=torch.float64)
+    poses[1, 3 * 1 : 3 * 1 + 3] = torch.tensor([-1.2, 0.0, 0.3])  # the left hip raised and turned
+    poses[2, 3 * 16 : 3 * 16 + 3] = torch.tensor([0.0, 0.0, -1.1])  # the left shoulder lowered
+    poses[2, 3 * 18 : 3 * 18 + 3] = torch.tensor([0.0, -1.4, 0.0])  # the left elbow bent
+    with torch.no_grad():
+        rest = body_model.rest_body(torch.zeros(1, 10))
+        posed = body_model.pose_zju(poses, torch.zeros(3, 3), torch.zeros(3, 3), torch.zeros(3, 10))
+    boxes = body_model.part_boxes([rest, posed])
+    fast = part_shells([rest, posed], body_model.faces, *boxes, resolution=20, margin=MARGIN)
+    every = _shells_every_cell([rest, posed], body_model.faces, *boxes, 20, MARGIN)
+    assert torch.equal(fast, every)
+    # the later frames add cells (the limbs moved), so the frames after the first measured some cells and skipped others
+    alone = part_shells([rest], body_model.faces, *boxes, resolution=20, margin=MARGIN)
+    assert (alone <= fast).all() and (fast & ~alone).sum() > 100
+
+
 def test_a_field_outside_its_shells_has_no_density(rest):
     body, boxes, shells, _ = rest
     field = build_field("narf_d", width=16)
