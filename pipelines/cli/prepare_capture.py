@@ -347,7 +347,9 @@ def _print_sync(sync: dict) -> None:
             parts.append(f"{name} not estimated")
             continue
         shifted = f", shifted {entry['applied_frames']:+d}" if entry["applied_frames"] else ""
-        parts.append(f"{name} {entry['offset_frames']:+.1f} {entry['status']} ({entry['confidence']}{shifted})")
+        look = entry.get("silhouettes", {})
+        look = f"; silhouettes {look['offset_frames']:+.1f}" if "offset_frames" in look else ""
+        parts.append(f"{name} {entry['offset_frames']:+.1f} {entry['status']} ({entry['confidence']}{shifted}{look})")
     note = f"; {sync['note']}" if sync.get("note") else ""
     print(f"  time offsets in frames ({sync.get('mode')}{note}): " + ", ".join(parts))
 

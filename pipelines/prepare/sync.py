@@ -42,6 +42,7 @@ import numpy as np
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import TARGETS, mirror_index
 from pipelines.prepare.multiview import project, projection_matrix, triangulate_robust, undistort_points
+from pipelines.prepare.sync_silhouettes import silhouette_offsets
 
 #: frames searched each way
 MAX_OFFSET = 10
@@ -446,6 +447,8 @@ def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
     estimates = find_offsets(seen.cameras, seen.frames, seen.people)
     mode, note = (sync if isinstance(sync, str) else "given"), {}
     crowded = crowded_share(seen.people)
+    if crowded < CROWDED and (folder / "mask_raw").is_dir():
+        estimates = with_silhouettes(estimates, seen, folder / "mask_raw")
     if mode == "auto" and crowded >= CROWDED:
         mode, note["note"] = "report", f"several people in {100 * crowded:.0f} % of the views: not applied"
     elif mode == "auto" and not _consistent(estimates):
@@ -456,9 +459,33 @@ def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
         shift = entry.get("whole_frames", 0) if mode == "auto" and entry.get("confidence") == "high" else 0
         seen = shift_camera(seen, folder, v, shift, stride)
         entry["offset_frames"] = given[name] + entry["offset_frames"]
+        if "silhouettes" in entry:
+            look = entry["silhouettes"]
+            entry["silhouettes"] = dict(look, offset_frames=round(given[name] + look["offset_frames"], 2))
         entry["applied_frames"] = given[name] + shift
         cameras[name] = entry
     return replace(seen, sync={"mode": mode, "cameras": cameras, **note})
+
+
+def with_silhouettes(estimates: dict[str, dict], seen, folder) -> dict[str, dict]:
+    """``estimates`` (:func:`find_offsets`) with each camera's ``silhouettes``: the offset the masks in ``folder``
+    (``<camera>/<source frame:06d>.png``) give near the keypoints' whole shifts
+    (:func:`pipelines.prepare.sync_silhouettes.silhouette_offsets`), and whether it ``agrees`` with the keypoints'
+    within ``POSITION_AGREEMENT`` frames. A second opinion: it shifts nothing."""
+    timeline, keypoints = _keypoints(seen.cameras, seen.frames, seen.people)
+    P = np.stack([projection_matrix(c) for c in seen.cameras])
+    heights = np.array([c.height for c in seen.cameras], float)
+    xy = keypoints.transpose(1, 2, 0, 3)
+    points = triangulate_robust(P, xy[..., :2], xy[..., 2], heights, TRIANGULATION_ERROR)[0]
+    start = [estimates[c.name].get("whole_frames", 0) for c in seen.cameras]
+    found = silhouette_offsets(seen.cameras, timeline, folder, points, start)
+    out = {}
+    for name, entry in estimates.items():
+        look = found.get(name) or {}
+        if look and "offset_frames" in entry:
+            look = dict(look, agrees=bool(abs(look["offset_frames"] - entry["offset_frames"]) <= POSITION_AGREEMENT))
+        out[name] = dict(entry, silhouettes=look) if look else entry
+    return out
 
 
 def _consistent(estimates: dict[str, dict]) -> bool:
