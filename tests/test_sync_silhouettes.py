@@ -70,11 +70,12 @@ def test_a_late_camera_is_found_and_the_others_are_in_step(tmp_path):
     cameras = _rig()
     _write_masks(tmp_path, cameras, late={2: 2}, turned={})
     found = silhouette_offsets(cameras, list(range(N_FRAMES)), tmp_path, _centres(), [0] * len(cameras))
-    # a frame moves the walking trunk by up to 6 px here; the parabola's vertex through shares averaged over 24
-    # frames lands within a third of a frame (the masks are exact, the grid 40 cells a side)
-    assert found["cam3"]["whole_frames"] == 2 and abs(found["cam3"]["offset_frames"] - 2) < 0.3
+    # within 0.4 frame: each d takes the best of translations 2 px apart (the static part), and a frame moves the
+    # masks by 0-6 px here (least in the cameras that see the walk along their axis), so that choice alone can move
+    # the parabola's vertex by about a third of a frame; the masks are exact
+    assert found["cam3"]["whole_frames"] == 2 and abs(found["cam3"]["offset_frames"] - 2) < 0.4
     for name in ("cam1", "cam2", "cam4"):
-        assert found[name]["whole_frames"] == 0 and abs(found[name]["offset_frames"]) < 0.3
+        assert found[name]["whole_frames"] == 0 and abs(found[name]["offset_frames"]) < 0.4
     # 24 frames spread over the 40; those within REACH of the ends (or of the late camera's missing last frames)
     # cannot be scored at every d
     assert all(entry["curvature"] > 0 and entry["frames"] >= 15 for entry in found.values())
@@ -82,17 +83,18 @@ def test_a_late_camera_is_found_and_the_others_are_in_step(tmp_path):
 
 @pytest.mark.parametrize("reach", [8, 0])
 def test_a_turned_camera_stays_in_step_through_the_static_part(tmp_path, monkeypatch, reach):
-    """A camera turned by 1 degree (6 px at this focal length) whose masks are in step: with the translations
-    (the silhouettes' static part) it reads within a third of a frame of 0; without them the best d is where the
-    motion happens to move its mask towards the turn (the test of the test: it must read further)."""
+    """A camera turned by 1.5 degrees (9 px at this focal length: 7.5 and 5.6 px along the image's axes, within the
+    8 px the translations reach) whose masks are in step: with the translations (the silhouettes' static part) it
+    reads within 0.4 frame of 0, as the in-step cameras above; without them the best d is where the motion happens
+    to move its mask towards the turn (the test of the test: it must read 0.6 frame off or more)."""
     monkeypatch.setattr(sync_silhouettes, "TRANSLATION_REACH", reach)
     cameras = _rig()
-    _write_masks(tmp_path, cameras, late={}, turned={1: 1.0})
+    _write_masks(tmp_path, cameras, late={}, turned={1: 1.5})
     found = silhouette_offsets(cameras, list(range(N_FRAMES)), tmp_path, _centres(), [0] * len(cameras))
-    if reach:
-        assert all(abs(entry["offset_frames"]) < 0.3 for entry in found.values())
+    if reach:  # the tolerance of the test above
+        assert all(abs(entry["offset_frames"]) < 0.4 for entry in found.values())
     else:
-        assert abs(found["cam2"]["offset_frames"]) >= 0.3
+        assert abs(found["cam2"]["offset_frames"]) >= 0.6
 
 
 def test_packed_masks_are_read_back_pixel_for_pixel():
@@ -100,7 +102,7 @@ def test_packed_masks_are_read_back_pixel_for_pixel():
     mask = rng.random((37, 53)) > 0.5  # a width that is not a multiple of 8
     packed = (np.packbits(mask.reshape(-1)), mask.shape)
     pixels = np.stack([rng.uniform(-3, 56, 500), rng.uniform(-3, 40, 500)], 1)
-    xy = np.floor(pixels).astype(int)
+    xy = np.round(pixels).astype(int)  # pixel centres at whole numbers, as OpenCV projects
     on = (xy[:, 0] >= 0) & (xy[:, 1] >= 0) & (xy[:, 0] < 53) & (xy[:, 1] < 37)
     expected = np.zeros(500, bool)
     expected[on] = mask[xy[on, 1], xy[on, 0]]

@@ -82,10 +82,11 @@ class _Masks:
 
 
 def inside(packed, pixels: np.ndarray) -> np.ndarray:
-    """(N,) bool: whether each of ``pixels`` (N, 2; x, y at the packed mask's size) falls on the mask (``packed``:
-    (bits, (height, width)) as :class:`_Masks` keeps it); False off the image."""
+    """(N,) bool: whether each of ``pixels`` (N, 2; x, y at the packed mask's size, pixel centres at whole numbers as
+    in OpenCV) falls on the mask (``packed``: (bits, (height, width)) as :class:`_Masks` keeps it); False off the
+    image."""
     bits, (height, width) = packed
-    xy = np.floor(pixels).astype(np.int64)
+    xy = np.floor(pixels + 0.5).astype(np.int64)
     ok = (xy[:, 0] >= 0) & (xy[:, 1] >= 0) & (xy[:, 0] < width) & (xy[:, 1] < height)
     index = xy[ok, 1] * width + xy[ok, 0]
     out = np.zeros(len(pixels), bool)
@@ -102,6 +103,12 @@ def person_boxes(points: np.ndarray) -> np.ndarray:
         boxes = np.stack([np.nanmin(points, axis=1) - PAD, np.nanmax(points, axis=1) + PAD], axis=1)
     boxes[known.sum(1) < MIN_JOINTS] = np.nan
     return boxes
+
+
+def _on_mask(camera, points: np.ndarray, scale: float) -> np.ndarray:
+    """(N, 2) where ``points`` (N, 3) fall in ``camera``'s mask read at ``scale`` of its size (pixel centres at whole
+    numbers at both sizes: x' = (x + 1/2) scale - 1/2)."""
+    return (project_distorted(camera, points) + 0.5) * scale - 0.5
 
 
 def _cells(box: np.ndarray) -> np.ndarray:
@@ -134,16 +141,12 @@ def shares(cameras, masks: _Masks, timeline, boxes, shifts, v: int, offsets) -> 
         hull = _cells(boxes[n])
         for u in others:
             packed = masks.get(u, timeline[n] - shifts[u])
-            hull = (
-                hull[:0]
-                if packed is None
-                else hull[inside(packed, project_distorted(cameras[u], hull) * masks.scale[u])]
-            )
+            hull = hull[:0] if packed is None else hull[inside(packed, _on_mask(cameras[u], hull, masks.scale[u]))]
             if len(hull) < MIN_CELLS:
                 break
         if len(hull) < MIN_CELLS:
             continue
-        pixels = project_distorted(cameras[v], hull) * masks.scale[v]
+        pixels = _on_mask(cameras[v], hull, masks.scale[v])
         total += [[inside(m, pixels + move).mean() for move in moves] for m in own]
         scored += 1
     return (total.max(axis=1) / scored if scored else np.full(len(offsets), np.nan)), scored
