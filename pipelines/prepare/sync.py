@@ -26,7 +26,9 @@ A camera out of step spoils the triangulation that every other camera is judged 
 for the capture as a whole: among each camera's best whole shifts (and their neighbours), the one that lowers the
 capture's error (the mean over cameras of the score in step) most is made, if it lowers it by ``MIN_TOTAL_GAIN`` at
 least, and the search repeats; what is left below a frame is reported. Beside it, Pose2Sim's calibration-free
-estimate (the lag that best correlates a camera's keypoint speeds with the others') is a second opinion.
+estimate (the lag that best correlates a camera's keypoint speeds with the others') is a second opinion, and with one
+person in view the silhouettes give another that does not go through the keypoints
+(:mod:`pipelines.prepare.sync_silhouettes`); neither shifts anything.
 
 Each view's person is its most confident detection (summed confidence): one person in view, or the one nearest the
 cameras, dominates.
