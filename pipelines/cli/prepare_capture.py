@@ -136,7 +136,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _sync(text: str):
-    from pipelines.prepare.sync import parse_sync
+    from pipelines.prepare.sync_apply import parse_sync
 
     try:
         return parse_sync(text)

@@ -50,7 +50,7 @@ class Observations:
         recordings: per camera, its recording's file or folder name and how the two were matched.
         unused_recordings: recordings that no calibrated camera took (left out of the capture).
         frame_rates: per camera, its video's frame rate as the container states it (None: images, or not stated).
-        sync: the cameras' time offsets, estimated and applied (``pipelines.prepare.sync``).
+        sync: the cameras' time offsets, estimated and applied (``pipelines.prepare.sync_apply``).
         detections: views detected and reused from the detection cache (``pipelines.prepare.detections``); empty
             when no detector ran.
         person: whom the capture follows and how many people were seen (``pipelines.prepare.run.follow_person``).

@@ -29,7 +29,7 @@ from pipelines.prepare.people import choose_track, guide
 from pipelines.prepare.person_targets import find_tracks, triangulate_people
 from pipelines.prepare.silhouettes import silhouette_stage
 from pipelines.prepare.sources import find_sources, frame_count, frame_rate, match_cameras
-from pipelines.prepare.sync import report_followed, synchronise
+from pipelines.prepare.sync_apply import report_followed, synchronise
 
 CALIBRATION_PATTERNS = ("*.qca.txt", "*.toml", "intri.yml", "annots.npy")
 MARKER = "prepared.json"
@@ -61,7 +61,7 @@ class PrepareRequest:
     smpl_params: Path | None = None  # bodies the user brings (EasyMocap smpl/*.json or ZJU params/), not fitted
     person: int | None = None  # the person's id in smpl_params (None: the only one)
     follow: str | tuple = "best-seen"  # whom to follow among several people (prepare.people.parse_person)
-    sync: str | dict[str, int] = "auto"  # auto, report, off, or whole-frame offsets by camera (prepare.sync)
+    sync: str | dict[str, int] = "auto"  # auto, report, off, or whole-frame offsets by camera (prepare.sync_apply)
     progress: bool = True
 
 

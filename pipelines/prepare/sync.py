@@ -1,6 +1,6 @@
 """Cameras in step (docs/guides/real-captures.md, *Cameras in step*): each camera's time offset, estimated from the
-keypoints, told apart from a calibration error, and the whole-frame part of it corrected by renumbering that
-camera's frames.
+keypoints, told apart from a calibration error; :mod:`pipelines.prepare.sync_apply` corrects the whole-frame part
+of it by renumbering that camera's frames.
 
 Camera c's offset d (frames) says that its frame t shows the instant of the other cameras' frame t + d: a camera
 started k frames late has d = +k. For a candidate d the other cameras' keypoints of frame t + d are triangulated
@@ -41,10 +41,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import TARGETS, mirror_index
 from pipelines.prepare.multiview import project, projection_matrix, triangulate_robust, undistort_points
-from pipelines.prepare.sync_silhouettes import silhouette_offsets
 
 #: frames searched each way
 MAX_OFFSET = 10
@@ -63,9 +61,6 @@ HIGH_TOTAL_GAIN = 0.10
 #: the least share of a camera's own error that its remaining (sub-frame) offset must take off to be reported as an
 #: offset rather than "in step"
 MIN_GAIN = 0.1
-#: with several people in this share of the views or more, ``auto`` reports and applies nothing before the person
-#: is followed (each view's most confident detection may be somebody else)
-CROWDED = 0.2
 #: the correlation of keypoint speeds below which the second opinion has nothing to say
 MIN_CORRELATION = 0.3
 #: each target's left/right counterpart
@@ -385,137 +380,11 @@ def _entry(estimate: dict, speed: tuple, whole: int, drop: float | None, method:
     }
 
 
-#: ``--sync`` words: estimate and apply, estimate and report only, neither
-MODES = ("auto", "report", "off")
-
-
-def parse_sync(text: str) -> str | dict[str, int]:
-    """``--sync``: ``auto``, ``report``, ``off`` or ``CAM=OFFSET,...`` (whole frames, a camera's frame t showing the
-    others' t + OFFSET); raises ValueError naming what is wrong."""
-    if text in MODES:
-        return text
-    given = {}
-    for item in text.split(","):
-        name, _, value = item.partition("=")
-        try:
-            given[name.strip()] = int(value)
-        except ValueError:
-            raise ValueError(f"--sync: expected auto, report, off or CAM=FRAMES,..., got {item!r}") from None
-        if not name.strip():
-            raise ValueError(f"--sync: expected auto, report, off or CAM=FRAMES,..., got {item!r}")
-    return given
-
-
-def shift_camera(seen, folder, v: int, shift: int, stride: int):
-    """Camera v's frames renumbered from source frame f to f + shift * stride: its observations and its files under
-    ``folder`` (``<camera>/<frame>.jpg``, ``mask_raw/<camera>/<frame>.png``), moved in an order that never
-    overwrites one not yet moved. Returns ``seen`` with the new numbering."""
-    if shift == 0:
-        return seen
-    step = shift * stride
-    name = seen.cameras[v].name
-    order = sorted(seen.frames[v], reverse=step > 0)
-    for frame in order:
-        for sub, suffix in ((folder / name, "jpg"), (folder / "mask_raw" / name, "png")):
-            (sub / f"{frame:06d}.{suffix}").replace(sub / f"{frame + step:06d}.{suffix}")
-    frames = list(seen.frames)
-    people = list(seen.people)
-    frames[v] = [f + step for f in seen.frames[v]]
-    people[v] = {f + step: found for f, found in seen.people[v].items()}
-    owners = list(seen.mask_owners)
-    if owners:
-        owners[v] = {f + step: owner for f, owner in seen.mask_owners[v].items()}
-    return replace(seen, frames=frames, people=people, mask_owners=owners)
-
-
-def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
-    """Estimate every camera's offset (unless ``sync`` is ``off``), apply whole frames (``auto``: the shifts
-    :func:`find_offsets` asks for with high confidence; a dict: the user's, by camera name, then estimated again;
-    ``report``: none), and return ``seen`` renumbered with ``seen.sync`` its record: per camera
-    :func:`find_offsets`' entry, ``offset_frames`` counted from the recording, with ``applied_frames`` (the frames
-    shifted). With several people in ``CROWDED`` of the views or more, or estimates that do not explain every camera
-    (:func:`_consistent`), ``auto`` reports instead (each view's most confident detection may be somebody else;
-    :func:`report_followed` estimates again on the followed person)."""
-    names = [c.name for c in seen.cameras]
-    if isinstance(sync, dict):
-        unknown = sorted(set(sync) - set(names))
-        if unknown:
-            raise CaptureError(f"--sync: {', '.join(unknown)} not among the cameras {names}")
-    given = {n: (sync.get(n, 0) if isinstance(sync, dict) else 0) for n in names}
-    for v, name in enumerate(names):
-        seen = shift_camera(seen, folder, v, given[name], stride)
-    if sync == "off":
-        return replace(seen, sync={"mode": "off", "cameras": {n: {"applied_frames": 0} for n in names}})
-    estimates = find_offsets(seen.cameras, seen.frames, seen.people)
-    mode, note = (sync if isinstance(sync, str) else "given"), {}
-    crowded = crowded_share(seen.people)
-    if crowded < CROWDED and (folder / "mask_raw").is_dir():
-        estimates = with_silhouettes(estimates, seen, folder / "mask_raw")
-    if mode == "auto" and crowded >= CROWDED:
-        mode, note["note"] = "report", f"several people in {100 * crowded:.0f} % of the views: not applied"
-    elif mode == "auto" and not _consistent(estimates):
-        mode, note["note"] = "report", "the cameras' estimates do not agree (another person in view?): not applied"
-    cameras = {}
-    for v, name in enumerate(names):
-        entry = dict(estimates[name])
-        shift = entry.get("whole_frames", 0) if mode == "auto" and entry.get("confidence") == "high" else 0
-        seen = shift_camera(seen, folder, v, shift, stride)
-        entry["offset_frames"] = given[name] + entry["offset_frames"]
-        if "silhouettes" in entry:
-            look = entry["silhouettes"]
-            entry["silhouettes"] = dict(look, offset_frames=round(given[name] + look["offset_frames"], 2))
-        entry["applied_frames"] = given[name] + shift
-        cameras[name] = entry
-    return replace(seen, sync={"mode": mode, "cameras": cameras, **note})
-
-
-def with_silhouettes(estimates: dict[str, dict], seen, folder) -> dict[str, dict]:
-    """``estimates`` (:func:`find_offsets`) with each camera's ``silhouettes``: the offset the masks in ``folder``
-    (``<camera>/<source frame:06d>.png``) give near the keypoints' whole shifts
-    (:func:`pipelines.prepare.sync_silhouettes.silhouette_offsets`), and whether it ``agrees`` with the keypoints'
-    within ``POSITION_AGREEMENT`` frames. A second opinion: it shifts nothing."""
-    timeline, keypoints = _keypoints(seen.cameras, seen.frames, seen.people)
-    P = np.stack([projection_matrix(c) for c in seen.cameras])
-    heights = np.array([c.height for c in seen.cameras], float)
+def triangulated_joints(cameras, frames, people) -> tuple[list[int], np.ndarray]:
+    """(the frames any camera read, (N, T, 3) each view's most confident person's joints triangulated from every
+    camera, a view more than ``TRIANGULATION_ERROR`` off left out; NaN where under two views see a joint)."""
+    timeline, keypoints = _keypoints(cameras, frames, people)
+    P = np.stack([projection_matrix(c) for c in cameras])
+    heights = np.array([c.height for c in cameras], float)
     xy = keypoints.transpose(1, 2, 0, 3)
-    points = triangulate_robust(P, xy[..., :2], xy[..., 2], heights, TRIANGULATION_ERROR)[0]
-    start = [estimates[c.name].get("whole_frames", 0) for c in seen.cameras]
-    found = silhouette_offsets(seen.cameras, timeline, folder, points, start)
-    out = {}
-    for name, entry in estimates.items():
-        look = found.get(name) or {}
-        if look and "offset_frames" in entry:
-            look = dict(look, agrees=bool(abs(look["offset_frames"] - entry["offset_frames"]) <= POSITION_AGREEMENT))
-        out[name] = dict(entry, silhouettes=look) if look else entry
-    return out
-
-
-def _consistent(estimates: dict[str, dict]) -> bool:
-    """Whether the shifts explain every camera: no camera ``uncertain`` (its own error asking for an offset the
-    capture's does not confirm) and every shift of high confidence. With another person in some views the
-    estimates scatter and fail this."""
-    statuses = [(e.get("status"), e.get("confidence")) for e in estimates.values() if "status" in e]
-    return all(status != "uncertain" and (status != "out of step" or level == "high") for status, level in statuses)
-
-
-def crowded_share(people: list[dict]) -> float:
-    """The share of the views (camera, frame) with two people or more detected."""
-    counts = [len(found) for by_frame in people for found in by_frame.values()]
-    return float(np.mean([n >= 2 for n in counts])) if counts else 0.0
-
-
-def report_followed(seen, found):
-    """``seen`` with its ``report``-mode estimates made again on the followed person alone (``found``: the
-    ``pipelines.prepare.person_targets.Triangulated`` person, in the views that agreed on them): with other people
-    in view, each view's most confident detection, which the first estimate takes, may be somebody else. Other modes
-    are returned as they are (their shifts were made before the person was followed)."""
-    if seen.sync.get("mode") != "report":
-        return seen
-    people = [{} for _ in seen.cameras]
-    for i, frame in enumerate(found.frames):
-        for v in np.flatnonzero(found.used[i]):
-            people[v][frame] = [found.distorted[i, v]]
-    estimates = find_offsets(seen.cameras, seen.frames, people)
-    record = {name: dict(estimates[name], applied_frames=0) for name in estimates}
-    note = {"note": seen.sync["note"]} if "note" in seen.sync else {}
-    return replace(seen, sync={"mode": "report", "cameras": record, "person": "the person followed", **note})
+    return timeline, triangulate_robust(P, xy[..., :2], xy[..., 2], heights, TRIANGULATION_ERROR)[0]
