@@ -92,7 +92,7 @@ def part_shells(
     """(P, N, N, N) bool shells of the part boxes (``centres``, ``half_extents`` (P, 3), body units) over up to
     ``frames`` evenly spaced frames of each of ``bodies`` (``PosedBody`` batches: the rest pose first, then the
     training frames), ``margin`` in world units. A shell is the union over the frames, so a frame only measures the
-    cells no earlier frame kept (the same cells as measuring every cell in every frame, in a third of the time at
+    cells no earlier frame kept (the same cells as measuring every cell in every frame, in under half the time at
     64^3 on the real demo)."""
     n = resolution
     steps = (np.arange(n) + 0.5) * (2.0 / n) - 1.0
