@@ -126,7 +126,8 @@ def build_parser() -> argparse.ArgumentParser:
         help="cameras in step: auto (the default) estimates each camera's time offset from the keypoints (the "
         "other cameras' triangulation reprojects best into it once each joint's static part, a calibration error's "
         "mark, is taken off, and the part that grows with the joint's place in the image where both agree), "
-        "reports it with its confidence (report.json 'sync', the summary) and shifts by whole "
+        "reports it with its confidence and, with one person in view, the masks' own estimate beside it (report.json "
+        "'sync', the summary) and shifts by whole "
         "frames the cameras the capture's error asks to shift with high confidence (with several people in view it "
         "only reports); report estimates and reports only; off estimates nothing; CAM=FRAMES,... gives the offsets "
         "(a camera's frame t shows the others' t + FRAMES: a camera started 3 frames late is CAM=3)",
