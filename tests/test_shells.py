@@ -9,6 +9,7 @@ from fitting.config import ConfigError, FitConfig, validate_config
 from narf.fields import build_field
 from narf.fields.common import part_box_coordinates
 from narf.kinematics import N_PARTS
+from pipelines.body import shells as shells_module
 from pipelines.body.model import pose_batch
 from pipelines.body.shells import hidden_vertices, part_shells, signed_distance_to_vertices, winding_numbers
 
@@ -146,7 +147,7 @@ def _shells_every_cell(bodies, faces, centres, half_extents, n, margin):
     return torch.from_numpy(inside.reshape(N_PARTS, n, n, n))
 
 
-def test_shells_measure_each_cell_until_a_frame_keeps_it(body_model):
+def test_shells_measure_each_cell_until_a_frame_keeps_it(body_model, monkeypatch):
     """The shells measure only the cells no earlier frame kept: the same cells as measuring every cell in every frame
     (a union does not depend on its order; both paths compare the same float64 numbers with the same threshold, so
     equality is exact)."""
@@ -161,6 +162,9 @@ def test_shells_measure_each_cell_until_a_frame_keeps_it(body_model):
     fast = part_shells([rest, posed], body_model.faces, *boxes, resolution=20, margin=MARGIN)
     every = _shells_every_cell([rest, posed], body_model.faces, *boxes, 20, MARGIN)
     assert torch.equal(fast, every)
+    # measured in chunks that split the parts (4,001 cells; each part has 8,000), the same cells
+    monkeypatch.setattr(shells_module, "CHUNK", 4001)
+    assert torch.equal(part_shells([rest, posed], body_model.faces, *boxes, resolution=20, margin=MARGIN), every)
     # the later frames add cells (the limbs moved), so the frames after the first measured some cells and skipped others
     alone = part_shells([rest], body_model.faces, *boxes, resolution=20, margin=MARGIN)
     assert (alone <= fast).all() and (fast & ~alone).sum() > 100
