@@ -4,6 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
+from pipelines.datasets.camera import Camera
 from pipelines.datasets.capture import ZjuCapture, make_protocol
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.zju_mocap import param_index_from_image, read_annots, write_annots
@@ -25,8 +26,12 @@ def test_load_frame_follows_neuralbody_order(tiny_capture):
     assert np.all(frame.image[outside] == 0.0)  # black background
     assert frame.band.any() and not frame.band[frame.mask.astype(bool) & ~frame.band].any()
     raw_cameras, _ = read_annots(tiny_capture / "annots.npy")
-    # K * 0.5 is exact in binary: allclose's defaults
-    assert np.allclose(frame.camera.K[:2], raw_cameras[1].K[:2] * 0.5) and np.all(frame.camera.dist == 0)
+    # halving and adding 0.5 are exact in binary: allclose's defaults; the principal point as cv2.resize's pixel
+    # centres put it, (c + 0.5) / 2 - 0.5 (docs/formats.md §0), not c / 2
+    expected_K = raw_cameras[1].K.copy()
+    expected_K[:2, :2] *= 0.5
+    expected_K[:2, 2] = (expected_K[:2, 2] + 0.5) * 0.5 - 0.5
+    assert np.allclose(frame.camera.K, expected_K) and np.all(frame.camera.dist == 0)
     assert 2.5 < np.linalg.norm(frame.camera.centre[:2]) < 3.5  # T converted from millimetres
     white = ZjuCapture(tiny_capture, ratio=0.5, white_background=True).load_frame(2, 1)
     assert np.all(white.image[outside] == 1.0)
@@ -166,3 +171,24 @@ def test_an_unknown_mask_of_the_wrong_size_is_refused_naming_the_file(capture_co
     cv2.imwrite(str(path), np.ones((7, 9), np.uint8))
     with pytest.raises(CaptureError, match=r"mask_unknown.*: mask is 9x7 but the image is"):
         cap.load_frame(0, 0)
+
+
+@pytest.mark.parametrize("ratio", [0.5, 0.3])
+def test_a_resized_camera_sees_a_point_where_cv2_resize_puts_it(ratio):
+    """A small bright blob drawn around a point's projection, resized by area as the readers resize images, has its
+    centroid where the resized camera projects the point (whole and fractional ratios)."""
+    K = np.array([[300.0, 0, 99.3], [0, 310, 61.7], [0, 0, 1]])
+    camera = Camera("c", K, np.zeros(5), np.eye(4), 200, 120)
+    point = np.array([0.07, -0.04, 1.0])
+    u, v = (K @ point)[:2]
+    rows, cols = np.mgrid[0:120, 0:200]
+    blob = np.exp(-((cols - u) ** 2 + (rows - v) ** 2) / (2 * 3.0**2)).astype(np.float32)
+    small = camera.scaled(ratio)
+    resized = cv2.resize(blob, (small.width, small.height), interpolation=cv2.INTER_AREA).astype(np.float64)
+    r, c = np.mgrid[0 : small.height, 0 : small.width]
+    centroid = np.array([(resized * c).sum(), (resized * r).sum()]) / resized.sum()
+    projected = (small.K @ point)[:2]
+    # the blob (sigma 3 px, 10 sigma from every edge) keeps its centroid through area resampling up to float32
+    # rounding of ~1e4 summed pixels (~1e-3 px); the convention that scales the principal point with the focal
+    # length is off by (1 / ratio - 1) / 2 old pixels, 0.25-0.35 new ones
+    assert np.abs(centroid - projected).max() < 0.01

@@ -33,10 +33,18 @@ class Camera:
         return -self.cam_from_world[:3, :3].T @ self.cam_from_world[:3, 3]
 
     def scaled(self, ratio: float) -> Camera:
-        """The camera after resizing the image by ``ratio`` (first two rows of K scaled)."""
+        """The camera of the image resized by ``ratio`` to ``round(width * ratio)`` x ``round(height * ratio)``, as
+        ``cv2.resize`` resamples it: with pixel centres at integers, pixel u' of the new image is centred on
+        u = (u' + 0.5) / s - 0.5 of the old one (s the size's own ratio per axis), so the first two rows of K are
+        scaled by s and the principal point becomes (c + 0.5) s - 0.5 (docs/formats.md §0). Scaling the principal
+        point like the focal length instead would put every ray (1 / s - 1) / 2 old pixels up and left of its
+        pixel's centre: a quarter of a new pixel at half size."""
+        width, height = int(round(self.width * ratio)), int(round(self.height * ratio))
+        scale = np.array([width / self.width, height / self.height])
         K = self.K.copy()
-        K[:2] *= ratio
-        return replace(self, K=K, width=int(round(self.width * ratio)), height=int(round(self.height * ratio)))
+        K[:2] *= scale[:, None]
+        K[:2, 2] = (self.K[:2, 2] + 0.5) * scale - 0.5
+        return replace(self, K=K, width=width, height=height)
 
     def undistorted(self) -> Camera:
         return replace(self, dist=np.zeros(5))

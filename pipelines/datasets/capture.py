@@ -325,12 +325,15 @@ class ZjuCapture:
             band |= unknown
         if self.ratio != 1:
             size = (int(round(camera.width * self.ratio)), int(round(camera.height * self.ratio)))
+            # each pixel averages the same area of the original as the image's, centred where the camera's rays
+            # go (docs/formats.md §0): the mask is what covers most of it, the band and the unknown pixels whatever
+            # touches it; the part labels (a category) are the nearest pixel's
             image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-            mask = cv2.resize(mask.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
-            band = cv2.resize(band.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+            mask = cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
+            band = cv2.resize(band.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0
             labels = cv2.resize(labels, size, interpolation=cv2.INTER_NEAREST)
             if unknown is not None:
-                unknown = cv2.resize(unknown.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+                unknown = cv2.resize(unknown.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0
         background = 1.0 if self.white_background else 0.0
         image[~mask & ~band] = background
         if unknown is not None:  # somebody else's colours: compared with nothing, trained on nowhere

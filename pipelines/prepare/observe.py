@@ -281,5 +281,8 @@ def _given_mask(files: dict[int, Path], index: int, camera: Camera, recorded: tu
                 f"{path}: mask is {raw.shape[1]}x{raw.shape[0]}, camera '{camera.name}' records "
                 f"{recorded[0]}x{recorded[1]}"
             )
-        raw = cv2.resize(raw, (camera.width, camera.height), interpolation=cv2.INTER_NEAREST)  # as --resolution
+        # as --resolution resizes the frames, by area, so that each pixel is centred where the camera's rays go
+        # (docs/formats.md §0): the person's where they cover most of it
+        size = (camera.width, camera.height)
+        return cv2.resize((raw > 0).astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
     return raw > 0
