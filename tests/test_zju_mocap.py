@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from pipelines.datasets.camera import Camera
+from pipelines.datasets.camera import Camera, resized_mask
 from pipelines.datasets.capture import ZjuCapture, make_protocol
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.zju_mocap import param_index_from_image, read_annots, write_annots
@@ -192,3 +192,25 @@ def test_a_resized_camera_sees_a_point_where_cv2_resize_puts_it(ratio):
     # rounding of ~1e4 summed pixels (~1e-3 px); the convention that scales the principal point with the focal
     # length is off by (1 / ratio - 1) / 2 old pixels, 0.25-0.35 new ones
     assert np.abs(centroid - projected).max() < 0.01
+
+
+def test_a_resized_mask_keeps_its_place_and_its_size():
+    """A disc resized by half by area (``resized_mask``) is centred where ``Camera.scaled`` puts its centre and keeps
+    its area; an edge through the middle of every pixel keeps half of those pixels, alternately."""
+    rows, cols = np.mgrid[0:200, 0:240]
+    centre = np.array([117.3, 93.6])  # (u, v) in the original
+    disc = (cols - centre[0]) ** 2 + (rows - centre[1]) ** 2 < 40.0**2
+    small = resized_mask(disc, (120, 100))
+    r, c = np.nonzero(small)
+    camera = Camera(
+        "c", np.array([[100.0, 0, centre[0]], [0, 100, centre[1]], [0, 0, 1]]), np.zeros(5), np.eye(4), 240, 200
+    )
+    expected = camera.scaled(0.5).K[:2, 2]  # where the point on the optical axis, the disc's centre, lands
+    # a disc of ~5,000 pixels at half size: the edge pixels' rounding moves its centroid by ~0.01 px and its area
+    # by a fraction of its ~250-pixel outline; the nearest pixel's value moves the centroid 0.25 px up and left
+    assert np.abs(np.array([c.mean(), r.mean()]) - expected).max() < 0.05
+    assert abs(small.sum() - disc.sum() / 4) < 0.02 * disc.sum() / 4
+    edge = np.zeros((8, 8), bool)
+    edge[:, :3] = True  # the edge runs through the middle of the second column of the half-size image
+    halved = resized_mask(edge, (4, 4))
+    assert halved[:, 0].all() and not halved[:, 2:].any() and halved[:, 1].sum() == 2

@@ -50,6 +50,17 @@ class Camera:
         return replace(self, dist=np.zeros(5))
 
 
+def resized_mask(mask: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """(H, W) mask -> (h, w) bool at ``size`` (w, h), each pixel averaging the area of the original that the image's
+    pixel averages under ``cv2.resize(..., INTER_AREA)`` (so centred where :meth:`Camera.scaled`'s rays go; docs/
+    formats.md §0) and kept where more than half of it is covered. A pixel exactly half covered (an edge through its
+    middle, common at a whole ratio) is kept on the squares of one colour of a checkerboard, so that neither side of
+    an edge gains: as many pixels as the nearest pixel's value keeps, without its shift up and left."""
+    covered = cv2.resize(np.asarray(mask, np.float32), size, interpolation=cv2.INTER_AREA)
+    rows, cols = np.indices(covered.shape)
+    return (covered > 0.5) | ((covered == 0.5) & ((rows + cols) % 2 == 0))
+
+
 def project_distorted(camera: Camera, points: np.ndarray) -> np.ndarray:
     """(N, 3) world points -> (N, 2) pixels of the camera with its distortion (OpenCV model)."""
     rvec, _ = cv2.Rodrigues(camera.cam_from_world[:3, :3])

@@ -13,6 +13,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from pipelines.datasets.camera import resized_mask
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.images import read_image
 from pipelines.datasets.safe_pickle import load_npy
@@ -326,14 +327,14 @@ class ZjuCapture:
         if self.ratio != 1:
             size = (int(round(camera.width * self.ratio)), int(round(camera.height * self.ratio)))
             # each pixel averages the same area of the original as the image's, centred where the camera's rays
-            # go (docs/formats.md §0): the mask is what covers most of it, the band and the unknown pixels whatever
-            # touches it; the part labels (a category) are the nearest pixel's
+            # go (docs/formats.md §0): the mask and the band by resized_mask, the unknown pixels whatever touches
+            # it, and they stay in the band; the part labels (a category) are the nearest pixel's
             image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-            mask = cv2.resize(mask.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
-            band = cv2.resize(band.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0
+            mask, band = resized_mask(mask, size), resized_mask(band, size)
             labels = cv2.resize(labels, size, interpolation=cv2.INTER_NEAREST)
             if unknown is not None:
                 unknown = cv2.resize(unknown.astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0
+                band |= unknown
         background = 1.0 if self.white_background else 0.0
         image[~mask & ~band] = background
         if unknown is not None:  # somebody else's colours: compared with nothing, trained on nowhere

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from fitting.files import write_image
-from pipelines.datasets.camera import Camera
+from pipelines.datasets.camera import Camera, resized_mask
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import (
     FILE_LAYOUTS,
@@ -283,6 +283,5 @@ def _given_mask(files: dict[int, Path], index: int, camera: Camera, recorded: tu
             )
         # as --resolution resizes the frames, by area, so that each pixel is centred where the camera's rays go
         # (docs/formats.md §0): the person's where they cover most of it
-        size = (camera.width, camera.height)
-        return cv2.resize((raw > 0).astype(np.float32), size, interpolation=cv2.INTER_AREA) > 0.5
+        return resized_mask(raw > 0, (camera.width, camera.height))
     return raw > 0
