@@ -324,8 +324,9 @@ class ZjuCapture:
         band = boundary_band(mask)
         if unknown is not None:
             band |= unknown
+        seen = camera.undistorted().scaled(self.ratio)  # the camera of the image as returned, its size included
         if self.ratio != 1:
-            size = (int(round(camera.width * self.ratio)), int(round(camera.height * self.ratio)))
+            size = (seen.width, seen.height)
             # each pixel averages the same area of the original as the image's, centred where the camera's rays
             # go (docs/formats.md §0): the mask and the band by resized_mask, the unknown pixels whatever touches
             # it, and they stay in the band; the part labels (a category) are the nearest pixel's
@@ -346,7 +347,7 @@ class ZjuCapture:
             mask=mask.astype(np.float32),
             band=band,
             labels=labels,
-            camera=camera.undistorted().scaled(self.ratio),
+            camera=seen,
             params=self.params(frame),
             image_path=path,
             unknown=unknown,
