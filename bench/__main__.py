@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 
 from fitting.files import atomic_write_text
-from pipelines.cli.common import flush_subnormals, keep_freed_memory
+from pipelines.cli.common import flush_subnormals, keep_freed_memory, short_openmp_wait
 
 BENCHMARKS = {
     "synth": "bench.bench_synth",
@@ -69,7 +69,9 @@ def main() -> None:
     unknown = [name for name in args.names if name not in BENCHMARKS]
     if unknown:
         parser.error(f"unknown benchmark {unknown[0]!r} (choose from {names})")
-    # as every command does before its first torch operation (docs/design.md, "Subnormal numbers", "Memory allocator")
+    # as every command does before its first torch operation (docs/design.md, "OpenMP workers' wait", "Subnormal
+    # numbers", "Memory allocator"); the spin count reaches the commands the benchmarks start through the environment
+    short_openmp_wait()
     flush_subnormals()
     keep_freed_memory()
     # the benchmarks' own cache (runs, captures, rows) unless the user names one: the project's cache setting, read by

@@ -97,6 +97,9 @@ def main(argv: list[str] | None = None) -> int:
     if not (args.subject / "annots.npy").is_file():
         print(f"bench.step_cost: {args.subject}: no annots.npy (not a prepared capture)", file=sys.stderr)
         return 2
+    from pipelines.cli.common import short_openmp_wait
+
+    short_openmp_wait()  # before torch loads libgomp, as the commands do (docs/design.md, "OpenMP workers' wait")
     import torch
 
     if args.threads:

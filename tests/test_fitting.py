@@ -493,6 +493,30 @@ def test_allocator_keeps_freed_memory_unless_the_user_chose(user_env):
     assert done.stdout.strip() == str(expected)
 
 
+_SPIN_PROBE = """
+import sys
+from pipelines.cli.common import run_cli
+
+run_cli("probe", lambda argv: None, [])  # run_cli's flush imports torch, which loads libgomp
+"""
+
+
+@pytest.mark.parametrize("user_env", [{}, {"OMP_WAIT_POLICY": "ACTIVE"}, {"GOMP_SPINCOUNT": "2000"}])
+def test_openmp_workers_sleep_sooner_unless_the_user_chose(user_env):
+    """short_openmp_wait (set by run_cli before torch is imported) reaches libgomp: the runtime's own report of its
+    settings (OMP_DISPLAY_ENV, printed when torch loads it) reads 10000 spins; a user's OMP_WAIT_POLICY or
+    GOMP_SPINCOUNT is left as they set it. Skipped where torch's OpenMP runtime is not libgomp (it prints no
+    GOMP_SPINCOUNT)."""
+    env = {k: v for k, v in os.environ.items() if k not in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")}
+    env |= {"OMP_DISPLAY_ENV": "VERBOSE", **user_env}
+    done = spawn.run([sys.executable, "-c", _SPIN_PROBE], 60, capture_output=True, text=True, env=env, check=True)
+    spins = [line.split("=")[1].strip(" '") for line in done.stderr.splitlines() if "GOMP_SPINCOUNT" in line]
+    if not spins:
+        pytest.skip("torch's OpenMP runtime is not libgomp")
+    expected = {"OMP_WAIT_POLICY": "30000000000", "GOMP_SPINCOUNT": "2000"}.get(next(iter(user_env), ""), "10000")
+    assert spins == [expected]
+
+
 def test_eval_takes_several_splits(tiny_run, tmp_path, capsys):
     """--split repeats: every named split is evaluated once, in the order given ('all' expands in place); one wrong
     name fails the whole call before anything is rendered. (A copy of the shared run: its report accumulates the

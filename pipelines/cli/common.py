@@ -160,6 +160,26 @@ def keep_freed_memory() -> bool:
     )
 
 
+#: libgomp's busy-wait, in spins, before an idle OpenMP worker sleeps, set by :func:`short_openmp_wait` (its own
+#: default is 300,000; docs/design.md, "OpenMP workers' wait")
+OPENMP_SPIN_COUNT = "10000"
+
+
+def short_openmp_wait() -> bool:
+    """Let torch's idle OpenMP workers (libgomp) sleep after 10,000 spins instead of 300,000: ``GOMP_SPINCOUNT``.
+
+    libgomp reads it once, when torch loads it, so this has to run before ``import torch``; it returns False, setting
+    nothing, once torch is imported, or when the user set ``GOMP_SPINCOUNT`` or ``OMP_WAIT_POLICY`` (theirs win).
+    Other OpenMP runtimes (LLVM's libomp on macOS) ignore the variable. A training step's hundreds of small operators
+    leave gaps shorter than the default spin, so the worker never rests and the calling thread computed its part
+    slower on the 2-core machine (docs/design.md, "OpenMP workers' wait").
+    """
+    if "torch" in sys.modules or any(k in os.environ for k in ("GOMP_SPINCOUNT", "OMP_WAIT_POLICY")):
+        return False
+    os.environ["GOMP_SPINCOUNT"] = OPENMP_SPIN_COUNT
+    return True
+
+
 def flush_subnormals() -> bool:
     """Treat float32 values below 1.2e-38 as 0 on the CPU (flush-to-zero and denormals-are-zero), in this thread and in
     every CPU worker thread started after it; returns False where torch has no such mode for the CPU.
@@ -190,10 +210,11 @@ def attach_dash_values(argv: list[str] | None, flags: tuple[str, ...]) -> list[s
 
 def run_cli(prog: str, main: Callable[[list[str] | None], int | None], argv: list[str] | None = None) -> int:
     """Run ``main(argv)``; print ``prog: error: ...`` and return 2 on a known error, 130 on Ctrl-C. The allocator
-    keeps freed memory for reuse (:func:`keep_freed_memory`) and subnormal floats are flushed in every CPU thread
-    (:func:`flush_subnormals`), both set before ``main`` does any work; ``--help`` does none, and answers without
-    importing torch."""
+    keeps freed memory for reuse (:func:`keep_freed_memory`), idle OpenMP workers sleep sooner
+    (:func:`short_openmp_wait`) and subnormal floats are flushed in every CPU thread (:func:`flush_subnormals`), all
+    set before ``main`` does any work; ``--help`` does none, and answers without importing torch."""
     keep_freed_memory()
+    short_openmp_wait()
     if not {"-h", "--help"} & set(sys.argv[1:] if argv is None else argv):
         flush_subnormals()
     try:
