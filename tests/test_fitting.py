@@ -494,7 +494,6 @@ def test_allocator_keeps_freed_memory_unless_the_user_chose(user_env):
 
 
 _SPIN_PROBE = """
-import sys
 from pipelines.cli.common import run_cli
 
 run_cli("probe", lambda argv: None, [])  # run_cli's flush imports torch, which loads libgomp
