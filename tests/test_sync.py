@@ -16,6 +16,7 @@ from pipelines.prepare.sync import (
     _Rig,
     _search,
     find_offsets,
+    parabola_vertex,
     positional_part,
     speed_lags,
 )
@@ -161,3 +162,17 @@ def test_the_speed_correlation_finds_a_late_camera_without_the_calibration():
     lags = speed_lags(keypoints, heights)
     assert abs(lags[2][0] - 3) <= 0.5 and abs(lags[0][0]) <= 0.5 and abs(lags[1][0]) <= 0.5, lags
     assert min(peak for _, peak in lags) > 0.8, lags
+
+
+def test_the_parabola_vertex_is_exact_on_a_parabola_and_falls_back_to_the_lowest_point():
+    """On y = 2 (x - 0.37)^2 + 0.1 sampled at the tenths of [-1.5, 1.5] the vertex comes back to 1e-9 (a 3 x 3 normal
+    system of well-scaled numbers in float64); a vertex outside the samples is held at their end; a curve that opens
+    downwards or has too few finite points gives its lowest point."""
+    x = np.arange(-15, 16) / 10
+    at, low = parabola_vertex(x, 2 * (x - 0.37) ** 2 + 0.1)
+    assert at == pytest.approx(0.37, abs=1e-9) and low == pytest.approx(0.1, abs=1e-9)
+    assert parabola_vertex(x, (x - 4.0) ** 2)[0] == pytest.approx(1.5)
+    assert parabola_vertex(x, -(x**2) + 0.01 * x)[0] == pytest.approx(-1.5)  # -2.265 there, -2.235 at 1.5
+    y = np.full_like(x, np.nan)
+    y[[3, 4]] = [2.0, 1.0]
+    assert parabola_vertex(x, y) == (x[4], 1.0)

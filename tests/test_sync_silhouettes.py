@@ -7,7 +7,9 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pipelines.datasets.camera import Camera
-from pipelines.prepare import sync_silhouettes
+from pipelines.prepare import sync_apply, sync_silhouettes
+from pipelines.prepare.observe import Observations
+from pipelines.prepare.sync_apply import METHOD_COMBINED, combined, combined_shifts
 from pipelines.prepare.sync_silhouettes import inside, person_boxes, silhouette_offsets
 from pipelines.synthetic.scene import look_at
 
@@ -117,3 +119,83 @@ def test_a_frame_with_too_few_joints_has_no_box():
     pad = sync_silhouettes.PAD
     assert np.allclose(boxes[0], [[-pad, -pad, 0.1 - pad], [0.2 + pad, 0.3 + pad, 1.7 + pad]])
     assert np.isnan(boxes[1:]).all()
+
+
+def _entry(keypoints: float, whole: int, silhouettes: float, status: str = "in step") -> dict:
+    look = {"offset_frames": silhouettes, "agrees": abs(silhouettes - keypoints) <= 1.0}
+    return {
+        "offset_frames": keypoints,
+        "whole_frames": whole,
+        "status": status,
+        "method": "keypoints",
+        "silhouettes": look,
+    }
+
+
+def test_the_two_looks_mean_and_the_shifts_it_asks_for():
+    """Cases of the Pose2Sim demo's cut table (docs/results/real-capture.md, forty-fifth session), by hand: a camera
+    the keypoints call uncertain at -0.75 and the silhouettes put at -0.12 is in step at their mean, -0.435, and
+    stays; one cut by 3 that the keypoints shifted by 2 (2.2) and the silhouettes find at 2.87 is shifted by 3; one
+    cut by 2 that the keypoints left (1.2, below the capture's gain) is shifted by 2; a camera not cut that both read
+    0.6-0.7 early (another camera out of step spoils its triangulation) stays; looks a frame and more apart are not
+    averaged."""
+    entries = {
+        "in_step": combined(_entry(-0.75, 0, -0.12, status="uncertain")),
+        "cut3": combined(_entry(2.2, 2, 2.87, status="out of step")),
+        "cut2": combined(_entry(1.2, 0, 1.95)),
+        "spoilt": combined(_entry(-0.6, 0, -0.7)),
+    }
+    assert entries["in_step"]["offset_frames"] == pytest.approx(-0.435, abs=0.006)  # rounded to hundredths
+    assert entries["in_step"]["status"] == "in step" and entries["in_step"]["keypoints"]["offset_frames"] == -0.75
+    assert entries["cut3"]["offset_frames"] == pytest.approx(2.535, abs=0.006)
+    assert {e["method"] for e in entries.values()} == {METHOD_COMBINED}
+    apart = _entry(-1.1, 0, 0.1)
+    assert not apart["silhouettes"]["agrees"]
+    assert combined_shifts({**entries, "apart": apart}) == {"cut3": 3, "cut2": 2}
+
+
+def _scripted(monkeypatch, *passes):
+    """``sync_apply._estimate`` answering each call with the next of ``passes`` (estimates by camera), one person in
+    view."""
+    answers = iter(passes)
+    monkeypatch.setattr(sync_apply, "_estimate", lambda seen, folder: (next(answers), 0.0))
+
+
+def _files(tmp_path, names, n_frames=8):
+    cameras = [Camera(name, np.eye(3), np.zeros(5), np.eye(4), 10, 10) for name in names]
+    for name in names:
+        for sub, suffix in ((tmp_path / name, "jpg"), (tmp_path / "mask_raw" / name, "png")):
+            sub.mkdir(parents=True)
+            for f in range(n_frames):
+                (sub / f"{f:06d}.{suffix}").write_text(f"{name} {f}")
+    frames = [list(range(n_frames)) for _ in names]
+    return Observations(cameras, frames, [{f: [] for f in range(n_frames)} for _ in names])
+
+
+def test_a_shift_the_mean_asks_for_is_made_and_estimated_again_or_undone(tmp_path, monkeypatch):
+    """``--sync auto``'s control flow with scripted estimates and real files: the keypoints shift cam_b by 2 and the
+    silhouettes put it at 2.87, so their mean (2.535) asks for 3. Its frames are renumbered by 3 (the file of source
+    frame 0 becomes frame 3), everything is estimated again, and the entry counts from the recording: applied 3,
+    offset 3 + 0.1, whole 3, the keypoints' and the silhouettes' own figures shifted by 3 too. When the second
+    estimates disagree, the files go back and the first estimates stand: the keypoints' shift of 2 is made."""
+    first = {"cam_a": combined(_entry(0.1, 0, -0.1)), "cam_b": combined(_entry(2.2, 2, 2.87, status="out of step"))}
+    first["cam_b"]["confidence"] = "high"
+    again = {"cam_a": combined(_entry(0.1, 0, -0.1)), "cam_b": combined(_entry(-0.1, 0, 0.3))}
+    seen = _files(tmp_path / "made", ["cam_a", "cam_b"])
+    _scripted(monkeypatch, first, again)
+    out = sync_apply.synchronise(seen, tmp_path / "made", "auto")
+    entry = out.sync["cameras"]["cam_b"]
+    assert (entry["applied_frames"], entry["whole_frames"], entry["offset_frames"]) == (3, 3, 3.1)
+    assert entry["keypoints"]["offset_frames"] == 2.9 and entry["silhouettes"]["offset_frames"] == 3.3
+    assert entry["status"] == "out of step" and entry["confidence"] == "high" and out.sync["mode"] == "auto"
+    assert out.frames[1] == list(range(3, 11)) and out.sync["cameras"]["cam_a"]["applied_frames"] == 0
+    for sub, suffix in (("cam_b", "jpg"), ("mask_raw/cam_b", "png")):
+        assert (tmp_path / "made" / sub / f"{3:06d}.{suffix}").read_text() == "cam_b 0"
+    disagree = dict(again, cam_b=dict(again["cam_b"], status="uncertain"))
+    seen = _files(tmp_path / "undone", ["cam_a", "cam_b"])
+    _scripted(monkeypatch, first, disagree)
+    out = sync_apply.synchronise(seen, tmp_path / "undone", "auto")
+    assert (
+        out.frames[1] == list(range(2, 10)) and (tmp_path / "undone" / "cam_b" / "000002.jpg").read_text() == "cam_b 0"
+    )
+    assert out.sync["cameras"]["cam_b"]["offset_frames"] == 2.54 and out.sync["cameras"]["cam_b"]["applied_frames"] == 2

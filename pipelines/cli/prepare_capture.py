@@ -348,8 +348,8 @@ def _print_sync(sync: dict) -> None:
             parts.append(f"{name} not estimated")
             continue
         shifted = f", shifted {entry['applied_frames']:+d}" if entry["applied_frames"] else ""
-        look = entry.get("silhouettes", {})
-        look = f"; silhouettes {look['offset_frames']:+.1f}" if "offset_frames" in look else ""
+        looks = [(what, entry.get(what, {})) for what in ("keypoints", "silhouettes")]
+        look = "".join(f"; {what} {it['offset_frames']:+.1f}" for what, it in looks if "offset_frames" in it)
         parts.append(f"{name} {entry['offset_frames']:+.1f} {entry['status']} ({entry['confidence']}{shifted}{look})")
     note = f"; {sync['note']}" if sync.get("note") else ""
     print(f"  time offsets in frames ({sync.get('mode')}{note}): " + ", ".join(parts))

@@ -12,7 +12,8 @@ intrinsics moves each joint's projection by about the same amount in every frame
 moves it along the joint's motion, by its image speed times d. So each joint's median residual over the frames (its
 static part) is taken off before the residuals are scored (the median distance over every joint and frame): a
 calibration error no longer favours any d, and the d that lowers the score is the one the motion asks for. The best
-whole d is refined on a grid of tenths, the others' points interpolated linearly in time.
+whole d is refined by the vertex of a parabola fitted to the score on a grid of tenths within 1.5 frames of it, the
+others' points interpolated linearly in time.
 
 An error of the intrinsics (focal length, principal point, distortion) moves a joint's projection by an amount that
 changes with where the joint lies in the image, so as the person crosses the view it leaves a mark the static part
@@ -28,7 +29,8 @@ capture's error (the mean over cameras of the score in step) most is made, if it
 least, and the search repeats; what is left below a frame is reported. Beside it, Pose2Sim's calibration-free
 estimate (the lag that best correlates a camera's keypoint speeds with the others') is a second opinion, and with one
 person in view the silhouettes give another that does not go through the keypoints
-(:mod:`pipelines.prepare.sync_silhouettes`); neither shifts anything.
+(:mod:`pipelines.prepare.sync_silhouettes`). The speed correlation shifts nothing; the silhouettes' look is averaged
+with this one where the two agree (:mod:`pipelines.prepare.sync_apply`).
 
 Each view's person is its most confident detection (summed confidence): one person in view, or the one nearest the
 cameras, dominates.
@@ -73,6 +75,8 @@ METHOD_POSITIONAL = METHOD + ", and a part that grows with the joint's place in 
 POSITION_AGREEMENT = 1.0
 #: rounds of reweighting in the positional part's robust fit
 POSITION_ROUNDS = 5
+#: tenths of a frame either side of the best whole offset through which the score's parabola is fitted (1.5 frames)
+PARABOLA_STEPS = 15
 
 
 def _keypoints(cameras, frames, people) -> tuple[list[int], np.ndarray]:
@@ -165,10 +169,29 @@ class _Rig:
         best = min(scores, key=lambda d: scores[d][0])
         if not np.isfinite(scores[best][0]):
             return {}
-        fine = {round(best + k / 10, 1): self.error(v, points, best + k / 10)[0] for k in range(-9, 10)}
-        offset = min(fine, key=fine.get)
-        in_step, at = scores[0][0], fine[offset]
-        return {"offset": offset, "in_step": in_step, "at_offset": at, "pairs": scores[best][1]}
+        grid = best + np.arange(-PARABOLA_STEPS, PARABOLA_STEPS + 1) / 10
+        fine = np.array([self.error(v, points, d)[0] for d in grid])
+        offset, at = parabola_vertex(grid, fine)
+        return {"offset": round(offset, 2), "in_step": scores[0][0], "at_offset": at, "pairs": scores[best][1]}
+
+
+def parabola_vertex(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
+    """(x*, y*) the vertex of the least-squares parabola y ~ a x^2 + b x + c through the finite points (x (K,), y
+    (K,)), x* = -b / 2a kept within [x.min(), x.max()]; the lowest point where the fit does not open upwards. A median
+    score is flat within its noise near its minimum (1-2 % from one tenth of a frame to the next on the Pose2Sim demo,
+    docs/results/real-capture.md, forty-fifth session), so its lowest point wanders over that flat; the parabola
+    through the whole reach does not."""
+    known = np.isfinite(y)
+    x, y = x[known], y[known]
+    lowest = int(np.argmin(y))
+    if len(x) < 3:
+        return float(x[lowest]), float(y[lowest])
+    centre = x.mean()
+    a, b, c = np.polyfit(x - centre, y, 2)
+    if a <= 0:
+        return float(x[lowest]), float(y[lowest])
+    vertex = float(np.clip(-b / (2 * a), x.min() - centre, x.max() - centre))
+    return vertex + centre, float(a * vertex**2 + b * vertex + c)
 
 
 def _residuals(P: np.ndarray, height: float, points: np.ndarray, keypoints: np.ndarray) -> np.ndarray:

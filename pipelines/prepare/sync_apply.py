@@ -1,7 +1,11 @@
 """The cameras' time offsets applied to a capture (docs/guides/real-captures.md, *Cameras in step*): ``--sync``'s
 modes, each camera's frames renumbered by its whole shift, and the record the report keeps. The estimates are
-:mod:`pipelines.prepare.sync`'s (the keypoints) and :mod:`pipelines.prepare.sync_silhouettes`'s (the masks, a second
-look that shifts nothing).
+:mod:`pipelines.prepare.sync`'s (the keypoints) and :mod:`pipelines.prepare.sync_silhouettes`'s (the masks). Where the
+two looks agree within a frame, a camera's offset is their mean: on the Pose2Sim demo each is about a frame off in
+one camera where the other is not (the keypoints in cam03, the silhouettes half a frame in cam04), and their mean
+finds a camera cut by 2-5 frames within half a frame in 31 of 32 cuts where the keypoints alone did in 22
+(docs/results/real-capture.md, forty-fifth session). A camera whose mean calls for another whole shift than the
+keypoints' is shifted by it and every offset estimated again (:func:`combined_shifts`).
 """
 
 from __future__ import annotations
@@ -21,6 +25,10 @@ CROWDED = 0.2
 
 #: ``--sync`` words: estimate and apply, estimate and report only, neither
 MODES = ("auto", "report", "off")
+#: the fewest whole frames of a shift that the two looks' agreement makes of high confidence (:func:`combined`)
+CONFIRMED = 2
+#: the ``method`` of an offset that is the two looks' mean
+METHOD_COMBINED = "the mean of the keypoints' estimate and the silhouettes'"
 
 
 def parse_sync(text: str) -> str | dict[str, int]:
@@ -63,28 +71,35 @@ def shift_camera(seen, folder, v: int, shift: int, stride: int):
 
 
 def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
-    """Estimate every camera's offset (unless ``sync`` is ``off``), apply whole frames (``auto``: the shifts
-    :func:`find_offsets` asks for with high confidence; a dict: the user's, by camera name, then estimated again;
-    ``report``: none), and return ``seen`` renumbered with ``seen.sync`` its record: per camera
-    :func:`find_offsets`' entry, ``offset_frames`` counted from the recording, with ``applied_frames`` (the frames
-    shifted). With several people in ``CROWDED`` of the views or more, or estimates that do not explain every camera
-    (:func:`_consistent`), ``auto`` reports instead (each view's most confident detection may be somebody else;
-    :func:`report_followed` estimates again on the followed person)."""
+    """Estimate every camera's offset (unless ``sync`` is ``off``), apply whole frames, and return ``seen``
+    renumbered with ``seen.sync`` its record. ``auto``: the shifts the two looks' mean asks for
+    (:func:`combined_shifts`; everything then estimated again) and those :func:`find_offsets` asks for with high
+    confidence; a dict: the user's, by camera name, then estimated again; ``report``: none. The record holds, per
+    camera, :func:`find_offsets`' entry with ``offset_frames`` counted from the recording and ``applied_frames``
+    (the frames shifted). With several people in ``CROWDED`` of the views or more, or estimates that do not explain
+    every camera (:func:`_consistent`), ``auto`` reports instead (each view's most confident detection may be
+    somebody else; :func:`report_followed` estimates again on the followed person)."""
     names = [c.name for c in seen.cameras]
     if isinstance(sync, dict):
         unknown = sorted(set(sync) - set(names))
         if unknown:
             raise CaptureError(f"--sync: {', '.join(unknown)} not among the cameras {names}")
     given = {n: (sync.get(n, 0) if isinstance(sync, dict) else 0) for n in names}
-    for v, name in enumerate(names):
-        seen = shift_camera(seen, folder, v, given[name], stride)
+    seen = _shift_cameras(seen, folder, given, stride)
     if sync == "off":
         return replace(seen, sync={"mode": "off", "cameras": {n: {"applied_frames": 0} for n in names}})
-    estimates = find_offsets(seen.cameras, seen.frames, seen.people)
     mode, note = (sync if isinstance(sync, str) else "given"), {}
-    crowded = crowded_share(seen.people)
-    if crowded < CROWDED and (folder / "mask_raw").is_dir():
-        estimates = with_silhouettes(estimates, seen, folder / "mask_raw")
+    estimates, crowded = _estimate(seen, folder)
+    combined = combined_shifts(estimates) if mode == "auto" and crowded < CROWDED else {}
+    if combined:  # made, and every offset estimated again; undone if the estimates then do not agree
+        seen = _shift_cameras(seen, folder, combined, stride)
+        again, _ = _estimate(seen, folder)
+        if _consistent(again):
+            estimates = again
+            given = {name: shift + combined.get(name, 0) for name, shift in given.items()}
+        else:
+            seen = _shift_cameras(seen, folder, {name: -shift for name, shift in combined.items()}, stride)
+            combined = {}
     if mode == "auto" and crowded >= CROWDED:
         mode, note["note"] = "report", f"several people in {100 * crowded:.0f} % of the views: not applied"
     elif mode == "auto" and not _consistent(estimates):
@@ -94,20 +109,57 @@ def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
         entry = dict(estimates[name])
         shift = entry.get("whole_frames", 0) if mode == "auto" and entry.get("confidence") == "high" else 0
         seen = shift_camera(seen, folder, v, shift, stride)
-        entry["offset_frames"] = given[name] + entry["offset_frames"]
-        if "silhouettes" in entry:
-            look = entry["silhouettes"]
-            entry["silhouettes"] = dict(look, offset_frames=round(given[name] + look["offset_frames"], 2))
+        for what in ("silhouettes", "keypoints", "speed_correlation"):  # counted from the recording, as the entry
+            look = entry.get(what) or {}
+            if look.get("offset_frames") is not None:
+                entry[what] = dict(look, offset_frames=round(given[name] + look["offset_frames"], 2))
+        entry["offset_frames"] = round(given[name] + entry["offset_frames"], 2)
+        entry["whole_frames"] = given[name] + entry.get("whole_frames", 0)
+        if combined.get(name):
+            entry.update(status="out of step", confidence="high", shifted_by="keypoints and silhouettes")
         entry["applied_frames"] = given[name] + shift
         cameras[name] = entry
     return replace(seen, sync={"mode": mode, "cameras": cameras, **note})
+
+
+def _shift_cameras(seen, folder, shifts: dict[str, int], stride: int):
+    """``seen`` with each named camera's frames renumbered by its shift (:func:`shift_camera`)."""
+    for v, camera in enumerate(seen.cameras):
+        seen = shift_camera(seen, folder, v, shifts.get(camera.name, 0), stride)
+    return seen
+
+
+def _estimate(seen, folder) -> tuple[dict[str, dict], float]:
+    """(every camera's estimate, :func:`~pipelines.prepare.sync.find_offsets`' with the silhouettes' look and their
+    mean where one person is in view and the raw masks are there; the share of views with several people)."""
+    estimates = find_offsets(seen.cameras, seen.frames, seen.people)
+    crowded = crowded_share(seen.people)
+    if crowded < CROWDED and (folder / "mask_raw").is_dir():
+        estimates = with_silhouettes(estimates, seen, folder / "mask_raw")
+    return estimates, crowded
+
+
+def combined_shifts(estimates: dict[str, dict]) -> dict[str, int]:
+    """The whole shifts (by camera name) that the two looks' mean asks for where it differs from the keypoints': a
+    camera whose mean offset rounds to another whole number than its keypoints' shift, if the mean is a frame or more
+    from step or the keypoints shifted it. A camera within a frame of step that the keypoints left alone stays: on
+    the demo a camera cut by k spoils the others' triangulation, and the cameras not cut then read up to 0.65 frame
+    off by both looks (docs/results/real-capture.md, forty-fifth session)."""
+    out = {}
+    for name, entry in estimates.items():
+        if entry.get("method") != METHOD_COMBINED:
+            continue
+        offset, whole = entry["offset_frames"], entry.get("whole_frames", 0)
+        if int(round(offset)) != whole and (abs(offset) >= 1.0 or whole != 0):
+            out[name] = int(round(offset))
+    return out
 
 
 def with_silhouettes(estimates: dict[str, dict], seen, folder) -> dict[str, dict]:
     """``estimates`` (:func:`~pipelines.prepare.sync.find_offsets`) with each camera's ``silhouettes``: the offset the
     masks in ``folder`` (``<camera>/<source frame:06d>.png``) give near the keypoints' whole shifts
     (:func:`pipelines.prepare.sync_silhouettes.silhouette_offsets`), and whether it ``agrees`` with the keypoints'
-    within ``POSITION_AGREEMENT`` frames. A second opinion: it shifts nothing."""
+    within ``POSITION_AGREEMENT`` frames; where it does, :func:`combined`."""
     timeline, points = triangulated_joints(seen.cameras, seen.frames, seen.people)
     start = [estimates[c.name].get("whole_frames", 0) for c in seen.cameras]
     found = silhouette_offsets(seen.cameras, timeline, folder, points, start)
@@ -116,7 +168,26 @@ def with_silhouettes(estimates: dict[str, dict], seen, folder) -> dict[str, dict
         look = found.get(name) or {}
         if look and "offset_frames" in entry:
             look = dict(look, agrees=bool(abs(look["offset_frames"] - entry["offset_frames"]) <= POSITION_AGREEMENT))
-        out[name] = dict(entry, silhouettes=look) if look else entry
+        entry = dict(entry, silhouettes=look) if look else entry
+        out[name] = combined(entry) if look.get("agrees") else entry
+    return out
+
+
+def combined(entry: dict) -> dict:
+    """A camera's entry with ``offset_frames`` the mean of its keypoints' estimate (kept as ``keypoints``) and its
+    silhouettes'. A camera the keypoints left in place whose mean lies within half a frame of step is ``in step``
+    (the silhouettes settle what the keypoints' own error called ``uncertain``); a shift of ``CONFIRMED`` frames or
+    more that the mean rounds to is of high confidence (one frame is what the keypoints cannot tell from the
+    calibration, ``pipelines.prepare.sync.MIN_TOTAL_GAIN``, and on the demo both looks then read the cameras not cut a
+    frame off as often as the one cut)."""
+    keypoints = {"offset_frames": entry["offset_frames"], "method": entry.get("method")}
+    mean = round((entry["offset_frames"] + entry["silhouettes"]["offset_frames"]) / 2, 2)
+    out = dict(entry, offset_frames=mean, keypoints=keypoints, method=METHOD_COMBINED)
+    whole = entry.get("whole_frames", 0)
+    if whole == 0 and abs(mean) < 0.5 and entry.get("status") == "uncertain":
+        out["status"] = "in step"
+    if abs(whole) >= CONFIRMED and int(round(mean)) == whole:
+        out["confidence"] = "high"
     return out
 
 
