@@ -3,7 +3,7 @@ modes, each camera's frames renumbered by its whole shift, and the record the re
 :mod:`pipelines.prepare.sync`'s (the keypoints) and :mod:`pipelines.prepare.sync_silhouettes`'s (the masks). Where the
 two looks agree within a frame, a camera's offset is their mean: on the Pose2Sim demo each is about a frame off in
 one camera where the other is not (the keypoints in cam03, the silhouettes half a frame in cam04), and their mean
-finds a camera cut by 2-5 frames within half a frame in 31 of 32 cuts where the keypoints alone did in 22
+finds a camera cut by 2-5 frames either way within half a frame in 24 of 24 cuts where the keypoints alone did in 18
 (docs/results/real-capture.md, forty-fifth session). A camera whose mean calls for another whole shift than the
 keypoints' is shifted by it and every offset estimated again (:func:`combined_shifts`).
 """
