@@ -21,6 +21,7 @@ import inspect
 import itertools
 import os
 import shutil
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -45,9 +46,17 @@ def new_file_mode() -> int:
     return 0o666 & ~_umask()
 
 
+#: the errors with which a file system says that a folder cannot be flushed at all (EINVAL: some network and
+#: virtual file systems; ENOTSUP / EOPNOTSUPP / EBADF: others): like SQLite and git there, carry on
+UNSYNCABLE_FOLDER = {errno.EINVAL, errno.ENOTSUP, errno.EOPNOTSUPP, errno.EBADF}
+_told_unsyncable: set[str] = set()
+
+
 def sync_folder(folder: Path) -> None:
     """Flush ``folder``'s entries (the renames into it) to the disk, so that a power loss after a rename that
-    publishes cannot undo it. A no-op where folders cannot be opened (Windows)."""
+    publishes cannot undo it. A no-op where folders cannot be opened (Windows), and, said once a file system on
+    standard error, where the file system cannot flush a folder (:data:`UNSYNCABLE_FOLDER`): the rename is in place
+    and stays, only its durability across a power loss is the file system's."""
     flags = os.O_RDONLY | getattr(os, "O_DIRECTORY", 0)
     try:
         fd = os.open(folder, flags)
@@ -55,6 +64,15 @@ def sync_folder(folder: Path) -> None:
         return
     try:
         os.fsync(fd)
+    except OSError as err:
+        if err.errno not in UNSYNCABLE_FOLDER:
+            raise
+        device = str(os.fstat(fd).st_dev)
+        if device not in _told_unsyncable:
+            _told_unsyncable.add(device)
+            print(
+                f"note: {folder}: this file system cannot flush folders ({err.strerror}); carrying on", file=sys.stderr
+            )
     finally:
         os.close(fd)
 
