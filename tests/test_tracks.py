@@ -181,3 +181,13 @@ def test_tracks_keep_their_sides_where_most_views_swap_them():
     for f, points in truth.items():
         # triangulated from exact pixels: the error is rounding (float64 DLT), far below the 0.3 m of a swap
         np.testing.assert_allclose(track.points[f], points, atol=1e-6)
+
+
+def test_no_track_to_follow_is_a_capture_error_naming_the_cause():
+    """No person seen by two agreeing cameras: one line a user can act on, not a bare ValueError. (Checked against
+    the bare ``ValueError("no tracks")``: the test fails.)"""
+    from pipelines.datasets.errors import CaptureError
+    from pipelines.prepare.people import choose_track
+
+    with pytest.raises(CaptureError, match="no person to follow"):
+        choose_track([], "best-seen", [])

@@ -243,7 +243,10 @@ def choose_track(tracks: list[Track], how, cameras: list[Camera], frames=None) -
     """The index of the track ``how`` (:func:`parse_person`) picks, and a line saying whom (for the report);
     ``best-seen`` counts the agreeing views in ``frames`` (None: all)."""
     if not tracks:
-        raise ValueError("no tracks")
+        raise CaptureError(
+            "no person to follow: no one is seen by two or more cameras that agree in any frame (check the keypoints, "
+            "the calibration and that the cameras are in step)"
+        )
     if how == "best-seen" or len(tracks) == 1:
         counted = set(frames) if frames is not None else None
         scores = [sum(n for f, n in t.views.items() if counted is None or f in counted) for t in tracks]
