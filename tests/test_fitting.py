@@ -497,6 +497,8 @@ _SPIN_PROBE = """
 from pipelines.cli.common import run_cli
 
 run_cli("probe", lambda argv: None, [])  # run_cli's flush imports torch, which loads libgomp
+import os, sys
+print("after:", os.environ.get("GOMP_SPINCOUNT"), file=sys.stderr)
 """
 
 
@@ -514,6 +516,21 @@ def test_openmp_workers_sleep_sooner_unless_the_user_chose(user_env):
         pytest.skip("torch's OpenMP runtime is not libgomp")
     expected = {"OMP_WAIT_POLICY": "30000000000", "GOMP_SPINCOUNT": "2000"}.get(next(iter(user_env), ""), "10000")
     assert spins == [expected]
+    # the caller's environment as it was: the variable gone after the command, or the user's own kept
+    assert f"after: {user_env.get('GOMP_SPINCOUNT')}" in done.stderr.splitlines()
+
+
+def test_every_command_loads_without_torch():
+    """The OpenMP wait is set by run_cli before torch loads libgomp, so no command's module may import torch at
+    load. (Checked against narf-cost importing narf.fields at load: the test fails.)"""
+    import tomllib
+    from pathlib import Path
+
+    scripts = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]["scripts"]
+    modules = sorted({target.split(":")[0] for target in scripts.values()})
+    probe = "import importlib, sys\nfor m in sys.argv[1:]:\n    importlib.import_module(m)\n    assert 'torch' not in sys.modules, m"
+    done = spawn.run([sys.executable, "-c", probe, *modules], 120, capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr.strip().splitlines()[-1]
 
 
 def test_eval_takes_several_splits(tiny_run, tmp_path, capsys):

@@ -214,7 +214,7 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int | None], argv: lis
     (:func:`short_openmp_wait`) and subnormal floats are flushed in every CPU thread (:func:`flush_subnormals`), all
     set before ``main`` does any work; ``--help`` does none, and answers without importing torch."""
     keep_freed_memory()
-    short_openmp_wait()
+    waiting = short_openmp_wait()
     if not {"-h", "--help"} & set(sys.argv[1:] if argv is None else argv):
         flush_subnormals()
     try:
@@ -228,6 +228,11 @@ def run_cli(prog: str, main: Callable[[list[str] | None], int | None], argv: lis
             raise
         print(f"{prog}: error: {_message(err)}", file=sys.stderr)
         return 2
+    finally:
+        # libgomp read the variable when torch loaded it (at the latest in main): an in-process caller gets its
+        # environment back as it was, and so do the processes it starts later
+        if waiting:
+            os.environ.pop("GOMP_SPINCOUNT", None)
 
 
 def _message(err: Exception) -> str:

@@ -5,12 +5,16 @@ from __future__ import annotations
 import argparse
 import sys
 
-from narf.fields import build_model, model_spec, paper_presets, paper_rows
-from narf.fields.base import SAMPLES_FOR_COST
 from pipelines.cli.common import run_cli
+
+#: samples per ray of the cost accounting (narf.fields.base.SAMPLES_FOR_COST; docs/model.md §8), named here so that
+#: the module loads without torch: the commands set torch's OpenMP wait before it loads (docs/design.md)
+SAMPLES_FOR_COST = 96
 
 
 def main(argv: list[str] | None = None) -> int:
+    from narf.fields import build_model, model_spec, paper_presets, paper_rows
+
     presets = paper_presets()
     parser = argparse.ArgumentParser(
         prog="narf-cost",
