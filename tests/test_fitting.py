@@ -528,7 +528,7 @@ def test_every_command_loads_without_torch():
 
     scripts = tomllib.loads((Path(__file__).parents[1] / "pyproject.toml").read_text())["project"]["scripts"]
     modules = sorted({target.split(":")[0] for target in scripts.values()})
-    probe = "import importlib, sys\nfor m in sys.argv[1:]:\n    importlib.import_module(m)\n    assert 'torch' not in sys.modules, m"
+    probe = "import importlib, sys\nfor m in sys.argv[1:]:\n    importlib.import_module(m)\n    assert 'torch' not in sys.modules, m"  # noqa: E501
     done = spawn.run([sys.executable, "-c", probe, *modules], 120, capture_output=True, text=True)
     assert done.returncode == 0, done.stderr.strip().splitlines()[-1]
 
