@@ -114,6 +114,39 @@ def test_a_camera_that_shares_no_floor_keeps_the_gain_one():
     assert result["points"].tolist() == [100, 100, 0]
 
 
+def test_groups_that_share_no_floor_measure_only_the_largest():
+    """Cameras 0-2 share the floor, cameras 3-4 share it with each other only: the gain between the two groups is
+    not determined, so the smaller group keeps the gain 1 and is reported unmeasured. (Checked against the solve of
+    every linked camera: cameras 3 and 4 were reported measured.)"""
+    colours = np.full((5, 300, 3), np.nan)
+    colours[0, :100], colours[1, :100], colours[2, :100] = 100.0, 110.0, 121.0
+    colours[3, 200:], colours[4, 200:] = 90.0, 180.0
+    result = solve_gains(colours)
+    assert result["measured"].tolist() == [True, True, True, False, False]
+    np.testing.assert_allclose(result["gains"][3:], 1.0)
+    np.testing.assert_allclose(result["gains"][1] / result["gains"][0], 1.1)  # every channel, float64 logs
+
+
+def test_a_gain_a_fit_would_refuse_is_left_unmeasured_and_never_written(tmp_path):
+    """A camera whose floor reads 20 times brighter (a measurement gone wrong: a fit refuses gains outside [0.25, 4])
+    is left out, the rest solved without it; writing such a gain is refused. (Checked against the solve without the
+    range: camera 2 got a gain of 7.2 and the file was written, then refused by the reader.)"""
+    from pipelines.datasets.camera_colour import read_camera_colour, write_camera_colour
+
+    colours = np.full((3, 100, 3), 100.0)
+    colours[1] *= 1.05
+    colours[2] *= 20.0
+    result = solve_gains(colours)
+    assert result["measured"].tolist() == [True, True, False]
+    np.testing.assert_allclose(result["gains"][2], 1.0)
+    np.testing.assert_allclose(result["gains"][1] / result["gains"][0], 1.05)
+    write_camera_colour(tmp_path / "colour.json", ["a", "b", "c"], result)
+    assert read_camera_colour(tmp_path / "colour.json", ["a", "b", "c"]).shape == (3, 3)
+    with pytest.raises(ValueError, match="outside"):
+        write_camera_colour(tmp_path / "bad.json", ["a", "b", "c"], {**result, "gains": result["gains"] * 5})
+    assert not (tmp_path / "bad.json").exists()
+
+
 def test_pair_medians_ignore_a_minority_of_outliers():
     """The median of a pair's log ratios is exactly the true ratio while more than half the points agree."""
     rng = np.random.default_rng(1)

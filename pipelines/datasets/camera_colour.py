@@ -49,7 +49,11 @@ def read_camera_colour(path: Path, names: list[str]) -> np.ndarray:
 
 
 def write_camera_colour(path: Path, names: list[str], measured: dict) -> None:
-    """Write ``colour.json``: ``measured`` is ``pipelines.prepare.colour.measure_camera_colour``'s result."""
+    """Write ``colour.json``: ``measured`` is ``pipelines.prepare.colour.measure_camera_colour``'s result. Gains that
+    :func:`read_camera_colour` would refuse are a ValueError here, before anything is written."""
+    gains = np.asarray(measured["gains"], float)
+    if not (np.isfinite(gains) & (gains >= GAIN_RANGE[0]) & (gains <= GAIN_RANGE[1])).all():
+        raise ValueError(f"{path}: gains outside {list(GAIN_RANGE)} are not written: {gains.round(3).tolist()}")
     cameras = {
         name: {
             "gain": [round(float(v), 5) for v in measured["gains"][i]],

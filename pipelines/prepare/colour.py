@@ -27,6 +27,7 @@ import numpy as np
 from tqdm import tqdm
 
 from pipelines.datasets.camera import project_distorted
+from pipelines.datasets.camera_colour import GAIN_RANGE
 
 #: colours (0-255) below or above which a channel is too dark or clipped to be compared
 DARK, BRIGHT = 8, 247
@@ -88,7 +89,12 @@ def floor_colours(backgrounds: list[np.ndarray], scales: list[float], cameras, p
 def solve_gains(colours: np.ndarray, min_points: int = 50) -> dict:
     """Gains (C, 3) RGB from floor colours (C, N, 3) BGR (module docstring), with each camera's ``points`` (the most
     it shares with another camera), ``residual`` (the median over its pairs of the pair equation's misfit, in log
-    units: 0.01 is 1 %) and ``measured`` (False: it kept the gain 1)."""
+    units: 0.01 is 1 %) and ``measured`` (False: it kept the gain 1).
+
+    Only one group of cameras linked by pairs is measured, the largest: the gain between groups that share fewer
+    than ``min_points`` points is not determined by the floor (the least-squares problem is rank-deficient), so the
+    other groups keep the gain 1. A camera whose gain comes out of ``GAIN_RANGE`` (a fit refuses it) is not a
+    white balance but a measurement gone wrong: it is left out and the rest solved again."""
     n = len(colours)
     logs = np.log(colours[..., ::-1])  # RGB
     pairs, targets, shared = [], [], np.zeros(n, int)
@@ -99,23 +105,51 @@ def solve_gains(colours: np.ndarray, min_points: int = 50) -> dict:
             if both.sum() >= min_points:
                 pairs.append((a, b))
                 targets.append(np.median(logs[a, both] - logs[b, both], axis=0))
-    linked = np.zeros(n, bool)
-    linked[[c for pair in pairs for c in pair]] = True
-    log_gains = np.zeros((n, 3))
-    if pairs:
-        system = np.zeros((len(pairs) + 1, n))
-        for row, (a, b) in enumerate(pairs):
-            system[row, a], system[row, b] = 1.0, -1.0
-        system[-1] = linked  # the last row: the measured gains' logs sum to 0
-        rhs = np.vstack([*targets, np.zeros(3)])
-        log_gains[linked] = np.linalg.lstsq(system[:, linked], rhs, rcond=None)[0]
+    dropped = np.zeros(n, bool)
+    while True:
+        kept = [(pair, target) for pair, target in zip(pairs, targets) if not dropped[list(pair)].any()]
+        linked = _largest_group(n, [pair for pair, _ in kept])
+        kept = [(pair, target) for pair, target in kept if linked[pair[0]]]
+        log_gains = np.zeros((n, 3))
+        if kept:
+            system = np.zeros((len(kept) + 1, n))
+            for row, ((a, b), _) in enumerate(kept):
+                system[row, a], system[row, b] = 1.0, -1.0
+            system[-1] = linked  # the last row: the measured gains' logs sum to 0
+            rhs = np.vstack([*(target for _, target in kept), np.zeros(3)])
+            log_gains[linked] = np.linalg.lstsq(system[:, linked], rhs, rcond=None)[0]
+        outside = linked & ((log_gains < np.log(GAIN_RANGE[0])) | (log_gains > np.log(GAIN_RANGE[1]))).any(-1)
+        if not outside.any():
+            break
+        dropped[np.argmax(np.abs(log_gains).max(-1) * outside)] = True  # the farthest first, then solve again
     misfit = [[] for _ in range(n)]
-    for (a, b), target in zip(pairs, targets):
+    for (a, b), target in kept:
         error = float(np.abs(target - (log_gains[a] - log_gains[b])).max())
         misfit[a].append(error)
         misfit[b].append(error)
     residual = np.array([np.median(m) if m else np.nan for m in misfit])
     return {"method": "floor", "gains": np.exp(log_gains), "points": shared, "residual": residual, "measured": linked}
+
+
+def _largest_group(n: int, pairs: list[tuple[int, int]]) -> np.ndarray:
+    """(n,) bool: the cameras of the largest group that ``pairs`` link (none when there is no pair; ties: the group
+    of the lowest camera)."""
+    group = list(range(n))
+
+    def root(c: int) -> int:
+        while group[c] != c:
+            c = group[c]
+        return c
+
+    for a, b in pairs:
+        group[root(a)] = root(b)
+    paired = {c for pair in pairs for c in pair}
+    roots = [root(c) if c in paired else -1 for c in range(n)]
+    sizes = {r: roots.count(r) for r in set(roots) if r >= 0}
+    if not sizes:
+        return np.zeros(n, bool)
+    best = max(sizes, key=lambda r: (sizes[r], -roots.index(r)))
+    return np.array([r == best for r in roots])
 
 
 def measure_camera_colour(capture, frames: list[int], pad: float = 1.0, spacing: float = 0.04, progress=False) -> dict:
