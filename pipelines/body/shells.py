@@ -97,7 +97,8 @@ def part_shells(
     ``frames`` evenly spaced frames of each of ``bodies`` (``PosedBody`` batches: the rest pose first, then the
     training frames), ``margin`` in world units. A shell is the union over the frames, so a frame only measures the
     cells no earlier frame kept (the same cells as measuring every cell in every frame, in under half the time at
-    64^3 on the real demo), ``CHUNK`` cells at a time."""
+    64^3 on the real demo), ``CHUNK`` cells at a time: the cells not yet kept are listed chunk by chunk, so that the
+    memory beyond the (P, N^3) bools is the chunk's (two int64 of P N^3 would be 340 MB at 96^3)."""
     n = resolution
     steps = (np.arange(n) + 0.5) * (2.0 / n) - 1.0
     u = np.stack(np.meshgrid(steps, steps, steps, indexing="ij"), axis=-1).reshape(-1, 3)  # (N^3, 3)
@@ -110,9 +111,10 @@ def part_shells(
         reach = float(body.reach[f])
         world_from_part = body.world_from_part[f].double().cpu().numpy()
         vertices = body.vertices[f].double().cpu().numpy()
-        part, cell = np.nonzero(~inside)  # grouped by part, in order
-        for start in range(0, len(part), CHUNK):
-            p, c = part[start : start + CHUNK], cell[start : start + CHUNK]
+        flat = inside.reshape(-1)
+        for start in range(0, flat.size, CHUNK):  # the cells not yet kept, CHUNK cells of P N^3 looked at a time
+            index = np.flatnonzero(~flat[start : start + CHUNK]) + start  # grouped by part, in order
+            p, c = np.divmod(index, n**3)
             world = _posed_cells(u, centres, half_extents, p, c, world_from_part, reach)
             distance = signed_distance_to_vertices(world, vertices, faces, visible)
             inside[p, c] = distance < margin + half_diagonal[p] * reach
