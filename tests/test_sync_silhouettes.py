@@ -158,7 +158,7 @@ def _scripted(monkeypatch, *passes):
     """``sync_apply._estimate`` answering each call with the next of ``passes`` (estimates by camera), one person in
     view."""
     answers = iter(passes)
-    monkeypatch.setattr(sync_apply, "_estimate", lambda seen, folder: (next(answers), 0.0))
+    monkeypatch.setattr(sync_apply, "_estimate", lambda seen, folder, stride=1: (next(answers), 0.0))
 
 
 def _files(tmp_path, names, n_frames=8):
@@ -199,3 +199,19 @@ def test_a_shift_the_mean_asks_for_is_made_and_estimated_again_or_undone(tmp_pat
         out.frames[1] == list(range(2, 10)) and (tmp_path / "undone" / "cam_b" / "000002.jpg").read_text() == "cam_b 0"
     )
     assert out.sync["cameras"]["cam_b"]["offset_frames"] == 2.54 and out.sync["cameras"]["cam_b"]["applied_frames"] == 2
+
+
+def test_a_late_camera_is_found_on_a_timeline_of_every_second_frame(tmp_path):
+    """``--stride 2``: the timeline holds frames 0, 2, 4, ... and only those have masks; camera 3 runs 4 frames (2
+    steps) late. Offsets count steps: the silhouettes find it 2 steps late and the others in step. (Checked against
+    offsets subtracted from frame numbers as they were: every camera came back empty.)"""
+    cameras = _rig()
+    _write_masks(tmp_path, cameras, late={2: 4}, turned={})
+    for path in tmp_path.glob("*/*.png"):
+        if int(path.stem) % 2:
+            path.unlink()  # the prepare reads every second frame only
+    timeline = list(range(0, N_FRAMES, 2))
+    found = silhouette_offsets(cameras, timeline, tmp_path, _centres()[::2], [0] * len(cameras), stride=2)
+    assert found["cam3"]["whole_frames"] == 2 and abs(found["cam3"]["offset_frames"] - 2) < 0.4  # as above
+    for name in ("cam1", "cam2", "cam4"):
+        assert found[name]["whole_frames"] == 0 and abs(found[name]["offset_frames"]) < 0.4

@@ -89,11 +89,11 @@ def synchronise(seen, folder, sync: str | dict[str, int], stride: int = 1):
     if sync == "off":
         return replace(seen, sync={"mode": "off", "cameras": {n: {"applied_frames": 0} for n in names}})
     mode, note = (sync if isinstance(sync, str) else "given"), {}
-    estimates, crowded = _estimate(seen, folder)
+    estimates, crowded = _estimate(seen, folder, stride)
     combined = combined_shifts(estimates) if mode == "auto" and crowded < CROWDED else {}
     if combined:  # made, and every offset estimated again; undone if the estimates then do not agree
         seen = _shift_cameras(seen, folder, combined, stride)
-        again, _ = _estimate(seen, folder)
+        again, _ = _estimate(seen, folder, stride)
         if _consistent(again):
             estimates = again
             given = {name: shift + combined.get(name, 0) for name, shift in given.items()}
@@ -129,13 +129,14 @@ def _shift_cameras(seen, folder, shifts: dict[str, int], stride: int):
     return seen
 
 
-def _estimate(seen, folder) -> tuple[dict[str, dict], float]:
+def _estimate(seen, folder, stride: int = 1) -> tuple[dict[str, dict], float]:
     """(every camera's estimate, :func:`~pipelines.prepare.sync.find_offsets`' with the silhouettes' look and their
-    mean where one person is in view and the raw masks are there; the share of views with several people)."""
+    mean where one person is in view and the raw masks are there; the share of views with several people), in steps
+    of ``stride`` frames."""
     estimates = find_offsets(seen.cameras, seen.frames, seen.people)
     crowded = crowded_share(seen.people)
     if crowded < CROWDED and (folder / "mask_raw").is_dir():
-        estimates = with_silhouettes(estimates, seen, folder / "mask_raw")
+        estimates = with_silhouettes(estimates, seen, folder / "mask_raw", stride)
     return estimates, crowded
 
 
@@ -155,14 +156,14 @@ def combined_shifts(estimates: dict[str, dict]) -> dict[str, int]:
     return out
 
 
-def with_silhouettes(estimates: dict[str, dict], seen, folder) -> dict[str, dict]:
+def with_silhouettes(estimates: dict[str, dict], seen, folder, stride: int = 1) -> dict[str, dict]:
     """``estimates`` (:func:`~pipelines.prepare.sync.find_offsets`) with each camera's ``silhouettes``: the offset the
     masks in ``folder`` (``<camera>/<source frame:06d>.png``) give near the keypoints' whole shifts
     (:func:`pipelines.prepare.sync_silhouettes.silhouette_offsets`), and whether it ``agrees`` with the keypoints'
     within ``POSITION_AGREEMENT`` frames; where it does, :func:`combined`."""
     timeline, points = triangulated_joints(seen.cameras, seen.frames, seen.people)
     start = [estimates[c.name].get("whole_frames", 0) for c in seen.cameras]
-    found = silhouette_offsets(seen.cameras, timeline, folder, points, start)
+    found = silhouette_offsets(seen.cameras, timeline, folder, points, start, stride)
     out = {}
     for name, entry in estimates.items():
         look = found.get(name) or {}

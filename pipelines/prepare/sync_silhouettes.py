@@ -125,22 +125,23 @@ def _translations() -> np.ndarray:
     return np.stack(np.meshgrid(steps, steps, indexing="ij"), axis=-1).reshape(-1, 2)
 
 
-def shares(cameras, masks: _Masks, timeline, boxes, shifts, v: int, offsets) -> tuple[np.ndarray, int]:
+def shares(cameras, masks: _Masks, timeline, boxes, shifts, v: int, offsets, stride: int = 1) -> tuple[np.ndarray, int]:
     """((D,) mean share for each d of ``offsets`` (D,), frames scored) of camera v against the others' hulls, at each
     d with the image translation (the static part, module docstring) that raises it most; camera u's frame t is its
-    source frame t - ``shifts[u]`` (the whole shifts made so far). A frame is scored at every d or not at all (every
-    d is judged on the same frames); NaN everywhere when none is."""
+    source frame t - ``shifts[u]`` ``stride`` (the whole shifts made so far, in steps of the timeline, which reads
+    every ``stride``-th frame: d and the shifts count steps, ``timeline`` holds frame numbers). A frame is scored at
+    every d or not at all (every d is judged on the same frames); NaN everywhere when none is."""
     others = [u for u in range(len(cameras)) if u != v]
     moves = _translations()
     total, scored = np.zeros((len(offsets), len(moves))), 0
     chosen = np.unique(np.linspace(0, len(timeline) - 1, min(FRAMES, len(timeline))).round().astype(int))
     for n in chosen:
-        own = [masks.get(v, timeline[n] - d - shifts[v]) for d in offsets]
+        own = [masks.get(v, timeline[n] - (d + shifts[v]) * stride) for d in offsets]
         if not np.isfinite(boxes[n]).all() or any(m is None for m in own):
             continue
         hull = _cells(boxes[n])
         for u in others:
-            packed = masks.get(u, timeline[n] - shifts[u])
+            packed = masks.get(u, timeline[n] - shifts[u] * stride)
             hull = hull[:0] if packed is None else hull[inside(packed, _on_mask(cameras[u], hull, masks.scale[u]))]
             if len(hull) < MIN_CELLS:
                 break
@@ -163,20 +164,23 @@ def _vertex(curve: np.ndarray, best: int) -> tuple[float, float]:
     return vertex, float(mid - (low + high) / 2)
 
 
-def silhouette_offsets(cameras, timeline: list[int], folder: Path, points: np.ndarray, start: list[int]) -> dict:
+def silhouette_offsets(
+    cameras, timeline: list[int], folder: Path, points: np.ndarray, start: list[int], stride: int = 1
+) -> dict:
     """Every camera's offset from the silhouettes (module docstring), searched within ``REACH`` frames of ``start``
     (each camera's whole shift by the keypoints, by camera in order): by camera name, ``offset_frames`` (the whole
     shift made plus the parabola's vertex about the best d), ``whole_frames`` (the shifts made), ``curvature`` (share
     lost one frame either way of the best) and ``frames`` scored; {} for a camera scored on fewer than
     ``MIN_FRAMES`` frames.
     ``folder``: ``<camera>/<frame:06d>.png`` masks named by source frame; ``timeline``: the frames read (sorted);
-    ``points`` (N frames, T joints, 3): the joints triangulated from every camera, for the boxes."""
+    ``points`` (N frames, T joints, 3): the joints triangulated from every camera, for the boxes; ``stride``: the
+    timeline's step in frames (the prepare's ``--stride``), the unit of ``start`` and of every offset returned."""
     names = [c.name for c in cameras]
     masks = _Masks(folder, names, [min(1.0, MASK_SIDE / max(c.width, c.height)) for c in cameras])
     boxes, shifts, offsets = person_boxes(points), list(start), np.arange(-REACH, REACH + 1)
 
     def score_all():
-        return [shares(cameras, masks, timeline, boxes, shifts, v, offsets) for v in range(len(cameras))]
+        return [shares(cameras, masks, timeline, boxes, shifts, v, offsets, stride) for v in range(len(cameras))]
 
     curves = score_all()
     for _ in range(len(cameras)):
