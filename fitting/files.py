@@ -187,7 +187,9 @@ def atomic_output(path: Path) -> Iterator[Path]:
     tmp = path.with_name(f".{path.stem}.partial-{os.getpid()}-{next(_OUTPUTS)}{path.suffix}")
     try:
         yield tmp
+        sync_file(tmp)  # the data on the disk before the rename, and the rename flushed after it (module docstring)
         os.replace(tmp, path)
+        sync_folder(path.parent)
     finally:
         tmp.unlink(missing_ok=True)
 
@@ -278,6 +280,17 @@ def restore_replaced(out: Path) -> None:
 def atomic_write_text(path: Path, text: str) -> None:
     """:func:`atomic_write_bytes` of ``text`` in UTF-8."""
     atomic_write_bytes(path, text.encode("utf-8"))
+
+
+def restore_merged(out: Path) -> None:
+    """Undo :func:`merge_folder`s killed halfway in ``out``: each sub-folder moved aside (``.<name>.old``) goes back
+    or is deleted as :func:`restore_replaced` says. Commands that merge into ``out`` call it before their work."""
+    out = Path(out)
+    if not out.is_dir():
+        return
+    for old in out.glob(".*.old"):
+        if old.is_dir():
+            restore_replaced(out / old.name[1 : -len(".old")])
 
 
 def merge_folder(partial: Path, out: Path) -> Path:

@@ -289,3 +289,53 @@ def _current_umask() -> int:
     mask = os.umask(0o022)
     os.umask(mask)
     return mask
+
+
+def test_writers_into_a_capture_or_a_run_take_its_lock_first(tiny_run, tmp_path, capsys):
+    """narf-camera-colour writes CAPTURE/colour.json and narf-eval --reference-params RUN/eval/joints.json: each
+    takes the folder's lock before it reads or writes anything, so beside another writer of that folder both end at
+    once with exit 2 and write nothing. (Checked against the commands without the lock: colour.json's command went
+    on to read the capture, narf-eval wrote joints.json.)"""
+    from pipelines.cli import camera_colour
+    from pipelines.cli import eval as cli_eval_module
+    from pipelines.cli.common import run_cli
+
+    capture = tmp_path / "capture"
+    capture.mkdir()
+    with folder_lock(capture):
+        assert run_cli("narf-camera-colour", camera_colour.main, [str(capture), "--quiet"]) == 2
+    assert "another command is writing it" in capsys.readouterr().err and not (capture / "colour.json").exists()
+    params, run = tmp_path / "params", tmp_path / "run"
+    params.mkdir()
+    shutil.copytree(tiny_run, run, ignore=shutil.ignore_patterns("eval"))  # the shared run's report is others'
+    with folder_lock(run):
+        args = ["--run", str(run), "--reference-params", str(params), "--quiet"]
+        assert run_cli("narf-eval", cli_eval_module.main, args) == 2
+    assert "another command is writing it" in capsys.readouterr().err
+    assert not (run / "eval" / "joints.json").exists()
+
+
+def test_a_sub_folder_moved_aside_by_a_killed_merge_comes_back(tmp_path):
+    """A kill inside merge_folder after colmap/ was moved aside and before the new one came: restore_merged (which
+    narf-calibrate runs first) puts it back; beside a complete new one it is deleted. (Checked against no restore:
+    colmap/ stayed hidden as .colmap.old.)"""
+    from fitting.files import restore_merged
+
+    out = tmp_path / "calibration"
+    _folder(out / ".colmap.old", "old")
+    (out / "report.json").write_text("{}")
+    restore_merged(out)
+    assert _contents(out / "colmap") == {"old"} and not (out / ".colmap.old").exists()
+    _folder(out / ".colmap.old", "older")
+    restore_merged(out)
+    assert _contents(out / "colmap") == {"old"} and not (out / ".colmap.old").exists()
+
+
+def test_atomic_output_flushes_the_file_then_its_folder(tmp_path, monkeypatch):
+    """Videos, plots and .mat files (atomic_output) reach the disk before their rename, and the rename is flushed.
+    (Checked against the rename alone: nothing was flushed.)"""
+    synced = _synced_paths(monkeypatch)
+    with files.atomic_output(tmp_path / "video.mp4") as tmp:
+        tmp.write_bytes(b"frames")
+    assert len(synced) == 2 and Path(synced[0]).name.startswith(".video.partial-")
+    assert synced[1] == str(tmp_path.resolve())

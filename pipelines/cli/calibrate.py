@@ -106,6 +106,10 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or args.capture / "calibration"
     if out.exists() and not out.is_dir():  # checked before the calibration, not after
         raise FileExistsError(f"{out}: exists and is not a folder")
+    from fitting.files import folder_lock, restore_merged
+
+    with folder_lock(out):  # a calibration killed while it moved its folders in: colmap/ back before anything else
+        restore_merged(out)
     cameras, ims, report, figures = calibrate_capture(args.capture, spec, args.reference_shot, not args.quiet, fixed)
     write_outputs(out, cameras, ims, report, figures)
     worst = max(report["cameras"].items(), key=lambda kv: kv[1]["rms_px"])

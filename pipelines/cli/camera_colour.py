@@ -31,12 +31,14 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.frames < 3:
         raise ValueError(f"--frames must be at least 3 (a median of fewer is not a background), got {args.frames}")
-    target = args.capture / "colour.json"
-    if target.exists() and not args.overwrite:
-        raise FileExistsError(f"{target}: exists (--overwrite replaces it)")
+    from fitting.files import folder_lock
     from pipelines.prepare.colour import colour_summary, write_capture_colour
 
-    colour = write_capture_colour(args.capture, args.frames, progress=not args.quiet)
+    target = args.capture / "colour.json"
+    with folder_lock(args.capture):  # the capture's writer: not into a folder narf-prepare-capture is replacing
+        if target.exists() and not args.overwrite:
+            raise FileExistsError(f"{target}: exists (--overwrite replaces it)")
+        colour = write_capture_colour(args.capture, args.frames, progress=not args.quiet)
     print(f"narf-camera-colour: {colour_summary(colour)}; wrote {target}")
     return 0
 

@@ -140,26 +140,26 @@ def main(argv: list[str] | None = None) -> int:
     samples = samples_of(args)
     use_smpl_dir(args.smpl_dir)
     kind, run = open_run(args.run)
-    if args.reference_params is not None:
-        report_joints(kind, run, args.reference_params)
-        if not args.split and args.capture is None:
-            return 0
-    request = EvalRequest(
-        splits=("capture",) if args.capture is not None else kind.expand(args.run, args.split),
-        limit=args.limit,
-        device=str(auto_device(args.device)),
-        progress=not args.quiet,
-        grids=args.grids,
-        mesh=args.mesh,
-        mesh_resolution=args.mesh_resolution,
-        mesh_level=args.mesh_level,
-        surreal=args.surreal,
-        refine_steps=args.refine_steps,
-        capture=args.capture,
-        novel_colour=args.novel_colour,
-        samples=samples,
-    )
-    with folder_lock(args.run):  # not beside a fit (or another evaluation) of the same run
+    with folder_lock(args.run):  # not beside a fit (or another evaluation) of the same run; joints.json too
+        if args.reference_params is not None:
+            report_joints(kind, run, args.reference_params)
+            if not args.split and args.capture is None:
+                return 0
+        request = EvalRequest(
+            splits=("capture",) if args.capture is not None else kind.expand(args.run, args.split),
+            limit=args.limit,
+            device=str(auto_device(args.device)),
+            progress=not args.quiet,
+            grids=args.grids,
+            mesh=args.mesh,
+            mesh_resolution=args.mesh_resolution,
+            mesh_level=args.mesh_level,
+            surreal=args.surreal,
+            refine_steps=args.refine_steps,
+            capture=args.capture,
+            novel_colour=args.novel_colour,
+            samples=samples,
+        )
         report = kind.evaluate(run, request)
     print(kind.markdown(report))
     print(f"narf-eval: wrote {args.run / 'eval' / 'metrics.json'}")
