@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from fitting.config import with_eval_samples
-from fitting.files import atomic_output
+from fitting.files import atomic_output, write_image
 
 _PALETTE = np.array([[(i * 67) % 256, (i * 151 + 80) % 256, (i * 211 + 40) % 256] for i in range(32)]) / 255.0
 
@@ -38,7 +38,7 @@ def save_png(path: Path, image: np.ndarray) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     bgr = cv2.cvtColor((np.clip(image, 0, 1) * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)
     with atomic_output(path) as tmp:
-        cv2.imwrite(str(tmp), bgr)
+        write_image(tmp, bgr)
 
 
 def grid(gt: np.ndarray, render: dict, labels: bool = True) -> np.ndarray:
@@ -94,4 +94,4 @@ def write_curve(log_path: Path, out: Path, size: tuple[int, int] = (720, 360)) -
     for step, x in ((steps.min(), margin), (steps.max(), width - margin)):
         cv2.putText(canvas, f"{step:.0f}", (int(x) - 15, height - 25), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     with atomic_output(out) as tmp:
-        cv2.imwrite(str(tmp), canvas)
+        write_image(tmp, canvas)

@@ -9,7 +9,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 from skimage.transform import SimilarityTransform
 
-from fitting.files import atomic_output
+from fitting.files import atomic_output, write_image
 from pipelines.datasets.camera import Camera
 
 _FONT = cv2.FONT_HERSHEY_SIMPLEX
@@ -17,7 +17,7 @@ _FONT = cv2.FONT_HERSHEY_SIMPLEX
 
 def _save(path: Path, canvas: np.ndarray) -> None:
     with atomic_output(path) as tmp:
-        cv2.imwrite(str(tmp), canvas)
+        write_image(tmp, canvas)
 
 
 def draw_rig(

@@ -20,7 +20,7 @@ import torch
 import trimesh
 from tqdm import tqdm
 
-from fitting.files import fresh_partial, publish_folder, writes_folder
+from fitting.files import fresh_partial, publish_folder, write_image, writes_folder
 from fitting.mesh import vertex_normals
 from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.body.model import BodyModel
@@ -115,9 +115,9 @@ def _render_frame(task: tuple[int, np.ndarray]) -> int:
         image, labels = render_view(mesh, normals, cam)
         rel = Path(image_relpath(layout, cam, frame))
         bgr = cv2.cvtColor((image * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)
-        cv2.imwrite(str(root / rel), bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
-        cv2.imwrite(str(root / "mask_cihp" / rel.with_suffix(".png")), labels)
-        cv2.imwrite(str(root / "mask" / rel.with_suffix(".png")), (labels > 0).astype(np.uint8))
+        write_image(root / rel, bgr, [cv2.IMWRITE_JPEG_QUALITY, quality])
+        write_image(root / "mask_cihp" / rel.with_suffix(".png"), labels)
+        write_image(root / "mask" / rel.with_suffix(".png"), (labels > 0).astype(np.uint8))
     return frame
 
 

@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 from tqdm import tqdm
 
+from fitting.files import write_image
 from pipelines.calibration.board import BoardSpec
 from pipelines.datasets.camera import Camera
 from pipelines.synthetic.scene import pixel_directions, studio_background
@@ -178,7 +179,7 @@ def write_calibration_shots(
             path.parent.mkdir(parents=True, exist_ok=True)
             image = _render_board(camera, dirs, background, texture, pose, spec)
             bgr = cv2.cvtColor((image * 255 + 0.5).astype(np.uint8), cv2.COLOR_RGB2BGR)
-            cv2.imwrite(str(path), bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
+            write_image(path, bgr, [cv2.IMWRITE_JPEG_QUALITY, 95])
     (folder / "board.json").write_text(
         json.dumps({**asdict(spec), "reference_shot": 0, "cameras": [c.name for c in cameras]}, indent=2)
     )

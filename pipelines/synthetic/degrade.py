@@ -17,7 +17,7 @@ import torch
 from tqdm import tqdm
 
 from fitting.corrections import PoseCorrection
-from fitting.files import writes_folder
+from fitting.files import write_image, writes_folder
 from narf.kinematics import N_JOINTS
 from pipelines.body.model import BodyModel, capture_poses
 from pipelines.datasets.capture import ZjuCapture
@@ -86,7 +86,7 @@ def _recolour(capture: ZjuCapture, partial: Path, gains: np.ndarray, biases: np.
             cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
             cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444,
         ]
-        cv2.imwrite(str(target), (out * 255 + 0.5).astype(np.uint8), options)
+        write_image(target, (out * 255 + 0.5).astype(np.uint8), options)
 
 
 @writes_folder("out")

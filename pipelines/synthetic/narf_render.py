@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from fitting.files import fresh_partial, publish_folder, writes_folder
+from fitting.files import fresh_partial, publish_folder, write_image, writes_folder
 from pipelines.body.model import BodyModel
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.thuman import RENDER_SIZE, THUMAN_K, item_gender, read_colored_obj, read_smpl_params_txt
@@ -91,7 +91,7 @@ def _render_pair(mesh: tuple, bones, rng, novel_view: bool) -> list[tuple]:
 def _save_render(folder: Path, index: int, render: tuple) -> None:
     image, pose_to_camera, pose_to_world = render
     rgba = np.concatenate([image["rgb"], image["alpha"][..., None]], axis=-1)
-    cv2.imwrite(str(folder / f"color_{index:08d}.png"), np.uint8(rgba * 255)[..., [2, 1, 0, 3]])
+    write_image(folder / f"color_{index:08d}.png", np.uint8(rgba * 255)[..., [2, 1, 0, 3]])
     np.save(folder / f"pose_to_camera_{index:08d}.npy", pose_to_camera)
     np.save(folder / f"pose_to_world_{index:08d}.npy", pose_to_world)
 

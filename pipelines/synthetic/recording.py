@@ -12,6 +12,7 @@ import cv2
 import numpy as np
 import torch
 
+from fitting.files import write_image
 from fitting.video import write_mp4
 from pipelines.body.model import BodyModel
 from pipelines.datasets.camera import project_distorted, silhouette
@@ -59,7 +60,7 @@ def write_recording(
         for i, f in enumerate(order):
             mask = cv2.imread(str(capture.root / "mask" / Path(capture.ims[f][c]).with_suffix(".png")), 0)
             (out / "masks" / camera.name).mkdir(parents=True, exist_ok=True)
-            cv2.imwrite(str(out / "masks" / camera.name / f"{i:06d}.png"), (mask > 0).astype(np.uint8) * 255)
+            write_image(out / "masks" / camera.name / f"{i:06d}.png", (mask > 0).astype(np.uint8) * 255)
             pixels = project_distorted(camera, joints[f]) + rng.normal(0.0, noise_px, (len(joints[f]), 2))
             path = out / "keypoints" / f"{camera.name}_json" / f"{camera.name}_{i:012d}_keypoints.json"
             write_openpose(path, [keypoints_from_joints(pixels, layout)])
@@ -129,7 +130,7 @@ def add_passer_by(
             mask_path = recording / "masks" / camera.name / f"{f:06d}.png"
             mask = cv2.imread(str(mask_path), cv2.IMREAD_GRAYSCALE) > 0
             mask |= silhouette(camera, vertices[f], body.faces)
-            cv2.imwrite(str(mask_path), mask.astype(np.uint8) * 255)
+            write_image(mask_path, mask.astype(np.uint8) * 255)
     return joints
 
 

@@ -10,6 +10,7 @@ drops its state.
 
 from __future__ import annotations
 
+import errno
 import json
 import sys
 import threading
@@ -334,6 +335,8 @@ class Session:
         image = self.picture(render)
         ok, png = cv2.imencode(".png", cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
         path = _unique(self.data.out_dir / "screenshots", "screenshot", ".png")
+        if not ok:  # OpenCV answers False rather than raising
+            raise OSError(errno.EIO, "the screenshot could not be encoded as PNG", str(path))
         atomic_write_bytes(path, png.tobytes())
         self.client.send_file_download(path.name, png.tobytes())
         return path
