@@ -132,6 +132,21 @@ def named_errors(path: Path) -> Iterator[None]:
         raise OSError(err.errno, err.strerror, str(path)) from err
 
 
+def write_npy(path: Path, array, allow_pickle: bool = False) -> None:
+    """``np.save`` whose errors name the file: numpy reports a short write (a full disk) as an OSError with neither
+    errno nor file name ("20670 requested and 16352 written"), which becomes an EIO naming ``path``. Objects are
+    pickled only where the format demands it (``allow_pickle``)."""
+    import numpy as np
+
+    try:
+        np.save(path, array, allow_pickle=allow_pickle)
+    except OSError as err:
+        if err.filename is not None:
+            raise
+        reason = err.strerror or f"a short write ({err}): is the disk full?"
+        raise OSError(err.errno or errno.EIO, reason, str(path)) from err
+
+
 def write_image(path: Path, image, params: tuple[int, ...] = ()) -> None:
     """``cv2.imwrite`` that raises: OpenCV returns False where Python raises (a full disk, a missing folder, an
     unknown extension), which would leave a missing or partial image behind a finished-looking output. The OSError

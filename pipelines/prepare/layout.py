@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from fitting.files import write_image
+from fitting.files import write_image, write_npy
 from pipelines.datasets.camera import project_distorted, silhouette
 from pipelines.datasets.easymocap import write_easymocap_cameras
 from pipelines.datasets.floor import feet_against_floor
@@ -38,13 +38,13 @@ def write_sequence(root: Path, cameras, found, fitted, vertices: np.ndarray) -> 
         params = SmplParams(fitted.poses[i], fitted.rh[i], fitted.th[i], fitted.shapes)
         write_params(root / "params" / f"{i}.npy", params)
         (root / "vertices").mkdir(exist_ok=True)
-        np.save(root / "vertices" / f"{i}.npy", vertices[i].astype(np.float32))
+        write_npy(root / "vertices" / f"{i}.npy", vertices[i].astype(np.float32))
     ims = [[f"{cam.name}/{i:06d}.jpg" for cam in cameras] for i in range(len(found.frames))]
     write_annots(root / "annots.npy", cameras, ims)
     write_easymocap_cameras(root, cameras)
     if fitted.displacement is not None:
         write_body_surface(root / BODY_SURFACE, fitted.displacement)
-    np.save(root / "keypoints3d.npy", found.points.astype(np.float32))
+    write_npy(root / "keypoints3d.npy", found.points.astype(np.float32))
 
 
 def splits(n_frames: int, names: list[str], holdout: str | None, novel_fraction: float, excluded) -> dict:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import json
 import multiprocessing as mp
+import shutil
 from dataclasses import asdict
 from pathlib import Path
 
@@ -20,7 +21,7 @@ import torch
 import trimesh
 from tqdm import tqdm
 
-from fitting.files import fresh_partial, publish_folder, write_image, writes_folder
+from fitting.files import fresh_partial, publish_folder, write_image, write_npy, writes_folder
 from fitting.mesh import vertex_normals
 from pipelines.body.locate import BODY_MODEL_RECORD, body_model_record
 from pipelines.body.model import BodyModel
@@ -191,8 +192,8 @@ def _write_sequence(root: Path, layout: str, params: list[SmplParams], old: np.n
     for f, p in enumerate(params):
         write_params(root / "params" / f"{f + base}.npy", p)
         write_params(root / "new_params" / f"{f + base}.npy", p)
-        np.save(root / "vertices" / f"{f + base}.npy", old[f].astype(np.float32))
-        np.save(root / "new_vertices" / f"{f + base}.npy", new[f].astype(np.float32))
+        write_npy(root / "vertices" / f"{f + base}.npy", old[f].astype(np.float32))
+        write_npy(root / "new_vertices" / f"{f + base}.npy", new[f].astype(np.float32))
 
 
 def surface_frames(n_frames: int, n_cameras: int) -> list[int]:
@@ -239,6 +240,16 @@ def generate_capture(
                 f"{out}: folder is not empty and holds no finished synthetic capture; choose another --out or remove it"
             )  # a finished capture with other settings: regenerated, and replaced once the new one is complete
     partial = fresh_partial(out)
+    try:
+        _write_capture(partial, config, smpl_path, progress)
+    except BaseException:  # a full disk or Ctrl-C: no half-written capture left beside the old one
+        shutil.rmtree(partial, ignore_errors=True)
+        raise
+    return publish_folder(partial, out)
+
+
+def _write_capture(partial: Path, config: SynthConfig, smpl_path, progress: bool) -> None:
+    """Every file of the capture into the staging folder ``partial``."""
     body = BodyModel(smpl_path)
     params, old, new = pose_sequence(body, taichi_motion(config.frames, config.seed))
     cameras = ring_cameras(config.cameras, config.resolution, config.seed)
@@ -281,4 +292,3 @@ def generate_capture(
     (partial / MARKER).write_text(
         json.dumps({"version": GENERATOR_VERSION, "config": asdict(config), "smpl": str(body.path)}, indent=2)
     )
-    return publish_folder(partial, out)

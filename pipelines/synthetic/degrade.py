@@ -17,7 +17,7 @@ import torch
 from tqdm import tqdm
 
 from fitting.corrections import PoseCorrection
-from fitting.files import write_image, writes_folder
+from fitting.files import write_image, write_npy, writes_folder
 from narf.kinematics import N_JOINTS
 from pipelines.body.model import BodyModel, capture_poses
 from pipelines.datasets.capture import ZjuCapture
@@ -112,7 +112,7 @@ def degrade_capture(src: Path, out: Path, degradation: Degradation, progress: bo
             stack = [torch.as_tensor(np.asarray(getattr(p, k), np.float64)) for k in ("poses", "rh", "th", "shapes")]
             with torch.no_grad():
                 vertices = body.pose_zju(*stack, pose_blendshapes=blend).vertices[0].numpy()
-            np.save(partial / folder.replace("params", "vertices") / f"{index}.npy", vertices.astype(np.float32))
+            write_npy(partial / folder.replace("params", "vertices") / f"{index}.npy", vertices.astype(np.float32))
     gains, biases = camera_colours(capture.n_cameras, degradation.colour_spread, degradation.seed)
     if degradation.colour_spread:
         source = json.loads((src / "synthetic.json").read_text()) if (src / "synthetic.json").is_file() else {}

@@ -19,6 +19,7 @@ import trimesh
 from scipy.spatial import cKDTree
 from smplx.lbs import batch_rigid_transform, batch_rodrigues
 
+from fitting.files import write_npy
 from fitting.mesh import closest_surface_points
 from narf.kinematics import rigid_from_rotvec_translation
 from pipelines.body.model import BodyModel
@@ -103,18 +104,18 @@ def write_lbs(
     bigpose = repose(tpose, weights, skinning_transforms(body, big, shapes))
     parents = body.smpl.parents.numpy().astype(np.int64)
     parents[0] = 4294967295
-    np.save(out / "joints.npy", body.rest_joints(torch.as_tensor(shapes)[None])[0].numpy().astype(np.float32))
-    np.save(out / "parents.npy", parents)
-    np.save(out / "weights.npy", weights.astype(np.float32))
-    np.save(out / "faces.npy", body.faces.astype(np.int64))
-    np.save(out / "tvertices.npy", tpose.astype(np.float32))
-    np.save(out / "bigpose_vertices.npy", bigpose.astype(np.float32))
-    np.save(out / "tbw.npy", surface_weight_grid(tpose, body.faces, weights))
-    np.save(out / "bigpose_bw.npy", surface_weight_grid(bigpose, body.faces, weights))
+    write_npy(out / "joints.npy", body.rest_joints(torch.as_tensor(shapes)[None])[0].numpy().astype(np.float32))
+    write_npy(out / "parents.npy", parents)
+    write_npy(out / "weights.npy", weights.astype(np.float32))
+    write_npy(out / "faces.npy", body.faces.astype(np.int64))
+    write_npy(out / "tvertices.npy", tpose.astype(np.float32))
+    write_npy(out / "bigpose_vertices.npy", bigpose.astype(np.float32))
+    write_npy(out / "tbw.npy", surface_weight_grid(tpose, body.faces, weights))
+    write_npy(out / "bigpose_bw.npy", surface_weight_grid(bigpose, body.faces, weights))
     for p, verts, index in zip(params, vertices_world, param_indices):
-        np.save(out / "bweights" / f"{index}.npy", weight_grid(_smpl_frame(verts, p), weights))
+        write_npy(out / "bweights" / f"{index}.npy", weight_grid(_smpl_frame(verts, p), weights))
     stacked = {
         k: np.stack([getattr(p, a) for p in params])
         for k, a in (("poses", "poses"), ("Rh", "rh"), ("Th", "th"), ("shapes", "shapes"))
     }
-    np.save(out / "smpl_params.npy", stacked, allow_pickle=True)
+    write_npy(out / "smpl_params.npy", stacked, allow_pickle=True)

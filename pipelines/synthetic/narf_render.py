@@ -17,7 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from fitting.files import fresh_partial, publish_folder, write_image, writes_folder
+from fitting.files import fresh_partial, publish_folder, write_image, write_npy, writes_folder
 from pipelines.body.model import BodyModel
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.thuman import RENDER_SIZE, THUMAN_K, item_gender, read_colored_obj, read_smpl_params_txt
@@ -92,8 +92,8 @@ def _save_render(folder: Path, index: int, render: tuple) -> None:
     image, pose_to_camera, pose_to_world = render
     rgba = np.concatenate([image["rgb"], image["alpha"][..., None]], axis=-1)
     write_image(folder / f"color_{index:08d}.png", np.uint8(rgba * 255)[..., [2, 1, 0, 3]])
-    np.save(folder / f"pose_to_camera_{index:08d}.npy", pose_to_camera)
-    np.save(folder / f"pose_to_world_{index:08d}.npy", pose_to_world)
+    write_npy(folder / f"pose_to_camera_{index:08d}.npy", pose_to_camera)
+    write_npy(folder / f"pose_to_world_{index:08d}.npy", pose_to_world)
 
 
 def prepare_folders(root: Path) -> None:
@@ -108,7 +108,7 @@ def render_mesh_splits(root: Path, m: int, mesh: tuple, world_from_joint: np.nda
     save its bone_params."""
     bones, centred_vertices, centred_bones = narf_frame(mesh[0], world_from_joint)
     for split, novel in SPLITS.items():
-        np.save(root / split / "render_128" / "bone_params" / f"bone_params_{m:08d}.npy", bones)
+        write_npy(root / split / "render_128" / "bone_params" / f"bone_params_{m:08d}.npy", bones)
         for view in range(per_mesh[split]):
             index = per_mesh[split] * m + view
             main, view2 = _render_pair((centred_vertices, mesh[1], mesh[2]), centred_bones, rng, novel)

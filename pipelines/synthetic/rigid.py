@@ -19,7 +19,7 @@ import numpy as np
 import trimesh
 from tqdm import tqdm
 
-from fitting.files import write_image, writes_folder
+from fitting.files import write_image, write_npy, writes_folder
 from pipelines.synthetic.people import pixel_rays
 from pipelines.synthetic.settings import RigidSynthConfig  # noqa: F401 (re-exported)
 from pipelines.synthetic.staging import is_finished, publish, start_staging
@@ -172,7 +172,7 @@ def generate_rigid(out: str | Path, config: RigidSynthConfig = RigidSynthConfig(
     for split, count in (("train", config.train), ("test", config.test)):
         folder = partial / split / f"render_{config.resolution}" / "color"
         folder.mkdir(parents=True)
-        np.save(folder.parent / "K.npy", K)
+        write_npy(folder.parent / "K.npy", K)
         rng = np.random.default_rng([config.seed, split == "test"])
         for index in tqdm(range(count), desc=f"rigid {split}", unit="image", disable=not progress):
             world_from_object = np.eye(4)
@@ -182,7 +182,7 @@ def generate_rigid(out: str | Path, config: RigidSynthConfig = RigidSynthConfig(
             rgb, alpha = render_vehicle(obj, world_from_object, K, cam_from_world, config.resolution)
             rgba = np.concatenate([rgb, alpha[..., None]], axis=-1)
             write_image(folder / f"color_{index:08d}.png", np.uint8(rgba * 255 + 0.5)[..., [2, 1, 0, 3]])
-            np.save(folder / f"pose_to_world_{index:08d}.npy", world_from_object[None])
-            np.save(folder / f"pose_to_camera_{index:08d}.npy", (cam_from_world @ world_from_object)[None])
+            write_npy(folder / f"pose_to_world_{index:08d}.npy", world_from_object[None])
+            write_npy(folder / f"pose_to_camera_{index:08d}.npy", (cam_from_world @ world_from_object)[None])
     marker = {"dataset": "rigid", "version": RIGID_VERSION, "config": asdict(config), "object_radius": 1.1}
     return publish(partial, out, marker)
