@@ -14,7 +14,9 @@ segmenter that draws people thin, a rasteriser that covers each triangle's edge 
 standing a little too near. So the median of the cameras' best places is taken off each (:func:`settle`), and a
 camera is moved by what is left only where that lowers its disagreement by at least ``DEPTH_MIN_GAIN`` of itself.
 A camera in whose images the person stands under ``DEPTH_MIN_HEIGHT`` pixels tall is not searched: a step then
-changes the body's outline by less than a pixel.
+changes the body's outline by less than a pixel. The common part needs ``DEPTH_MIN_SEARCHED`` searched cameras: with
+one, all it finds is common; with two, the median is their mean and the camera that is off would get half its move.
+With fewer, no camera is moved and each searched one says so; the report counts the cameras searched.
 """
 
 from __future__ import annotations
@@ -38,6 +40,8 @@ DEPTH_MIN_GAIN = 0.02
 #: the person's median height in a camera's masks (pixels) below which the camera is not searched: a step (0.5 %)
 #: then moves the outline by under a pixel on each side
 DEPTH_MIN_HEIGHT = 400
+#: cameras searched below which the common part cannot be told from one camera's own (module docstring)
+DEPTH_MIN_SEARCHED = 3
 
 
 @dataclass(frozen=True)
@@ -163,9 +167,29 @@ def check_camera_depths(root: Path, seen, found, vertices: np.ndarray, faces: np
             records[camera.name] = {"depth_cm": 0.0, "depth_skipped": f"the person is {height:.0f} px tall"}
             continue
         searches[v] = search_depth(camera, views, faces)
-    common, cameras = common_fraction(list(searches.values())), list(seen.cameras)
-    for v, search in searches.items():  # the views read again: a camera's masks are not held while others are read
+    cameras, placed = place_cameras(list(seen.cameras), searches, views_of, faces)
+    return replace(seen, cameras=cameras, depths={**records, **placed})
+
+
+def place_cameras(cameras: list[Camera], searches: dict, views_of, faces: np.ndarray) -> tuple[list[Camera], dict]:
+    """The cameras moved by their searches (``searches``: camera index -> :class:`DepthSearch`; ``views_of(v,
+    camera)`` reads a camera's views again, so that no camera's masks are held while others are read), and each
+    searched camera's record, ``depth_searched`` the number of cameras searched. Under ``DEPTH_MIN_SEARCHED`` none is
+    moved (module docstring)."""
+    cameras, records, count = list(cameras), {}, len(searches)
+    if count < DEPTH_MIN_SEARCHED:
+        why = f"{count} camera{'s' * (count != 1)} searched: the common part needs {DEPTH_MIN_SEARCHED}"
+        for v, search in searches.items():
+            records[cameras[v].name] = {
+                "depth_cm": 0.0,
+                "depth_found_pct": 100 * search.best,
+                "depth_skipped": why,
+                "depth_searched": count,
+            }
+        return cameras, records
+    common = common_fraction(list(searches.values()))
+    for v, search in searches.items():
         check = settle(cameras[v], search, views_of(v, cameras[v]), faces, common)
-        records[cameras[v].name] = {**check.record(), "depth_common_pct": 100 * common}
+        records[cameras[v].name] = {**check.record(), "depth_common_pct": 100 * common, "depth_searched": count}
         cameras[v] = moved_along_axis(cameras[v], check.metres)
-    return replace(seen, cameras=cameras, depths=records)
+    return cameras, records
