@@ -51,6 +51,30 @@ def test_a_view_is_detected_once_and_read_back_exactly(tmp_path):
     assert empty(source, 1, rgb) == (None, None) and empty(source, 1, rgb) == (None, None) and nobody.calls == 1
 
 
+def test_a_finished_prepare_keeps_only_the_detections_it_used(tmp_path):
+    """Two runs of one take at two resolutions (the images resized), each with a crop: the second run's prune leaves
+    its own set only, and the size it reports is that set's. (Checked against no prune: both sets stayed.)"""
+    rng = np.random.default_rng(1)
+    video = tmp_path / "cam.mp4"
+    video.write_bytes(b"not read")
+    source = Source("cam", video, True)
+    sizes = {}
+    for rows in (40, 20):
+        images = [rng.integers(0, 255, (rows, 30, 3), dtype=np.uint8) for _ in range(3)]
+        table = {hashlib.sha256(im.tobytes()).hexdigest(): (None, np.ones(im.shape[:2], bool)) for im in images}
+        crop = images[0][: rows // 2]
+        table[hashlib.sha256(np.ascontiguousarray(crop).tobytes()).hexdigest()] = (None, np.ones(crop.shape[:2], bool))
+        cache = CachedDetector(Counting(table), tmp_path / "cache", "fake|1")
+        for frame, image in enumerate(images):
+            cache(source, frame, image)
+        cache.crop(crop, (0, 0, 30, rows // 2))
+        sizes[rows] = cache.used_size()
+    assert len(list((tmp_path / "cache").rglob("*.npz"))) == 8  # two full sets before the prune
+    assert cache.prune() == 4
+    kept = sorted((tmp_path / "cache").rglob("*.npz"))
+    assert set(kept) == cache.used and sizes[20] == (4, sum(p.stat().st_size for p in kept))
+
+
 @pytest.fixture()
 def segmenter(recording):
     """The recording's true masks, keyed by the decoded image each view gives the detector."""

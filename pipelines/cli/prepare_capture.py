@@ -290,7 +290,8 @@ def _print_summary(report: dict, out) -> None:
         print(f"  following {p['followed']}{seen_too}{again}")
     if "detections" in report:
         d = report["detections"]
-        print(f"  detections: {d['reused']} views reused, {d['detected']} detected (kept in {d['cache']})")
+        size = f": {d['cache_files']} files, {d['cache_mb']} MB" if "cache_files" in d else ""
+        print(f"  detections: {d['reused']} views reused, {d['detected']} detected (kept in {d['cache']}{size})")
     _print_sync(report["sync"])
     _print_colour(report.get("colour"))
     for name, camera in report["cameras"].items():

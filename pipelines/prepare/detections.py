@@ -30,11 +30,14 @@ class CachedDetector:
     """``detector`` (``rgb -> (keypoints or None, mask or None)``) with its results kept in ``folder``.
 
     ``cache(source, frame, rgb)``, or ``cache.for_source(source)(frame, rgb)``; ``reused`` and ``detected`` count
-    the views of this run."""
+    the views of this run, ``used`` holds the files it read or wrote, and :meth:`prune` removes every other file
+    (a finished prepare keeps what it used: reruns at another resolution, on a re-encoded video or with other
+    people painted out would otherwise add a full set each)."""
 
     def __init__(self, detector, folder: Path, detector_id: str):
         self.detector, self.folder, self.detector_id = detector, Path(folder), detector_id
         self.reused = self.detected = 0
+        self.used: set[Path] = set()
         self._recordings: dict[Path, str] = {}
 
     def _recording_id(self, source: Source) -> str:
@@ -58,6 +61,7 @@ class CachedDetector:
         """The detection of ``source``'s ``frame`` (``rgb`` (H, W, 3)): read back when kept, else detected and
         kept."""
         path = self.path(source, frame, rgb.shape)
+        self.used.add(path)
         kept = _read(path, rgb.shape[:2])
         if kept is not None:
             self.reused += 1
@@ -92,7 +96,26 @@ class CachedDetector:
 
     def _crop_path(self, key: str) -> Path:
         digest = hashlib.sha256(f"{key}|{self.detector_id}".encode()).hexdigest()[:32]
-        return self.folder / "crops" / digest[:2] / f"{digest}.npz"
+        path = self.folder / "crops" / digest[:2] / f"{digest}.npz"
+        self.used.add(path)
+        return path
+
+    def used_size(self) -> tuple[int, int]:
+        """(files, bytes) of the detections this run read or wrote."""
+        sizes = [p.stat().st_size for p in self.used if p.is_file()]
+        return len(sizes), sum(sizes)
+
+    def prune(self) -> int:
+        """Remove every kept detection this run did not use (and the folders left empty); returns how many."""
+        removed = 0
+        for path in self.folder.rglob("*.npz"):
+            if path not in self.used:
+                path.unlink(missing_ok=True)
+                removed += 1
+        for folder in sorted((p for p in self.folder.rglob("*") if p.is_dir()), key=lambda p: -len(p.parts)):
+            if not any(folder.iterdir()):
+                folder.rmdir()
+        return removed
 
     def for_source(self, source: Source):
         """``detect(frame, rgb)`` of one recording."""

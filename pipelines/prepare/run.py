@@ -144,6 +144,8 @@ def _prepare_locked(request: PrepareRequest) -> dict:
         shutil.rmtree(staging, ignore_errors=True)
         raise
     publish_folder(staging, out)
+    if detector is not None:  # the finished prepare keeps what it used (pipelines.prepare.detections)
+        detector.prune()
     return report
 
 
@@ -177,7 +179,14 @@ def _build(staging: Path, sources, detector, body, holdout, calibration, request
     found = follow_person(staging / ".frames", seen, common, detector, request)
     seen = report_followed(seen, found)
     if detector is not None:  # the cache stays for the next run with this --out (docs/guides/real-captures.md)
-        seen.detections = {"reused": detector.reused, "detected": detector.detected, "cache": str(detector.folder)}
+        files, size = detector.used_size()
+        seen.detections = {
+            "reused": detector.reused,
+            "detected": detector.detected,
+            "cache": str(detector.folder),
+            "cache_files": files,
+            "cache_mb": round(size / 1e6, 1),
+        }
     settings, start = request.fit, None
     if request.smpl_params is not None:  # the user's bodies, polished by the silhouette stage only
         start = brought_bodies(request.smpl_params, found.frames, request.person)
