@@ -77,10 +77,21 @@ def sync_folder(folder: Path) -> None:
         os.close(fd)
 
 
+#: a tree of more files than this is flushed by one ``sync()`` of the whole system rather than file by file
+SYNC_TREE_FILES = 64
+
+
 def sync_tree(folder: Path) -> None:
     """Flush every file and folder under ``folder`` (before it is renamed into place: its files' data must reach
-    the disk before the rename does)."""
-    for root, _, files in os.walk(folder):
+    the disk before the rename does). A small tree file by file; a large one (a capture's 10^4-10^5 images) by one
+    ``os.sync()``, which on Linux returns once every file system's dirty data is on the disk: the same guarantee in
+    one call, where an ``fsync`` a file waits for the disk once per file. Where ``os.sync`` does not exist (Windows),
+    file by file."""
+    walked = list(os.walk(folder))
+    if hasattr(os, "sync") and sum(len(files) for _, _, files in walked) > SYNC_TREE_FILES:
+        os.sync()
+        return
+    for root, _, files in walked:
         for name in files:
             sync_file(Path(root) / name)
         sync_folder(Path(root))
