@@ -21,6 +21,30 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
     cv2.setNumThreads(1)
 
 
+@pytest.fixture(autouse=True)
+def _global_state_as_it_was():
+    """Each test finds torch's and numpy's process-wide state as the session set it, whatever ran before it in the
+    same worker: the thread count (a fit's sums run in another order with more threads, so its figures move; the
+    benchmarks' harnesses set 2), the deterministic-algorithms switch and the default dtype a fit or a test sets,
+    and the global random generators."""
+    import random
+
+    import numpy as np
+    import torch
+
+    threads, dtype = torch.get_num_threads(), torch.get_default_dtype()
+    deterministic = torch.are_deterministic_algorithms_enabled()
+    warn_only = torch.is_deterministic_algorithms_warn_only_enabled()
+    states = torch.random.get_rng_state(), np.random.get_state(), random.getstate()
+    yield
+    torch.set_num_threads(threads)
+    torch.set_default_dtype(dtype)
+    torch.use_deterministic_algorithms(deterministic, warn_only=warn_only)
+    torch.random.set_rng_state(states[0])
+    np.random.set_state(states[1])
+    random.setstate(states[2])
+
+
 @pytest.fixture(scope="session")
 def body_model():
     from pipelines.body.model import BodyModel
