@@ -87,6 +87,16 @@ class ModelConfig:
     #: world; ``own``, their own (the paper). Models whose density reads xi always use their own (docs/model.md §4,
     #: *Colour of frames not trained on*)
     novel_colour: Literal["nearest", "own"] = "nearest"
+    #: narf_d: what each part's density block reads (docs/model.md §2, *Part grids*): ``frequency``, gamma_10 of the
+    #: box coordinates (the paper); ``grid``, learned multi-resolution grids in each part's box, ``grid_levels``
+    #: levels of ``grid_features`` features from ``grid_min_resolution`` to ``grid_max_resolution`` cells per axis,
+    #: 2^``grid_log2_rows`` rows a level and part (finer levels hashed into them)
+    encoding: Literal["frequency", "grid"] = "frequency"
+    grid_levels: int = 8
+    grid_features: int = 2
+    grid_min_resolution: int = 8
+    grid_max_resolution: int = 128
+    grid_log2_rows: int = 12
 
 
 @dataclass
@@ -185,6 +195,14 @@ class TrainConfig:
     ema_decay: float = 0.0
     window_steps: int = 0  #: coarse-to-fine: steps over which gamma_10's frequencies open (0: all open from the start)
     window_start: float = 4.0  #: coarse-to-fine: the frequencies open at step 0 (docs/model.md §2)
+    #: with model.encoding grid (docs/model.md §2, *Part grids*): the grid tables' Adam learning rate (their own:
+    #: the network's layers are equalised, the tables are not), their weight decay (added to the gradient, as L2),
+    #: and the weight of their smoothness (the squared feature difference across one cell at random points of the
+    #: parts' boxes, every level, ``grid_smooth_points`` a step; 0: off)
+    grid_lr: float = 0.03
+    grid_decay: float = 0.0
+    grid_smoothness: float = 0.0
+    grid_smooth_points: int = 2048
 
 
 @dataclass
@@ -454,6 +472,15 @@ RANGES = {
     "train.ema_decay": (lambda v: 0 <= v < 1, "in [0, 1) (0: off)"),
     "train.window_steps": (lambda v: v >= 0, ">= 0 (0: off)"),
     "train.window_start": (lambda v: 0 <= v <= 10, "in [0, 10]"),
+    "train.grid_lr": (lambda v: v > 0, "> 0"),
+    "train.grid_decay": (lambda v: v >= 0, ">= 0 (0: off)"),
+    "train.grid_smoothness": (lambda v: v >= 0, ">= 0 (0: off)"),
+    "train.grid_smooth_points": (lambda v: v >= 1, ">= 1"),
+    "model.grid_levels": (lambda v: 1 <= v <= 32, "in [1, 32]"),
+    "model.grid_features": (lambda v: 1 <= v <= 16, "in [1, 16]"),
+    "model.grid_min_resolution": (lambda v: 1 <= v <= 4096, "in [1, 4096]"),
+    "model.grid_max_resolution": (lambda v: 1 <= v <= 4096, "in [1, 4096]"),
+    "model.grid_log2_rows": (lambda v: 4 <= v <= 24, "in [4, 24]"),
 }
 
 
@@ -488,7 +515,12 @@ def validate_config(config: FitConfig) -> None:
         if config.kind != kind and get_value(config, key) != get_value(defaults, key):
             raise ConfigError(f"{key}: only {kind} runs use it (this is a {config.kind} run); leave it at its default")
     spec = MODEL_SPECS[config.model.name]
-    for option in ("temperature", "pose_in_color", "image_size", "appearance_dim"):
+    if config.model.grid_max_resolution < config.model.grid_min_resolution:
+        raise ConfigError(
+            f"model.grid_max_resolution: must be >= model.grid_min_resolution ({config.model.grid_min_resolution}), "
+            f"got {config.model.grid_max_resolution}"
+        )
+    for option in ("temperature", "pose_in_color", "image_size", "appearance_dim", "encoding"):
         if option not in spec.options and getattr(config.model, option) != getattr(defaults.model, option):
             users = ", ".join(name for name, other in MODEL_SPECS.items() if option in other.options)
             raise ConfigError(f"model.{option}: {config.model.name} does not take it (only {users})")

@@ -280,6 +280,8 @@ def markdown_table(report: dict) -> str:
     """Supplement layout: one row per protocol, cells Mask L2 (x10^4) / PSNR / SSIM per split."""
     splits = [s for s in (*EVAL_SPLITS, "novel_pose", "novel_view", "capture") if s in report["splits"]]
     size = f"width {report['width']}" if model_spec(report["model"]).rays else f"{report['image_size']}^2 bone maps"
+    if report.get("encoding") == "grid":
+        size += ", part grids"
     if model_spec(report["model"]).rays and "samples" in report:
         size += ", {} + {} samples a ray".format(*report["samples"])
     lines = [

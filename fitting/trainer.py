@@ -31,6 +31,7 @@ from fitting.selection import paired_error_db, selection_set
 from fitting.training_rays import RaySet, render_ray_sets
 from fitting.unseen import VirtualTerm, mirror_terms, outline_terms, terms_value, unseen_terms
 from narf.fields.common import PoseBatch
+from narf.grids import grid_smoothness, random_vertices
 from narf.metrics import psnr
 from narf.occupancy import refresh_cells
 
@@ -207,8 +208,17 @@ class Trainer:
         return total
 
     def _parameter_groups(self) -> list[dict]:
-        """Optimiser parameter groups; the field's use ``train.lr``."""
-        return [{"params": list(self.field.parameters())}]
+        """Optimiser parameter groups; the field's use ``train.lr``, its part grids' tables (``model.encoding``
+        grid) ``train.grid_lr`` and ``train.grid_decay`` (docs/model.md §2, *Part grids*)."""
+        grids = getattr(self.field, "grids", None)
+        if grids is None:
+            return [{"params": list(self.field.parameters())}]
+        tables = {id(p) for p in grids.parameters()}
+        t = self.config.train
+        return [
+            {"params": [p for p in self.field.parameters() if id(p) not in tables]},
+            {"params": list(grids.parameters()), "lr": t.grid_lr, "weight_decay": t.grid_decay},
+        ]
 
     def _extra_state(self) -> dict:
         """Subclasses' additions to the checkpoint."""
@@ -329,8 +339,17 @@ class Trainer:
                 term = structure_term(self.config, out[0], mine, self.generator, self.colour_response)
                 loss = loss + term / self.processes.world_size
         # every process adds the penalty; the summed gradients then hold it once
-        loss = loss + self.correction_penalty(index) / self.processes.world_size
+        loss = loss + (self.correction_penalty(index) + self.grid_penalty()) / self.processes.world_size
         return self.optimise(loss, colour)
+
+    def grid_penalty(self) -> torch.Tensor | float:
+        """``train.grid_smoothness`` times the part grids' total variation at ``train.grid_smooth_points`` random
+        vertices a level (``narf.grids.grid_smoothness``); 0 without grids or with the weight 0."""
+        grids, t = getattr(self.field, "grids", None), self.config.train
+        if grids is None or not t.grid_smoothness:
+            return 0.0
+        vertices, axis = random_vertices(grids.shape, grids.n_parts, t.grid_smooth_points, self.generator, self.device)
+        return t.grid_smoothness * grid_smoothness(grids.table, grids.shape, vertices, axis)
 
     def virtual_terms(self, poses: PoseBatch, frames: torch.Tensor, index: torch.Tensor | None) -> list[VirtualTerm]:
         """The step's terms on virtual rays (``fitting.unseen``), drawn after the training rays': the unseen views'

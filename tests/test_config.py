@@ -56,6 +56,13 @@ def test_every_preset_loads_and_builds_its_model():
             "render.val_fine: set render.val_coarse too (val_coarse 0 takes both of the evaluation's)",
         ),
         ("render.val_coarse=1", "config key 'render.val_coarse': must be 0 (the evaluation's) or >= 2, got 1"),
+        ("model.encoding=hash", "expected one of frequency, grid, got 'hash'"),
+        ("model.grid_levels=0", "config key 'model.grid_levels': must be in .1, 32., got 0"),
+        ("model.grid_log2_rows=30", "config key 'model.grid_log2_rows': must be in .4, 24., got 30"),
+        ("model.grid_max_resolution=4", "model.grid_max_resolution: must be >= model.grid_min_resolution (8), got 4"),
+        ("train.grid_lr=0", "config key 'train.grid_lr': must be > 0, got 0.0"),
+        ("train.grid_smoothness=-1", "config key 'train.grid_smoothness': must be >= 0 (0: off), got -1.0"),
+        ("train.grid_smooth_points=0", "config key 'train.grid_smooth_points': must be >= 1, got 0"),
     ],
 )
 def test_bad_values_name_their_key(override, message):

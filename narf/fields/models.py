@@ -74,13 +74,22 @@ def _field(name, build, label, cost=None, extra=(), family: Family = "field", va
 
 
 _NARF_D_COST = (1.10e6, 205e6, 382e3)
+#: NARF_D's choice of point encoding (docs/model.md §2, *Part grids*); the paper's is ``frequency``
+_GRID_OPTIONS = (
+    "encoding",
+    "grid_levels",
+    "grid_features",
+    "grid_min_resolution",
+    "grid_max_resolution",
+    "grid_log2_rows",
+)
 
 #: Model name -> spec, in ``narf-cost``'s order.
 MODEL_SPECS: dict[str, ModelSpec] = {
     spec.name: spec
     for spec in (
-        _field("narf_d", NarfD, "NARF_D", _NARF_D_COST),
-        _field("narf_d_sigmoid", partial(NarfD, selector="sigmoid"), "NARF_D sigmoid", _NARF_D_COST),
+        _field("narf_d", NarfD, "NARF_D", _NARF_D_COST, _GRID_OPTIONS),
+        _field("narf_d_sigmoid", partial(NarfD, selector="sigmoid"), "NARF_D sigmoid", _NARF_D_COST, _GRID_OPTIONS),
         _field("narf_h", NarfH, "NARF_H", (1.06e6, 197e6, 344e3)),
         _field(
             "narf_p",

@@ -7,6 +7,7 @@ import torch
 from narf.fields.base import masked_softmax, rescale_selection
 from narf.fields.narf_h import NarfH
 from narf.fields.selector import PartSelector
+from narf.grids import GridShape
 
 
 class NarfD(NarfH):
@@ -15,6 +16,10 @@ class NarfD(NarfH):
 
     Args:
         selector: ``softmax`` (default) or ``sigmoid`` (ablation).
+        encoding: ``frequency`` (the paper: the density reads gamma_10(u_i)) or ``grid`` (learned part grids of
+            ``grid_levels`` levels of ``grid_features`` features, ``grid_min_resolution`` to ``grid_max_resolution``
+            cells per axis, 2^``grid_log2_rows`` rows a level and part; ``narf.grids``). The selector reads
+            gamma_10(u_i) either way.
         (others as NarfH)
     """
 
@@ -27,8 +32,19 @@ class NarfD(NarfH):
         selector: str = "softmax",
         fast: bool = True,
         appearance_dim: int = 0,
+        encoding: str = "frequency",
+        grid_levels: int = 8,
+        grid_features: int = 2,
+        grid_min_resolution: int = 8,
+        grid_max_resolution: int = 128,
+        grid_log2_rows: int = 12,
     ):
-        super().__init__(n_parts, width, latent_dim, density_act, fast, appearance_dim)
+        if encoding not in ("frequency", "grid"):
+            raise ValueError(f"encoding must be 'frequency' or 'grid', got '{encoding}'")
+        grids = None
+        if encoding == "grid":
+            grids = GridShape(grid_levels, grid_features, grid_min_resolution, grid_max_resolution, grid_log2_rows)
+        super().__init__(n_parts, width, latent_dim, density_act, fast, appearance_dim, grids)
         if selector not in ("softmax", "sigmoid"):
             raise ValueError(f"selector must be 'softmax' or 'sigmoid', got '{selector}'")
         self.selector_kind = selector

@@ -2,8 +2,11 @@
 
 from __future__ import annotations
 
+import torch
+
 from narf.encodings import (
     DIRECTION_WIDTH,
+    POINT_FREQS,
     POINT_WIDTH,
     XI_WIDTH,
     zeta_width,
@@ -11,6 +14,7 @@ from narf.encodings import (
 from narf.fields.base import Field, FieldInputs, FieldOutput
 from narf.fields.common import RadianceHead
 from narf.fields.sparse_parts import sparse_density_inputs, sparse_masked_inputs
+from narf.grids import GridShape, PartGrids
 
 
 class NarfH(Field):
@@ -24,6 +28,8 @@ class NarfH(Field):
         appearance_dim: per-frame appearance code size (0: none; ``Field``).
         density_act: ``leaky_backward`` (upstream) or ``softplus``.
         fast: evaluate only in-box (sample, part) pairs (``sparse_parts``); False runs the dense reference.
+        grids: None (the paper): each part's density block reads gamma_10(u_i); a GridShape: it reads the part's
+            learned multi-resolution grid features g_i(u_i) instead (``narf.grids``, docs/model.md §2, *Part grids*).
     """
 
     def __init__(
@@ -34,11 +40,15 @@ class NarfH(Field):
         density_act: str = "leaky_backward",
         fast: bool = True,
         appearance_dim: int = 0,
+        grids: GridShape | None = None,
     ):
         super().__init__(n_parts, latent_dim, appearance_dim)
         self.fast = fast
+        self.grids = None if grids is None else PartGrids(n_parts, grids)
+        #: width of one part's block of the density input: gamma_10 (60) or the grid's L F
+        self.point_block_width = POINT_WIDTH if grids is None else grids.width
         self.head = RadianceHead(
-            {"parts": POINT_WIDTH * n_parts, "zeta": zeta_width(n_parts)},
+            {"parts": self.point_block_width * n_parts, "zeta": zeta_width(n_parts)},
             {"pose": XI_WIDTH * n_parts, "dirs": DIRECTION_WIDTH * n_parts},
             width,
             latent_dim=latent_dim,
@@ -53,6 +63,15 @@ class NarfH(Field):
         encoded_zeta = self.zeta_encoding(pose)
         density = sparse_density_inputs(self, u, in_box, encoded_zeta)
         return self.head.density_embedded(density, {"zeta": encoded_zeta[None]}, z_s)[0]
+
+    def grid_points(self, u: torch.Tensor, part: torch.Tensor | None) -> torch.Tensor:
+        """The part grids' features g_i(u) (M, L F) of box coordinates u (M, 3) in parts ``part`` (M,) long; None:
+        u holds every part in turn, (R S P, 3) laid out part fastest. The levels open with the coarse-to-fine window
+        (``point_window`` over gamma_10's 10 frequencies, mapped onto the L levels; docs/model.md §2)."""
+        if part is None:
+            part = torch.arange(self.n_parts, device=u.device).repeat(u.shape[0] // self.n_parts)
+        alpha = None if self.point_window is None else self.point_window * self.grids.shape.levels / POINT_FREQS
+        return self.grids(u, part, alpha)
 
     def part_weights(self, encoded_u, in_box, encoded_zeta):
         """Per-sample part weights used to mask the blocks (R, S, P) and the segmentation probabilities."""
@@ -70,7 +89,8 @@ class NarfH(Field):
         encoded_u = self.encode_points(u)  # (R, S, P, 60)
         encoded_zeta = self.zeta_encoding(pose)
         weights, probs = self.part_weights(encoded_u, in_box, encoded_zeta)
-        masked_u = (weights[..., None] * encoded_u).reshape(1, r, s, p * POINT_WIDTH)
+        block = encoded_u if self.grids is None else self.grid_points(u.reshape(-1, 3), None).reshape(r, s, p, -1)
+        masked_u = (weights[..., None] * block).reshape(1, r, s, p * self.point_block_width)
         encoded_xi = self.encode_pose(pose.pose_features)[:, None]  # (R, 1, P, 48)
         encoded_d = self.encode_dirs(d_local)[:, None]  # (R, 1, P, 24)
         colour = {

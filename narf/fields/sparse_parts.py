@@ -14,8 +14,6 @@ import math
 
 import torch
 
-from narf.encodings import POINT_WIDTH
-
 
 def segment_softmax(logits: torch.Tensor, segments: torch.Tensor, n_segments: int) -> torch.Tensor:
     """Softmax of ``logits`` (M,) within each segment (``segments`` (M,) in [0, n_segments))."""
@@ -130,18 +128,23 @@ def _in_box_density(model, u: torch.Tensor, in_box: torch.Tensor, encoded_zeta: 
     ray, in_ray, part = in_box_pairs(in_box)
     sample = ray * s_count + in_ray
     # u needs a gradient when the poses are refined (docs/model.md §6): gathered with index_select, as below
-    encoded = model.encode_points(u.reshape(-1, 3).index_select(0, sample * p_count + part))  # (M, 60)
+    u_pairs = u.reshape(-1, 3).index_select(0, sample * p_count + part)
+    grids, selector = getattr(model, "grids", None), getattr(model, "selector", None)
+    # gamma_10(u) (M, 60) feeds the selector, and the density unless the parts' grids do (M, L F)
+    encoded = model.encode_points(u_pairs) if grids is None or selector is not None else None
+    block_input = encoded if grids is None else model.grid_points(u_pairs, part)
+    block_width = block_input.shape[-1]
     counts = torch.bincount(part, minlength=p_count).tolist()
-    compute = matmul_dtype(encoded)  # each operand cast once for every part (see matmul_dtype)
+    compute = matmul_dtype(block_input)  # each operand cast once for every part (see matmul_dtype)
     w_density = head.density_embed["parts"].effective_weight()
-    selector = getattr(model, "selector", None)
     # an empty chunk gives an empty block (every sample may miss every box)
     # one split (one backward node) rather than a slice per part, whose backwards each fill a full-size gradient
     if compute == w_density.dtype:
-        blocks = w_density[0].split(POINT_WIDTH, dim=-1)  # P x (H, 60): the column block of each part
+        blocks = w_density[0].split(block_width, dim=-1)  # P x (H, 60 or L F): the column block of each part
     else:  # one cast, to the contiguous blocks that autocast's per-part casts would give
-        blocks = w_density[0].to(compute).unflatten(-1, (-1, POINT_WIDTH)).transpose(0, 1).contiguous().unbind(0)
-    features = torch.cat([chunk @ block.T for chunk, block in zip(torch.split(encoded.to(compute), counts), blocks)])
+        blocks = w_density[0].to(compute).unflatten(-1, (-1, block_width)).transpose(0, 1).contiguous().unbind(0)
+    chunks = torch.split(block_input.to(compute), counts)
+    features = torch.cat([chunk @ block.T for chunk, block in zip(chunks, blocks)])
     if selector is not None:
         # a cast of its own: the two uses' gradients are summed in encoded's dtype, as under autocast's own casts
         logit = selector_logits(selector, torch.split(encoded.to(compute), counts), ray, part, encoded_zeta)

@@ -132,6 +132,8 @@ def evaluate_run(run: Path | SavedRun, request: EvalRequest) -> dict:
             "last_step": loaded.last_step,
             "model": config.model.name,
             "width": config.model.width,
+            # the density part blocks' point encoding: frequencies (the paper) or part grids (docs/model.md §2)
+            "encoding": config.model.encoding,
             "image_size": config.model.image_size,
             # the renders' estimator: coarse + importance samples a ray (a figure depends on it, docs/model.md §5)
             "samples": [config.render.eval_coarse, config.render.eval_fine],
