@@ -1,7 +1,8 @@
 """Run benchmarks and print one Markdown table: ``python -m bench [synth ...]`` (default: all but ``levers``, the
 fit's input corrections, which takes about two hours, ``poses``, the pose correction's harness, about half an
 hour, and ``gap``, the training images against the held-out camera on the real recording and its synthetic analogue,
-about an hour for its four default rows: these run only when named).
+about an hour for its four default rows, and ``detail``, the part grids' time to quality against the preset before them,
+about an hour and a half: these run only when named).
 
 Each benchmark's rows are saved under ``$NARF_CACHE/rows/`` as it finishes, so that an interrupted run loses only the
 benchmark it was in (the time-to-quality benchmark, the longest, also keeps each finished configuration): ``--reuse``
@@ -33,9 +34,10 @@ BENCHMARKS = {
     "poses": "bench.bench_poses",
     "gap": "bench.bench_gap",
     "consensus": "bench.bench_consensus",
+    "detail": "bench.bench_detail",
 }
 #: Benchmarks that run only when named (hours of fitting: docs/results/real-capture.md).
-ON_REQUEST = ("levers", "poses", "gap")
+ON_REQUEST = ("levers", "poses", "gap", "detail")
 
 
 def _rows(name: str, saved: Path, reuse: bool, machine: str) -> list[dict]:

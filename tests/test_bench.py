@@ -95,3 +95,23 @@ def test_step_cost_counts_fewer_operators_with_one_render(data_root_64, capsys, 
     assert "| exact |" in capsys.readouterr().out and len(exact_draws) - fallbacks == 6 * 4  # every view
     assert step_cost.main(["--subject", str(data_root_64)]) == 2
     assert str(data_root_64) in capsys.readouterr().err
+
+
+def test_the_detail_benchmark_reads_a_run_folder(tmp_path):
+    """bench detail's row of a fitted and evaluated run: steps, the median step's milliseconds from the log's rays a
+    second and the preset's rays a step, and each split's NB crop and person PSNR."""
+    import json
+
+    import yaml
+
+    from bench.bench_detail import SPLITS, measured
+
+    (tmp_path / "eval").mkdir()
+    (tmp_path / "config.yaml").write_text(yaml.safe_dump({"train": {"images_per_step": 16, "rays_per_image": 32}}))
+    rows = [{"step": 50, "rays_per_s": 5120.0}, {"step": 100, "rays_per_s": 4096.0}, {"step": 120, "rays_per_s": 1.0}]
+    (tmp_path / "log.jsonl").write_text("\n".join(json.dumps(r) for r in rows))
+    splits = {s: {"nb_crop": {"psnr": 22.0 + i, "breakdown": {"psnr_person": 20.0 + i}}} for i, s in enumerate(SPLITS)}
+    (tmp_path / "eval" / "metrics.json").write_text(json.dumps({"splits": splits}))
+    row = measured({"capture": "real"}, tmp_path)
+    assert row["steps"] == 120 and row["ms / step"] == 125.0  # 512 rays at the median 4,096 rays a second
+    assert row["novel_view NB crop"] == 23.0 and row["novel_pose person"] == 22.0
