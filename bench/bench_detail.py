@@ -8,8 +8,8 @@ Captures: the synthetic taichi capture with exact inputs (``narf-synth --subject
 protocol (``data.protocol=neuralbody``), and the real demo (``make demo-real``'s capture,
 ``data/real/demo_single_person``), skipped with a line when missing.
 
-Environment: ``NARF_BENCH_DETAIL_PRESETS`` (default ``cpu_frequency,cpu``: today's preset before the part grids,
-and the default), ``NARF_BENCH_DETAIL_MINUTES`` (default ``1,3,10``), ``NARF_BENCH_DETAIL_CAPTURES`` (default
+Environment: ``NARF_BENCH_DETAIL_PRESETS`` (default ``cpu,cpu_grid``: the default preset, and the same with the
+part grids), ``NARF_BENCH_DETAIL_MINUTES`` (default ``1,3,10``), ``NARF_BENCH_DETAIL_CAPTURES`` (default
 ``synthetic,real``), ``NARF_BENCH_DETAIL_VIEWS`` (views a split, default 17), ``NARF_BENCH_DETAIL_REAL`` (the real
 capture's folder). About an hour and a half with the defaults; on request only (``python -m bench detail``).
 """
@@ -84,7 +84,7 @@ def _pair(capture_name: str, presets: list[str], minutes: float, cache: Path, vi
 
 
 def run() -> list[dict]:
-    presets = _listed("NARF_BENCH_DETAIL_PRESETS", "cpu_frequency,cpu")
+    presets = _listed("NARF_BENCH_DETAIL_PRESETS", "cpu,cpu_grid")
     budgets = [float(m) for m in _listed("NARF_BENCH_DETAIL_MINUTES", "1,3,10")]
     views = int(os.environ.get("NARF_BENCH_DETAIL_VIEWS", "17"))
     cache = Path(os.environ.get("NARF_CACHE", Path.home() / ".cache" / "narf-avatar")) / "bench-detail"
