@@ -287,7 +287,9 @@ def _print_summary(report: dict, out) -> None:
         others = p["people_seen"] - 1
         seen_too = f"; {others} other(s) seen, left out" if others else ""
         again = f"; {p['views_detected_again']} views detected again around them" if p["views_detected_again"] else ""
-        print(f"  following {p['followed']}{seen_too}{again}")
+        unseen = p.get("people_without_mask", 0)
+        dropped = f"; {unseen} in the keypoint files but in no view's mask, dropped" if unseen else ""
+        print(f"  following {p['followed']}{seen_too}{again}{dropped}")
     if "detections" in report:
         d = report["detections"]
         size = f": {d['cache_files']} files, {d['cache_mb']} MB" if "cache_files" in d else ""

@@ -271,6 +271,30 @@ def choose_track(tracks: list[Track], how, cameras: list[Camera], frames=None) -
     return best, f"the person nearest pixel {tuple(how[2])} of {how[1]} when first seen ({distances[best]:.0f} px)"
 
 
+#: the share of a person's projected targets that the views' masks must cover for them to be somebody in the videos
+MASK_SUPPORT = 0.5
+
+
+def mask_support(track: Track, cameras: list[Camera], read_mask, frames: list[int]) -> float:
+    """The share of ``track``'s targets in ``frames`` that land on a person in the views' masks: each finite target
+    in front of a camera and inside its image, projected, counts once a view; ``read_mask(v, frame)`` gives view v's
+    (H, W) bool mask or None. Keypoint files can hold people the videos do not show (a detector's false person, a
+    take's other version): their targets land on the background. NaN where nothing could be looked at."""
+    inside = total = 0
+    for frame in (f for f in frames if f in track.points):
+        finite = track.points[frame][np.isfinite(track.points[frame]).all(-1)]
+        for v, camera in enumerate(cameras):
+            mask = read_mask(v, frame)
+            depth = finite @ camera.cam_from_world[2, :3] + camera.cam_from_world[2, 3]
+            if mask is None or not (depth > 0).any():
+                continue
+            pixels = np.round(project_distorted(camera, finite[depth > 0])).astype(int)
+            seen = (pixels >= 0).all(-1) & (pixels < [mask.shape[1], mask.shape[0]]).all(-1)
+            inside += int(mask[pixels[seen, 1], pixels[seen, 0]].sum())
+            total += int(seen.sum())
+    return inside / total if total else float("nan")
+
+
 def _image_height(track: Track, cameras: list[Camera]) -> float:
     """Median over frames and cameras of the track's projected extent (rows), as a fraction of the image height. Only
     the points in front of a camera count (a point behind it projects through the centre, upside down); a camera

@@ -232,6 +232,7 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
         )
     detector = detector if len(seen.cameras) > 2 else None  # two views: a crop can add no third opinion
     files = request.keypoints is not None
+    tracks, unseen = _seen_in_masks(folder, seen, tracks, frames) if files else (tracks, 0)
     # the detector's one person per view, whose mask the view holds until a crop of the followed person replaces it
     if files:
         whole = {(v, f): o for v, by_frame in enumerate(seen.mask_owners) for f, o in by_frame.items() if o[:, 2].any()}
@@ -255,6 +256,7 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
         "choice": request.follow if isinstance(request.follow, str) else ":".join(map(str, request.follow)),
         "followed": whom,
         "people_seen": len(tracks),
+        "people_without_mask": unseen,
         "frames_per_person": sorted((len(t.points) for t in tracks), reverse=True),
         "frames_sides_turned": sorted(tracks[chosen].turned),
         "views_detected_again": looked,
@@ -262,6 +264,25 @@ def follow_person(folder: Path, seen, frames: list[int], detector, request: Prep
         "views_overlapped_by_others": sum(overlapped),
     }
     return found
+
+
+def _seen_in_masks(folder: Path, seen, tracks, frames: list[int]):
+    """The tracks of keypoint files that the views' masks show (``pipelines.prepare.people.mask_support`` at least
+    ``MASK_SUPPORT``, on one frame of ``CHOICE_STRIDE``), and how many were dropped; all of them when none is
+    shown (the masks then say nothing of whom to follow)."""
+    import cv2
+
+    from pipelines.prepare.people import MASK_SUPPORT, mask_support
+
+    def read_mask(v: int, frame: int):
+        image = cv2.imread(str(folder / "mask_raw" / seen.cameras[v].name / f"{frame:06d}.png"), cv2.IMREAD_GRAYSCALE)
+        return None if image is None else image > 0
+
+    if len(tracks) < 2:
+        return tracks, 0
+    support = [mask_support(t, seen.cameras, read_mask, frames[::CHOICE_STRIDE]) for t in tracks]
+    shown = [t for t, share in zip(tracks, support) if not share < MASK_SUPPORT]  # NaN: nothing to judge by
+    return (shown, len(tracks) - len(shown)) if shown else (tracks, 0)
 
 
 def _look_again(folder: Path, seen, frames: list[int], tracks, detector, request: PrepareRequest):
