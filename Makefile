@@ -5,7 +5,7 @@ PY     := $(VENV)/bin/python
 STAMP  := $(VENV)/.installed
 export PYTHONUNBUFFERED := 1
 
-.PHONY: demo demo-real test test-fast lint format bench gpu-check gpu-real reference venv venv-real clean-venv
+.PHONY: demo demo-real test test-fast lint format bench gpu-check gpu-real reference venv venv-real clean-venv docs-images
 
 venv: $(STAMP)
 
@@ -77,6 +77,13 @@ test-fast: lint
 
 bench: $(STAMP)
 	$(PY) -m bench
+
+# The docs' picture of the real demo from current fits: the held-out camera's ground truth beside each run's render
+# (novel view, novel pose), e.g. `make docs-images DOCS_RUNS="RUN_CPU RUN_CPU_GRID"` with two 10-minute fits of
+# data/real/demo_dz (docs/results/detail.md says which made the picture in the docs).
+DOCS_RUNS ?= runs/demo-real
+docs-images: $(STAMP)
+	$(PY) -m bench.figure_side_by_side docs/images/real-novel-view.jpg $(DOCS_RUNS)
 
 # The behaviour-unchanged reference: the same fixed-seed tiny fits of every subject model, evaluations, videos and
 # meshes with the working tree's code and with revision REV's, compared exactly (bench/reference.py); exit 1 on any
