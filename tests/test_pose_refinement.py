@@ -97,14 +97,14 @@ def test_bodies_refined_against_the_masks_find_the_truth(tiny_capture, perturbed
     cameras' masks at 128 px (measured 4.29 -> 1.00 cm on this capture; the 270-frame synthetic capture at 256 px:
     4.73 -> 0.74 cm)."""
     from fitting.config import load_config
-    from pipelines.runs.subject.body_refine import RefinedCapture, refine_to_masks
+    from pipelines.runs.subject.body_refine import RefinedCapture, RefineSettings, refine_to_masks
     from pipelines.runs.subject.session import build_fit_data, open_capture
 
     sets = [f"data.subject={perturbed}", "train.pose_correction=true", "train.mask_body_iterations=0"]
     config = load_config("tiny", sets)
     data = build_fit_data(config, "cpu", progress=False)
     capture = open_capture(config, quiet=True)
-    refined = refine_to_masks(data.training, capture, BodyModel(), data.frames, progress=False)
+    refined = refine_to_masks(data.training, capture, BodyModel(), data.frames, RefineSettings(progress=False))
     before = _joint_error(tiny_capture, capture, data.frames)
     after = _joint_error(tiny_capture, RefinedCapture(capture, refined), data.frames)
     assert before > 3.0 and after < 0.5 * before, (before, after)
@@ -146,7 +146,9 @@ def test_refined_params_pose_as_recorded(perturbed):
     )
     data = build_fit_data(config, "cpu", progress=False)
     capture = open_capture(config, quiet=True)
-    refined = refine_to_masks(data.training, capture, BodyModel(), data.frames, RefineSettings(iterations=5), False)
+    refined = refine_to_masks(
+        data.training, capture, BodyModel(), data.frames, RefineSettings(iterations=5, progress=False)
+    )
     for frame, params in refined.items():
         assert np.array_equal(params.shapes, capture.params(frame).shapes)
         assert np.array_equal(params.poses[:3], capture.params(frame).poses[:3])

@@ -40,6 +40,7 @@ class RefineSettings:
     silhouette: SilhouetteSettings = field(
         default_factory=lambda: SilhouetteSettings(height=256, outline_points=150, vertex_stride=4)
     )
+    progress: bool = True  #: a progress bar over the iterations
 
 
 @dataclass
@@ -91,7 +92,6 @@ def refine_to_masks(
     body: BodyModel,
     frames: list[int],
     settings: RefineSettings = RefineSettings(),
-    progress: bool = True,
     template_offsets=None,
 ) -> dict[int, SmplParams]:
     """The training frames' bodies refined against their views' masks (module docstring): capture frame ->
@@ -125,7 +125,7 @@ def refine_to_masks(
         prior = robust(turns).sum(-1).mean()
         return settings.silhouette_weight * term(posed(stride), strided=True) + settings.prior_weight * prior
 
-    bar = tqdm(total=settings.iterations, desc="refining bodies to masks", unit="it", disable=not progress)
+    bar = tqdm(total=settings.iterations, desc="refining bodies to masks", unit="it", disable=not settings.progress)
     with bar:
         adam_stage(energy, [d_poses, d_rh, d_th], settings.iterations, settings.lr, bar.update)
     with torch.no_grad():

@@ -225,8 +225,8 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
     if refine:  # a resumed fit trains on the bodies its checkpoint holds, never on a second refinement's
         kept = None if state is None else saved_bodies(state, capture)
         if kept is None:
-            settings = RefineSettings(iterations=config.train.mask_body_iterations)
-            kept = refine_to_masks(training, capture, body_model, frames, settings, progress, surface)
+            settings = RefineSettings(iterations=config.train.mask_body_iterations, progress=progress)
+            kept = refine_to_masks(training, capture, body_model, frames, settings, surface)
         source = RefinedCapture(capture, kept)
         poses = training_poses(source, body_model, frames)
         training.poses = poses.to(device)
@@ -260,7 +260,12 @@ def build_fit_data(config: FitConfig, device, progress: bool = True, state: dict
         frames.index(held_frame),
         {"body_model": body_model_record(body_model.path), **gains_record(capture, gains)},
         held_back_views(
-            capture, protocol, body_model, held_back, device, progress, poses if borrows_colour(config) else None
+            capture,
+            protocol,
+            held_back,
+            held_back_poses(capture, body_model, held_back, poses if borrows_colour(config) else None),
+            device,
+            progress,
         ),
         None if gains is None else torch.as_tensor(gains[list(protocol.train_views)]),
         shells,
@@ -309,10 +314,10 @@ def borrows_colour(config: FitConfig) -> bool:
     return config.model.novel_colour == "nearest" and not model_spec(config.model.name).pose_in_density
 
 
-def held_back_views(capture, protocol, body_model: BodyModel, frames: list[int], device, progress: bool, bank=None):
-    """The training cameras' views of the held-back ``frames``, in the capture's poses (None when none), coloured
-    as the evaluation colours them: with ``bank`` (the trained frames' poses, where :func:`borrows_colour`), the
-    pose features of the trained frame standing nearest."""
+def held_back_poses(capture, body_model: BodyModel, frames: list[int], bank=None):
+    """The held-back ``frames``' poses in the capture (None when there are none), coloured as the evaluation colours
+    them: with ``bank`` (the trained frames' poses, where :func:`borrows_colour`), the pose features of the trained
+    frame standing nearest."""
     if not frames:
         return None
     poses = training_poses(capture, body_model, frames)
@@ -320,6 +325,14 @@ def held_back_views(capture, protocol, body_model: BodyModel, frames: list[int],
         poses = colour_from_nearest_place(
             poses, bank.to(poses.reach.device), torch.zeros(len(frames), dtype=torch.bool)
         )
+    return poses
+
+
+def held_back_views(capture, protocol, frames: list[int], poses, device, progress: bool):
+    """The training cameras' views of the held-back ``frames`` in ``poses`` (:func:`held_back_poses`); None when
+    there are none."""
+    if not frames:
+        return None
     return camera_views(capture, protocol, frames, poses, device, progress)
 
 
