@@ -22,6 +22,8 @@ from dataclasses import dataclass
 import torch
 from torch import nn
 
+from narf.encodings import frequency_window
+
 #: Instant-NGP's hash primes (the first is 1, so that a level's x coordinate strides through the table)
 HASH_PRIMES = (1, 2654435761, 805459861)
 #: the 8 corners of a cell, (8, 3) in {0, 1}, x fastest
@@ -83,11 +85,12 @@ class GridShape:
         ]
 
 
-def vertex_rows(vertex: torch.Tensor, multipliers: tuple[int, int, int], rows: int) -> torch.Tensor:
-    """The table row of integer vertices (..., 3) long at one level: (v_x m_x xor v_y m_y xor v_z m_z) mod T, with
-    the level's :meth:`GridShape.multipliers` m (one to one: x + 2^b y + 2^2b z; hashed: Instant-NGP's hash)."""
-    x, y, z = (vertex[..., axis] * m for axis, m in enumerate(multipliers))
-    return torch.bitwise_xor(torch.bitwise_xor(x, y), z) & (rows - 1)
+def vertex_rows(vertex: torch.Tensor, multipliers, rows: int) -> torch.Tensor:
+    """The table row of integer vertices (..., 3) long: (v_x m_x xor v_y m_y xor v_z m_z) mod T, with a level's
+    :meth:`GridShape.multipliers` m (3,), or every level's (L, 3) against vertices (..., L, 3) (one to one:
+    x + 2^b y + 2^2b z; hashed: Instant-NGP's hash)."""
+    terms = vertex * torch.as_tensor(multipliers, dtype=torch.long, device=vertex.device)
+    return torch.bitwise_xor(torch.bitwise_xor(terms[..., 0], terms[..., 1]), terms[..., 2]) & (rows - 1)
 
 
 def corner_rows_and_weights(u: torch.Tensor, part: torch.Tensor, shape: GridShape, n_parts: int):
@@ -192,8 +195,7 @@ def level_window(alpha: float | None, levels: int, device=None, dtype=torch.floa
     frequency window's half-cosine (``narf.encodings.frequency_window``) over levels; None when all are open."""
     if alpha is None or alpha >= levels:
         return None
-    k = torch.arange(levels, device=device, dtype=dtype)
-    return (1 - torch.cos(math.pi * (alpha - k).clamp(0, 1))) / 2
+    return frequency_window(alpha, levels, device, dtype)[:levels]  # laid out [sin k, cos k]: one half
 
 
 class PartGrids(nn.Module):
@@ -214,10 +216,6 @@ class PartGrids(nn.Module):
             return features
         return (features.unflatten(-1, (self.shape.levels, -1)) * window[:, None]).flatten(-2)
 
-    def memory_bytes(self) -> int:
-        """The tables' bytes (float32 rows; Adam keeps two more copies)."""
-        return self.table.numel() * self.table.element_size()
-
 
 def grid_smoothness(table: torch.Tensor, shape: GridShape, vertices: torch.Tensor, axis: torch.Tensor) -> torch.Tensor:
     """The tables' total variation at K random vertices: mean over vertices and levels of
@@ -235,12 +233,8 @@ def grid_smoothness(table: torch.Tensor, shape: GridShape, vertices: torch.Tenso
     part, vertex = vertices[..., 0], vertices[..., 1:]
     neighbour = vertex + nn.functional.one_hot(axis, 3)
 
-    multipliers = torch.tensor(shape.multipliers(), device=table.device)  # (L, 3)
-
     def rows(v: torch.Tensor) -> torch.Tensor:  # (K, L, 3) -> (K, L) flat rows
-        terms = v * multipliers
-        mixed = torch.bitwise_xor(torch.bitwise_xor(terms[..., 0], terms[..., 1]), terms[..., 2]) & (shape.rows - 1)
-        return mixed + (level * n_parts + part) * shape.rows
+        return vertex_rows(v, shape.multipliers(), shape.rows) + (level * n_parts + part) * shape.rows
 
     return (table[rows(vertex)] - table[rows(neighbour)]).square().sum(-1).mean()
 
