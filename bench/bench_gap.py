@@ -1,5 +1,5 @@
-"""The gap between the training images and the held-out camera (docs/results/real-capture.md, *Avatars that hold
-from every camera*): a fit's person PSNR, NB crop and silhouette disagreement on its training images (SS), from the
+"""The gap between the training images and the held-out camera (docs/results/real-capture.md, *The CPU
+preset, value by value*): a fit's person PSNR, NB crop and silhouette disagreement on its training images (SS), from the
 held-out camera (novel_view) and in novel poses from it (novel_pose), and the gap SS - novel_view, for
 
 * the real recording (``make demo-real``'s capture, ``data/real/demo_single_person``), and

@@ -186,7 +186,7 @@ def test_an_offset_between_frames_is_read_to_a_tenth(late):
     """cam4 late by part of a frame (its views drawn between the body's frames, linearly, as the estimate interpolates
     the others' points): read within 0.15 frame. At 0.7 px of keypoint noise the parabola's vertex was within 0.06
     of the truth over 18 cases (3 bodies x offsets 0.3-3.6), the lowest tenth within 0.1 (docs/results/real-capture.md,
-    forty-fifth session); 0.15 leaves room for other noise draws, and fails an estimate held to whole frames."""
+    *Cameras in step*); 0.15 leaves room for other noise draws, and fails an estimate held to whole frames."""
     cameras = _rig()
     frames, people = _observed(cameras, _body(seed=1), late={3: late}, turned={})
     found = find_offsets(cameras, frames, people)

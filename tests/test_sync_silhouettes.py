@@ -133,7 +133,7 @@ def _entry(keypoints: float, whole: int, silhouettes: float, status: str = "in s
 
 
 def test_the_two_looks_mean_and_the_shifts_it_asks_for():
-    """Cases of the Pose2Sim demo's cut table (docs/results/real-capture.md, forty-fifth session), by hand: a camera
+    """Cases of the Pose2Sim demo's cut table (docs/results/real-capture.md, *Cameras in step*), by hand: a camera
     the keypoints call uncertain at -0.75 and the silhouettes put at -0.12 is in step at their mean, -0.435, and
     stays; one cut by 3 that the keypoints shifted by 2 (2.2) and the silhouettes find at 2.87 is shifted by 3; one
     cut by 2 that the keypoints left (1.2, below the capture's gain) is shifted by 2; a camera not cut that both read

@@ -2,7 +2,7 @@
 
 The segmenter gives one mask a view, of the person the detector found, with whatever of the others touches them, and
 where two people overlap in the image the detector finds whichever is more prominent, in a crop too; the mask then
-lacks that person's limbs over the other (docs/results/real-capture.md, twenty-fourth session). Both people are
+lacks that person's limbs over the other (docs/results/real-capture.md, *Measured, not kept*). Both people are
 triangulated in every frame, so the overlap can be told from geometry: each person's region in a view is drawn as
 capsules around the bones between their projected targets (radii in metres, ``BONE_RADII``, scaled by focal length
 over depth) and a filled torso.
@@ -10,7 +10,7 @@ over depth) and a filled torso.
 * A view where other people's regions cover more than ``OVERLAP_SHARE`` of the followed person's is left out of the
   body fit, the training and the evaluation, as views showing only somebody else are: in front, they hide the
   person; behind, the one mask covers both and the view's detection and mask may be theirs (measured on
-  Demo_MultiPerson: docs/results/real-capture.md).
+  Demo_MultiPerson: docs/results/real-capture.md, *Other people in view*).
 * In the views kept, the mask loses its pixels outside the followed person's fitted body that lie nearer the other
   people's regions than that body (:func:`without_others`): what lies there is somebody else.
 * Where somebody else's capsule is nearer the camera than the followed person's at a pixel of the followed person's

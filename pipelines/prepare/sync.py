@@ -71,7 +71,7 @@ METHOD = "reprojection of the others' triangulation, each joint's static part re
 METHOD_POSITIONAL = METHOD + ", and a part that grows with the joint's place in the image"
 #: the most (frames) the estimate with the positional part may differ from the static part's, for any camera, to be
 #: kept: on Pose2Sim's two takes it agrees within 0.9 frame wherever it is right and departs by 2.5-4 frames where the
-#: man's place and speed move together in cam03 (docs/results/real-capture.md, thirty-ninth session)
+#: man's place and speed move together in cam03 (docs/results/real-capture.md, *Cameras in step*)
 POSITION_AGREEMENT = 1.0
 #: rounds of reweighting in the positional part's robust fit
 POSITION_ROUNDS = 5
@@ -179,7 +179,7 @@ def parabola_vertex(x: np.ndarray, y: np.ndarray) -> tuple[float, float]:
     """(x*, y*) the vertex of the least-squares parabola y ~ a x^2 + b x + c through the finite points (x (K,), y
     (K,)), x* = -b / 2a kept within [x.min(), x.max()]; the lowest point where the fit does not open upwards. A median
     score is flat within its noise near its minimum (1-2 % from one tenth of a frame to the next on the Pose2Sim demo,
-    docs/results/real-capture.md, forty-fifth session), so its lowest point wanders over that flat; the parabola
+    docs/results/real-capture.md, *Cameras in step*), so its lowest point wanders over that flat; the parabola
     through the whole reach does not."""
     known = np.isfinite(y)
     x, y = x[known], y[known]

@@ -4,7 +4,7 @@ modes, each camera's frames renumbered by its whole shift, and the record the re
 two looks agree within a frame, a camera's offset is their mean: on the Pose2Sim demo each is about a frame off in
 one camera where the other is not (the keypoints in cam03, the silhouettes half a frame in cam04), and their mean
 finds a camera cut by 2-5 frames either way within half a frame in 24 of 24 cuts where the keypoints alone did in 18
-(docs/results/real-capture.md, forty-fifth session). A camera whose mean calls for another whole shift than the
+(docs/results/real-capture.md, *Cameras in step*). A camera whose mean calls for another whole shift than the
 keypoints' is shifted by it and every offset estimated again (:func:`combined_shifts`).
 """
 
@@ -145,7 +145,7 @@ def combined_shifts(estimates: dict[str, dict]) -> dict[str, int]:
     camera whose mean offset rounds to another whole number than its keypoints' shift, if the mean is a frame or more
     from step or the keypoints shifted it. A camera within a frame of step that the keypoints left alone stays: on
     the demo a camera cut by k spoils the others' triangulation, and the cameras not cut then read up to 0.65 frame
-    off by both looks (docs/results/real-capture.md, forty-fifth session)."""
+    off by both looks (docs/results/real-capture.md, *Cameras in step*)."""
     out = {}
     for name, entry in estimates.items():
         if entry.get("method") != METHOD_COMBINED:

@@ -78,7 +78,7 @@ PASSERS_BY = ((1.2, 0.0, 0.0), (-1.2, 0.0, 0.0))
 
 def main(argv: list[str] | None = None) -> None:
     """``python -m pipelines.synthetic.recording CAPTURE OUT [--cameras N] [--frames N]``: a long recording to
-    measure ``narf-prepare-capture`` on (docs/results/real-capture.md, *Long takes*)."""
+    measure ``narf-prepare-capture`` on (docs/results/real-capture.md, *Long takes: memory and speed*)."""
     import argparse
 
     parser = argparse.ArgumentParser(description=write_recording.__doc__)
