@@ -86,8 +86,9 @@ docs-images: $(STAMP)
 	$(PY) -m bench.figure_side_by_side docs/images/real-novel-view.jpg $(DOCS_RUNS)
 
 # The behaviour-unchanged reference: the same fixed-seed tiny fits of every subject model, evaluations, videos and
-# meshes with the working tree's code and with revision REV's, compared exactly (bench/reference.py); exit 1 on any
-# difference. `make reference REV=main` before merging a refactor.
+# meshes, and prepares of a small synthetic recording (from its files, with passers-by, through the detector where
+# installed), with the working tree's code and with revision REV's, compared exactly (bench/reference.py); exit 1 on
+# any difference. `make reference REV=main` before merging a refactor.
 REV ?= HEAD
 reference: $(STAMP)
 	$(PY) -m bench.reference --rev $(REV)
