@@ -1,5 +1,5 @@
-"""The consensus of views (``pipelines.prepare.multiview.consensus``) against its one-pair-at-a-time reference, on
-crowded scenes of 8 views (``pipelines.synthetic.crowd``): milliseconds per call, 1 and 3 people."""
+"""The consensus of views (``pipelines.prepare.people.multiview.consensus``) against its one-pair-at-a-time reference,
+on crowded scenes of 8 views (``pipelines.synthetic.crowd``): milliseconds per call, 1 and 3 people."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import time
 
 import numpy as np
 
-from pipelines.prepare.multiview import consensus, consensus_reference
+from pipelines.prepare.people.multiview import consensus, consensus_reference
 from pipelines.synthetic.crowd import HEIGHT, crowded_scene
 
 

@@ -33,7 +33,7 @@ def test_native_notices_are_kept_off_the_console():
     and Python's own stderr still reaches the console."""
 
     code = (
-        "import os, sys\nfrom pipelines.prepare.detect import silence_native_stderr\n"
+        "import os, sys\nfrom pipelines.prepare.sources.detect import silence_native_stderr\n"
         "silence_native_stderr(); silence_native_stderr()\n"
         "os.write(2, b'TensorFlow Lite notice\\n'); print('narf-prepare-capture: error: ours', file=sys.stderr)\n"
     )

@@ -37,7 +37,8 @@ def test_a_person_pixel_of_an_unknown_camera_is_one_line(recording, tmp_path, ca
 
 
 def test_a_capture_whose_every_camera_is_flagged_is_refused_unless_kept():
-    from pipelines.prepare.run import PrepareRequest, _refuse_all_flagged
+    from pipelines.prepare.request import PrepareRequest
+    from pipelines.prepare.run import _refuse_all_flagged
 
     report = {"cameras": {"a": {}, "b": {}}, "flagged_cameras": {"a": "turned", "b": "turned"}}
     with pytest.raises(CaptureError, match="every camera is flagged .a: turned.; nothing was written"):

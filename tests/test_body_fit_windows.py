@@ -1,4 +1,4 @@
-"""The body fit of a long take in windows (pipelines/prepare/body_fit.py, module docstring): the passes cover every
+"""The body fit of a long take in windows (pipelines/prepare/body/fit.py, module docstring): the passes cover every
 frame, the silhouette term is never built over more than a window's frames (what keeps memory flat in the take's
 length), and the bodies of a take fitted in windows are as close to the truth as those fitted at once."""
 
@@ -12,9 +12,9 @@ from pipelines.cli import prepare_capture
 from pipelines.cli.common import run_cli
 from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.keypoints import TARGET_JOINTS
-from pipelines.prepare import run as prepare_run
-from pipelines.prepare.body_fit import FitSettings, _passes, continuous_rotvecs, fit_body, fit_steps
-from pipelines.prepare.multiview import project
+from pipelines.prepare.body import bodies as prepare_bodies
+from pipelines.prepare.body.fit import FitSettings, _passes, continuous_rotvecs, fit_body, fit_steps
+from pipelines.prepare.people.multiview import project
 
 
 def test_the_passes_cover_every_frame_in_overlapping_windows():
@@ -39,7 +39,7 @@ def test_the_passes_cover_every_frame_in_overlapping_windows():
 
 def test_a_take_fitted_in_windows_matches_the_truth(recording, tmp_path, monkeypatch):
     built = []
-    stage = prepare_run.silhouette_stage
+    stage = prepare_bodies.silhouette_stage
 
     def recorded(*args, **kwargs):
         build = stage(*args, **kwargs)
@@ -50,7 +50,7 @@ def test_a_take_fitted_in_windows_matches_the_truth(recording, tmp_path, monkeyp
 
         return counted
 
-    monkeypatch.setattr(prepare_run, "silhouette_stage", recorded)
+    monkeypatch.setattr(prepare_bodies, "silhouette_stage", recorded)
     rec, out = recording / "rec", tmp_path / "out"
     argv = [str(rec), "--out", str(out), "--keypoints", str(rec / "keypoints"), "--masks", str(rec / "masks")]
     # 100 silhouette iterations a pass (of 400 by default): five passes of four frames, the seams are what is tested

@@ -1,4 +1,4 @@
-"""The body's surface (SMPL+D: pipelines/prepare/body_fit.py, docs/formats.md §1.13): on the synthetic recording with
+"""The body's surface (SMPL+D: pipelines/prepare/body/fit.py, docs/formats.md §1.13): on the synthetic recording with
 masks wider than the true body (a person in loose clothes), the fit with the surface overlaps them better than the
 ten shape coefficients alone and displaces the surface outwards by about the widening; the file is checked as it is
 read; and a subject fit's boxes and shells wear it."""
@@ -104,7 +104,7 @@ def test_the_surface_prior_by_hand(body_model):
     """``a mean u^2 + b mean (u - A u)^2``: zero for no displacement; a uniform displacement is smooth (``A u = u``),
     so only ``a`` counts; one vertex raised by 1 gives ``(a + b (1 + sum_j 1 / deg_j^2)) / N`` over its neighbours j
     (each of them sees it as one of its deg_j neighbours). float32 sums over 6890 vertices: rel 1e-5."""
-    from pipelines.prepare.body_fit import FitSettings, SurfacePrior
+    from pipelines.prepare.body.fit import FitSettings, SurfacePrior
 
     settings = FitSettings(surface_prior=0.1, surface_smooth=10.0)
     prior, n = SurfacePrior(body_model, settings), body_model.n_vertices

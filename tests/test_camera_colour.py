@@ -1,5 +1,5 @@
-"""Each camera's colour gain measured on the floor (pipelines/prepare/colour.py), its file (colour.json) and its use in
-the fit's loss and in evaluation (docs/model.md §6, *Measured camera colour*)."""
+"""Each camera's colour gain measured on the floor (pipelines/prepare/layout/colour.py), its file (colour.json) and its
+use in the fit's loss and in evaluation (docs/model.md §6, *Measured camera colour*)."""
 
 import json
 import shutil
@@ -15,7 +15,7 @@ from fitting.losses import batch_loss
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.camera_colour import read_camera_colour, write_camera_colour
 from pipelines.datasets.errors import CaptureError
-from pipelines.prepare.colour import background_image, floor_colours, floor_grid, solve_gains
+from pipelines.prepare.layout.colour import background_image, floor_colours, floor_grid, solve_gains
 from pipelines.synthetic.scene import look_at
 
 #: BGR gains of the three test cameras (a white balance and exposure spread of about 10 %)

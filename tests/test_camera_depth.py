@@ -1,4 +1,4 @@
-"""Each camera's distance to the person checked on full-size masks (``pipelines.prepare.camera_depth``)."""
+"""Each camera's distance to the person checked on full-size masks (``pipelines.prepare.body.camera_depth``)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import trimesh
 
 from pipelines.cli.prepare_capture import _correction_text
 from pipelines.datasets.camera import Camera, silhouette
-from pipelines.prepare.camera_depth import (
+from pipelines.prepare.body.camera_depth import (
     DEPTH_STEP,
     DepthSearch,
     common_fraction,
@@ -192,8 +192,8 @@ def test_the_prepare_moves_the_one_camera_that_stands_off(tmp_path):
 
     import cv2
 
-    from pipelines.prepare.camera_depth import check_camera_depths
-    from pipelines.prepare.observe import Observations
+    from pipelines.prepare.body.camera_depth import check_camera_depths
+    from pipelines.prepare.sources.observe import Observations
 
     cameras = [_look_at(f"cam{v}", 3.0 * np.array([np.cos(a), np.sin(a), 0.0])) for v, a in enumerate((0.0, 1.9, 4.0))]
     mesh = trimesh.creation.icosphere(subdivisions=3)

@@ -1,4 +1,4 @@
-"""The consensus of views (pipelines/prepare/multiview.py) scores every pair of detections at once; its slow
+"""The consensus of views (pipelines/prepare/people/multiview.py) scores every pair of detections at once; its slow
 reference, ``consensus_reference``, scores one pair at a time. On random scenes with several people, mirrored
 detections, missing joints, a false person, points behind a camera and a previous position to stay near, both
 choose the same detections."""
@@ -8,8 +8,8 @@ import warnings
 import numpy as np
 import pytest
 
-from pipelines.prepare import multiview
-from pipelines.prepare.multiview import consensus, consensus_reference, project
+from pipelines.prepare.people import multiview
+from pipelines.prepare.people.multiview import consensus, consensus_reference, project
 from pipelines.synthetic.crowd import HEIGHT, N_TARGETS, cameras, crowded_scene
 
 

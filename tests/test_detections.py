@@ -1,5 +1,5 @@
-"""The detection cache of narf-prepare-capture (pipelines/prepare/detections.py): each view detected once, across a
-killed run, a rerun and a replacement, with the same capture written."""
+"""The detection cache of narf-prepare-capture (pipelines/prepare/sources/detections.py): each view detected once,
+across a killed run, a rerun and a replacement, with the same capture written."""
 
 import hashlib
 import json
@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from pipelines.prepare.detections import CachedDetector, detections_folder
-from pipelines.prepare.sources import Source, find_sources, read_frames
+from pipelines.prepare.sources.detections import CachedDetector, detections_folder
+from pipelines.prepare.sources.recordings import Source, find_sources, read_frames
 
 
 class Counting:
@@ -97,7 +97,7 @@ def test_a_killed_prepare_reuses_its_detections_and_writes_the_same_capture(
     to the bit: the masks are the same bits either way (the first test), the mask's distance transform is the same
     bits on every call (``distance_to_mask``; OpenCV's own was not, which made these figures 3-5 % apart), and one
     process keeps its thread count (docs/results/faults.md)."""
-    import pipelines.prepare.detect as detect
+    import pipelines.prepare.sources.detect as detect
     from pipelines.cli import prepare_capture
     from pipelines.cli.common import run_cli
 

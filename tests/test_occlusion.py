@@ -1,4 +1,4 @@
-"""People who overlap the followed person in a view (``pipelines.prepare.occlusion``), on hand-placed people and
+"""People who overlap the followed person in a view (``pipelines.prepare.people.occlusion``), on hand-placed people and
 cameras whose figures can be worked out by hand."""
 
 from types import SimpleNamespace
@@ -9,7 +9,7 @@ import numpy as np
 from pipelines.body.silhouettes import distance_to_mask
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.keypoints import TARGET_NAMES
-from pipelines.prepare.occlusion import (
+from pipelines.prepare.people.occlusion import (
     body_region,
     hidden_region,
     leave_out_overlapped,

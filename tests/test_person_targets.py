@@ -1,4 +1,4 @@
-"""A detector that swaps one pair of limbs alone in a view (pipelines/prepare/person_targets.py, ``side_swaps``): the
+"""A detector that swaps one pair of limbs alone in a view (pipelines/prepare/people/targets.py, ``side_swaps``): the
 legs as they cross, the arms as they fold. On exact projections of a person striding with one arm raised, the views
 whose legs or arms were swapped are found and put right, two views of the same limb included, and nothing is
 exchanged where the person stands with the limbs together; through ``triangulate_people`` the legs of a frame where
@@ -10,8 +10,8 @@ import pytest
 
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.keypoints import TARGET_NAMES, mirror_index
-from pipelines.prepare.multiview import project, projection_matrix
-from pipelines.prepare.person_targets import side_swaps, triangulate_people
+from pipelines.prepare.people.multiview import project, projection_matrix
+from pipelines.prepare.people.targets import side_swaps, triangulate_people
 
 #: a person striding (left leg forward, right leg back) with the left arm raised: world metres, z up
 STRIDE = {

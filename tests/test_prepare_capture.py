@@ -22,7 +22,7 @@ from pipelines.datasets.capture import ZjuCapture
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import TARGET_JOINTS, read_openpose, to_targets, write_openpose
 from pipelines.datasets.rig_files import read_qualisys, read_rig, read_toml, write_qualisys
-from pipelines.prepare.multiview import project, triangulate, triangulate_robust
+from pipelines.prepare.people.multiview import project, triangulate, triangulate_robust
 from pipelines.synthetic.recording import true_joints, write_recording
 
 NOISE_PX = 1.0  # the keypoint noise of the recording fixture (tests/conftest.py)
@@ -264,7 +264,7 @@ def test_camera_names_match_up_to_case_separators_and_padding():
     from types import SimpleNamespace
 
     from pipelines.datasets.errors import CaptureError
-    from pipelines.prepare.sources import Source, match_cameras, name_key
+    from pipelines.prepare.sources.recordings import Source, match_cameras, name_key
 
     assert {name_key(n) for n in ("cam_01", "cam01", "Cam1", "CAM-001", "cam 1")} == {"cam1"}
     assert name_key("cam10") != name_key("cam1")
@@ -288,7 +288,7 @@ def test_what_the_capture_leaves_out_is_said(recording, tmp_path, capsys):
     """A recording without a calibrated camera, a camera with fewer frames and a 1-frame capture are each said in the
     printed summary and in report.json (``notices``)."""
     from fitting.video import write_mp4
-    from pipelines.prepare.sources import read_frames
+    from pipelines.prepare.sources.recordings import read_frames
 
     rec = tmp_path / "rec"
     shutil.copytree(recording / "rec", rec)
@@ -315,7 +315,7 @@ def test_what_the_capture_leaves_out_is_said(recording, tmp_path, capsys):
 
 
 def _source(path):
-    from pipelines.prepare.sources import Source
+    from pipelines.prepare.sources.recordings import Source
 
     return Source(path.stem, path, True)
 
@@ -384,7 +384,7 @@ def test_keypoint_files_without_masks_take_the_segmenters_mask(tmp_path):
     """--keypoints without --masks: the keypoints come from the files and the masks from the segmenter (an empty
     mask would flag every camera), also for a frame that has no keypoint file; the detector's person comes with the
     mask as its owner (``follow_person`` checks whose mask it is)."""
-    from pipelines.prepare.observe import _Keypoints
+    from pipelines.prepare.sources.observe import _Keypoints
 
     write_openpose(tmp_path / "cam01_json" / "cam01.0000.json", [np.ones((25, 3))])
     mask = np.zeros((4, 6), bool)
@@ -436,7 +436,7 @@ def _started_late(rec: Path, out: Path, camera: str, late: int) -> Path:
     """A copy of recording ``rec`` whose ``camera`` started ``late`` frames after the others: its video, keypoint
     files and masks lose their first ``late`` frames and are numbered from 0 again."""
     from fitting.video import write_mp4
-    from pipelines.prepare.sources import Source, read_frames
+    from pipelines.prepare.sources.recordings import Source, read_frames
 
     shutil.copytree(rec, out)
     video = out / "videos" / f"{camera}.mp4"
@@ -523,7 +523,7 @@ def test_openpose_entries_with_no_keypoints_are_no_person(tmp_path):
 def test_a_cameras_folder_is_never_another_cameras(tmp_path):
     """Keypoint and mask folders are found by the camera's name followed by a separator: ``cam1``'s is ``cam1_json``,
     never ``cam10_json`` (which sorts first); two candidates are an error naming both."""
-    from pipelines.prepare.observe import camera_folder
+    from pipelines.prepare.sources.observe import camera_folder
 
     for name in ("cam10_json", "cam1_json", "cam12_json", "cam2"):
         (tmp_path / name).mkdir()
@@ -543,7 +543,7 @@ def test_cameras_that_agree_are_not_flagged_and_a_poor_capture_is_a_notice():
     standing 1.3 times above the others is flagged; one 3 times above small others is flagged by the ratio; with no
     other camera to compare, the absolute threshold alone. (Checked against the absolute threshold alone: every
     camera of the probe was flagged.)"""
-    from pipelines.prepare.checks import FLAG_ERROR, flag_cameras, reprojection_notice
+    from pipelines.prepare.layout.checks import FLAG_ERROR, flag_cameras, reprojection_notice
 
     names = ["A", "B", "C", "D"]
     agree = dict(zip(names, [0.0177, 0.0179, 0.0181, 0.0185]))

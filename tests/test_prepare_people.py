@@ -72,8 +72,8 @@ def test_the_capture_follows_the_person_seen_best(recording, crowded):
             kept = cv2.imread(str(root / "out" / "mask" / camera.name / f"{f:06d}.png"), 0) > 0
             true = cv2.imread(str(recording / "truth" / "mask" / camera.name / f"{f:06d}.png"), 0) > 0
             # where the passer-by stands apart from the first person in the image (farther than the neighbourhood
-            # the capture's masks keep around the fitted body, checks.body_neighbourhood: 4 % of the height, plus 2 px
-            # of the fit's error), none of them is kept
+            # the capture's masks keep around the fitted body, people.occlusion.body_neighbourhood: 4 % of the height,
+            # plus 2 px of the fit's error), none of them is kept
             distance = cv2.distanceTransform((~true).astype(np.uint8), cv2.DIST_L2, 5)
             passer = given & ~true
             if passer.any() and distance[passer].min() > 0.04 * camera.height + 2:
@@ -83,8 +83,9 @@ def test_the_capture_follows_the_person_seen_best(recording, crowded):
             near, near_kept = near + close.sum(), near_kept + (kept & close).sum()
     assert apart_views >= 5  # 7 of the 40 views, by the passer-by's path (OFFSET, STEP)
     # near the person, the passer-by's pixels leave the masks but where the fitted body covers them (it may be either
-    # person there) or where the capsules drawn for the passer-by miss their silhouette (pipelines.prepare.occlusion):
-    # 11 % of them stay (93 % with the cut removed, which this bound, between the two, tells apart)
+    # person there) or where the capsules drawn for the passer-by miss their silhouette
+    # (pipelines.prepare.people.occlusion): 11 % of them stay (93 % with the cut removed, which this bound, between the
+    # two, tells apart)
     assert near_kept < 0.25 * near, (near_kept, near)
     # views where the passer-by covers over a quarter of the person (4 of 40 measured; a share near the threshold may
     # tip either way with the triangulation's rounding on another CPU): some, not most
@@ -129,8 +130,8 @@ def test_a_view_that_shows_somebody_else_is_detected_again_around_the_person(rec
 
     from pipelines.datasets.camera import project_distorted, silhouette
     from pipelines.datasets.keypoints import keypoints_from_joints, to_targets
-    from pipelines.prepare.crops import crop_box, painted_crop, redetect
-    from pipelines.prepare.detections import CachedDetector
+    from pipelines.prepare.people.crops import crop_box, painted_crop, redetect
+    from pipelines.prepare.sources.detections import CachedDetector
 
     truth, body = ZjuCapture(recording / "truth"), BodyModel()
     camera, joints = truth.cameras[0], true_joints(truth, body)[0]
@@ -234,9 +235,9 @@ def test_keypoint_files_with_the_segmenters_mask_of_somebody_else(recording, cro
     keypoint noise). Keeping them (the mask taken as the followed person's) gave 0.41 in the worst view."""
     import hashlib
 
-    import pipelines.prepare.detect as detect
+    import pipelines.prepare.sources.detect as detect
     from pipelines.datasets.keypoints import to_targets
-    from pipelines.prepare.sources import find_sources, read_frames
+    from pipelines.prepare.sources.recordings import find_sources, read_frames
 
     root, _ = crowded
     table, wrong = {}, 0
@@ -259,7 +260,7 @@ def test_keypoint_files_with_the_segmenters_mask_of_somebody_else(recording, cro
     assert run_cli("narf-prepare-capture", prepare_capture.main, [*argv, "--quiet"]) == 0
     report = json.loads((tmp_path / "out" / "report.json").read_text())
     # each of the five is left out: for its mask, or before its mask is looked at where the passer-by overlaps the
-    # person in the image (pipelines.prepare.occlusion), which leaves out views of the camera's other five too
+    # person in the image (pipelines.prepare.people.occlusion), which leaves out views of the camera's other five too
     without, overlapped = report["person"]["views_without_their_mask"], report["cameras"]["Camera_B1"]
     overlapped = overlapped["views_overlapped_by_others"]
     assert report["person"]["views_detected_again"] == 5 and without <= 5 <= without + overlapped

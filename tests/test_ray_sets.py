@@ -76,9 +76,9 @@ def test_one_render_of_every_set_equals_each_set_alone(trainer):
     than in five (relative rounding about sqrt(n) eps, n ~ 10^4: 1e-5), so 1e-4 for the loss and the colours. A
     coarse density one ulp apart (the blocking) moves a fine sample's inverse-CDF depth by ~1e-7, which sin(2^9 pi u
     / h) multiplies by ~10^4 in the features that the density's first block and the selector take as they are: with
-    every frequency open their gradients lie up to 1.5 % apart on one thread (measured). With 2^1 the top frequency open (TERMS) that is 256 times less, about 6e-5, so each
-    gradient's difference is held within 1e-3 of its norm; a set left out of the one render, or its gradient cut,
-    moves a gradient by its whole share."""
+    every frequency open their gradients lie up to 1.5 % apart on one thread (measured). With 2^1 the top frequency open
+    (TERMS) that is 256 times less, about 6e-5, so each gradient's difference is held within 1e-3 of its norm; a set
+    left out of the one render, or its gradient cut, moves a gradient by its whole share."""
     together, grads, calls = _step(trainer, alone=False)
     reference, grads_alone, calls_alone = _step(trainer, alone=True)
     assert len(calls) == 1 and len(calls_alone) == 5

@@ -1,4 +1,4 @@
-"""The body fit's silhouette term (pipelines/prepare/silhouettes.py): its distance map equals scipy's exact
+"""The body fit's silhouette term (pipelines/prepare/body/masks.py): its distance map equals scipy's exact
 transform and is the same bits on every call, is read where a projected vertex falls (checked against scipy's
 interpolation of the same map), hand-computed values of both chamfer terms, and on the synthetic recording the masks
 bring the fitted body closer to the true one than keypoints alone."""
@@ -14,7 +14,7 @@ from scipy.ndimage import distance_transform_edt, map_coordinates
 from pipelines.body.silhouettes import distance_to_mask, nearest_points, nearest_points_reference
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.capture import ZjuCapture
-from pipelines.prepare.silhouettes import SilhouetteSettings, SilhouetteTerm, silhouette_targets
+from pipelines.prepare.body.masks import SilhouetteSettings, SilhouetteTerm, silhouette_targets
 
 
 def _camera(width=64, height=64, f=50.0):
@@ -166,7 +166,7 @@ def test_a_slightly_turned_camera_is_corrected(tmp_path):
     turns it back at least 40 % of the way and reports the correction; with --keep-calibration it stays as given.
     Not all the way: the prior (scale 1 degree) pulls the camera towards the calibration, and the body, fitted at
     the same time, meets a turned camera part of the way (measured: 0.30 degrees left of 0.6). The check of each
-    camera's distance at full size (``pipelines.prepare.camera_depth``) leaves these 256-px cameras alone."""
+    camera's distance at full size (``pipelines.prepare.body.camera_depth``) leaves these 256-px cameras alone."""
     from pipelines.cli import prepare_capture
     from pipelines.cli.common import run_cli
     from pipelines.datasets.rig_files import read_qualisys, write_qualisys

@@ -1,5 +1,5 @@
-"""Time offsets told apart from calibration errors (pipelines.prepare.sync): keypoints of a moving body seen by a
-ring of cameras, one of them turned slightly (a calibration error), another started late."""
+"""Time offsets told apart from calibration errors (pipelines.prepare.sync.keypoints): keypoints of a moving body seen
+by a ring of cameras, one of them turned slightly (a calibration error), another started late."""
 
 import numpy as np
 import pytest
@@ -7,8 +7,8 @@ from scipy.spatial.transform import Rotation
 
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.keypoints import TARGETS
-from pipelines.prepare.multiview import projection_matrix
-from pipelines.prepare.sync import (
+from pipelines.prepare.people.multiview import projection_matrix
+from pipelines.prepare.sync.keypoints import (
     MAX_OFFSET,
     METHOD_POSITIONAL,
     MIN_TOTAL_GAIN,

@@ -1,4 +1,4 @@
-"""Cameras in step from the silhouettes (pipelines.prepare.sync_silhouettes): masks of spheres that walk and swing,
+"""Cameras in step from the silhouettes (pipelines.prepare.sync.silhouettes): masks of spheres that walk and swing,
 seen by a ring of cameras, one of them started late, one turned slightly (a calibration error)."""
 
 import cv2
@@ -7,10 +7,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from pipelines.datasets.camera import Camera
-from pipelines.prepare import sync_apply, sync_silhouettes
-from pipelines.prepare.observe import Observations
-from pipelines.prepare.sync_apply import METHOD_COMBINED, combined, combined_shifts
-from pipelines.prepare.sync_silhouettes import inside, person_boxes, silhouette_offsets
+from pipelines.prepare.sources.observe import Observations
+from pipelines.prepare.sync import apply as sync_apply
+from pipelines.prepare.sync import silhouettes as sync_silhouettes
+from pipelines.prepare.sync.apply import METHOD_COMBINED, combined, combined_shifts
+from pipelines.prepare.sync.silhouettes import inside, person_boxes, silhouette_offsets
 from pipelines.synthetic.scene import look_at
 
 N_FRAMES, SIZE = 40, 400

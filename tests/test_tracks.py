@@ -1,11 +1,12 @@
-"""Linking people into tracks (pipelines.prepare.people): a new track joins an ended one only within that one's
+"""Linking people into tracks (pipelines.prepare.people.tracks): a new track joins an ended one only within that one's
 reach, however near another ended track is; nobody found, somebody entering mid-take, ties, and the largest person's
 size counted only in front of each camera; a track's left and right sides held over time."""
 
 import numpy as np
 import pytest
 
-from pipelines.prepare.people import (
+from pipelines.prepare.people.follow import _others
+from pipelines.prepare.people.tracks import (
     JOIN_RADIUS,
     MAX_GAP,
     SIDE_RATIO,
@@ -16,7 +17,6 @@ from pipelines.prepare.people import (
     nearest_track,
     orient_sides,
 )
-from pipelines.prepare.run import _others
 
 
 def _at(x: float) -> np.ndarray:
@@ -153,7 +153,7 @@ def test_tracks_keep_their_sides_where_most_views_swap_them():
     swapped in every frame and, in frames 3 and 6, three of four: the person and their mirror reproject alike, so
     those frames' consensus may find either; the track's targets hold the true sides in every frame."""
     from pipelines.datasets.camera import Camera, project_distorted
-    from pipelines.prepare.person_targets import find_tracks
+    from pipelines.prepare.people.targets import find_tracks
     from pipelines.synthetic.scene import look_at
 
     K = np.array([[600.0, 0, 320], [0, 600.0, 240], [0, 0, 1]])
@@ -187,7 +187,7 @@ def test_no_track_to_follow_is_a_capture_error_naming_the_cause():
     """No person seen by two agreeing cameras: one line a user can act on, not a bare ValueError. (Checked against
     the bare ``ValueError("no tracks")``: the test fails.)"""
     from pipelines.datasets.errors import CaptureError
-    from pipelines.prepare.people import choose_track
+    from pipelines.prepare.people.tracks import choose_track
 
     with pytest.raises(CaptureError, match="no person to follow"):
         choose_track([], "best-seen", [])

@@ -186,7 +186,7 @@ class BodyModel:
     @functools.cached_property
     def template_normals(self) -> torch.Tensor:
         """(6890, 3) unit vertex normals of the mean template (``fitting.mesh.vertex_normals``), the directions of a
-        fit's per-vertex displacement (``pipelines.prepare.body_fit``)."""
+        fit's per-vertex displacement (``pipelines.prepare.body.fit``)."""
         normals = vertex_normals(self.smpl.v_template.double().numpy(), self.faces)
         return torch.as_tensor(normals, dtype=self.dtype)
 

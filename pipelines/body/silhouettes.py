@@ -10,7 +10,7 @@ refined against the masks*): two robust chamfer distances between the projected 
 rho is Geman-McClure, ``r^2 / (r^2 + 1)``, and s a fraction of the image height: a mask that misses an arm or takes in
 a chair costs a bounded amount, so the other terms (keypoints, a prior) keep the body where the mask is wrong. Both
 terms work in undistorted pixels, on masks undistorted and reduced to at most ``height`` rows. Used by
-``narf-prepare-capture``'s body fit (``pipelines.prepare.silhouettes``) and by a subject fit's refinement of the
+``narf-prepare-capture``'s body fit (``pipelines.prepare.body.masks``) and by a subject fit's refinement of the
 capture's bodies (``pipelines.runs.subject.body_refine``).
 """
 
@@ -28,7 +28,7 @@ from scipy.spatial import cKDTree
 @dataclass(frozen=True)
 class SilhouetteSettings:
     """The silhouette term's settings (module docstring); its weight and iterations are the body fit's
-    (``pipelines.prepare.body_fit.FitSettings``)."""
+    (``pipelines.prepare.body.fit.FitSettings``)."""
 
     scale: float = 0.02  # fraction of the image height at which a residual counts half
     height: int = 256  # rows of the reduced masks

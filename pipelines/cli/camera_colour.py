@@ -32,7 +32,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.frames < 3:
         raise ValueError(f"--frames must be at least 3 (a median of fewer is not a background), got {args.frames}")
     from fitting.files import folder_lock
-    from pipelines.prepare.colour import colour_summary, write_capture_colour
+    from pipelines.prepare.layout.colour import colour_summary, write_capture_colour
 
     target = args.capture / "colour.json"
     with folder_lock(args.capture):  # the capture's writer: not into a folder narf-prepare-capture is replacing

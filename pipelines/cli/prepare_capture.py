@@ -137,7 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _sync(text: str):
-    from pipelines.prepare.sync_apply import parse_sync
+    from pipelines.prepare.sync.apply import parse_sync
 
     try:
         return parse_sync(text)
@@ -221,8 +221,9 @@ def _choices(parser: argparse.ArgumentParser) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(attach_dash_values(argv, ("--frames",)))
-    from pipelines.prepare.body_fit import FitSettings
-    from pipelines.prepare.run import PrepareRequest, prepare_capture
+    from pipelines.prepare.body.fit import FitSettings
+    from pipelines.prepare.request import PrepareRequest
+    from pipelines.prepare.run import prepare_capture
 
     if isinstance(args.person, int) and args.smpl_params is None:
         raise ValueError("--person ID picks a person of --smpl-params; give --smpl-params too")
@@ -321,8 +322,8 @@ def _correction_text(moved: dict | None) -> str:
 
 
 def _person(text: str):
-    """``--person``: a person's id (an integer, for --smpl-params) or whom to follow (``prepare.people``)."""
-    from pipelines.prepare.people import parse_person
+    """``--person``: a person's id (an integer, for --smpl-params) or whom to follow (``prepare.people.tracks``)."""
+    from pipelines.prepare.people.tracks import parse_person
 
     if text.lstrip("-").isdigit():
         return int(text)
@@ -335,7 +336,7 @@ def _person(text: str):
 def _print_colour(colour: dict | None) -> None:
     """One line of the cameras' colour gains (report.json 'colour', colour.json)."""
     if colour:
-        from pipelines.prepare.colour import colour_summary
+        from pipelines.prepare.layout.colour import colour_summary
 
         print(f"  camera colour, {colour_summary(colour)}")
 

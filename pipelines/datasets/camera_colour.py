@@ -1,5 +1,5 @@
 """Each camera's colour gain: ``colour.json`` of a capture (docs/formats.md §1.12), measured on the floor by
-``pipelines.prepare.colour``.
+``pipelines.prepare.layout.colour``.
 
 The gain g_c (3,) of camera c is what its pixels record of a colour the rig's cameras see in common: a pixel of a
 Lambertian surface is ``g_c * C`` per channel, and the gains' geometric mean over the cameras is 1, so ``C`` is the
@@ -49,8 +49,8 @@ def read_camera_colour(path: Path, names: list[str]) -> np.ndarray:
 
 
 def write_camera_colour(path: Path, names: list[str], measured: dict) -> None:
-    """Write ``colour.json``: ``measured`` is ``pipelines.prepare.colour.measure_camera_colour``'s result. Gains that
-    :func:`read_camera_colour` would refuse are a ValueError here, before anything is written."""
+    """Write ``colour.json``: ``measured`` is ``pipelines.prepare.layout.colour.measure_camera_colour``'s result. Gains
+    that :func:`read_camera_colour` would refuse are a ValueError here, before anything is written."""
     gains = np.asarray(measured["gains"], float)
     if not (np.isfinite(gains) & (gains >= GAIN_RANGE[0]) & (gains <= GAIN_RANGE[1])).all():
         raise ValueError(f"{path}: gains outside {list(GAIN_RANGE)} are not written: {gains.round(3).tolist()}")

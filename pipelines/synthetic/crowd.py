@@ -1,5 +1,5 @@
-"""Random crowded multi-view scenes for the consensus of views (``pipelines.prepare.multiview.consensus``): cameras
-on a circle, people as clouds of targets, per view each person's detection (pixel noise, missing joints) and a
+"""Random crowded multi-view scenes for the consensus of views (``pipelines.prepare.people.multiview.consensus``):
+cameras on a circle, people as clouds of targets, per view each person's detection (pixel noise, missing joints) and a
 scrambled copy, now and then a false person and a missed one. The test oracle and the benchmark share them
 (tests/test_consensus.py, ``python -m bench consensus``)."""
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from fitting.files import atomic_write_bytes
-from pipelines.prepare.sources import Source
+from pipelines.prepare.sources.recordings import Source
 
 
 def detections_folder(out: Path) -> Path:
@@ -124,6 +124,22 @@ class CachedDetector:
     def clear(self) -> None:
         """Remove the cache (all of it)."""
         shutil.rmtree(self.folder, ignore_errors=True)
+
+
+def report_detections(seen, detector: CachedDetector | None):
+    """``seen`` with how many views the cache gave back and how many were detected, and the cache's size
+    (``seen.detections``; nothing without a detector). The cache stays for the next run with the same ``--out``
+    (docs/guides/real-captures.md)."""
+    if detector is not None:
+        files, size = detector.used_size()
+        seen.detections = {
+            "reused": detector.reused,
+            "detected": detector.detected,
+            "cache": str(detector.folder),
+            "cache_files": files,
+            "cache_mb": round(size / 1e6, 1),
+        }
+    return seen
 
 
 def _encode(keypoints: np.ndarray | None, mask: np.ndarray | None) -> bytes:

@@ -27,7 +27,6 @@ import numpy as np
 from pipelines.body.silhouettes import distance_to_mask
 from pipelines.datasets.camera import Camera, project_distorted
 from pipelines.datasets.keypoints import TARGET_NAMES
-from pipelines.prepare.checks import body_neighbourhood
 
 #: a view is left out when other people's regions cover more than this share of the followed person's region
 OVERLAP_SHARE = 0.25
@@ -54,6 +53,13 @@ BONE_RADII = (
 DEPTH_PIECES = 4
 #: the torso's quadrilateral, filled between the capsules of its sides
 TORSO = ("l_shoulder", "r_shoulder", "r_hip", "l_hip")
+
+
+def body_neighbourhood(body: np.ndarray, margin_fraction: float = 0.04) -> np.ndarray:
+    """(H, W) bool: the pixels within ``margin_fraction`` of the image height of the (H, W) bool ``body``."""
+    if not body.any():
+        return np.zeros_like(body)
+    return distance_to_mask(body) <= max(1.0, margin_fraction * body.shape[0])
 
 
 def _index(name: str) -> int:
@@ -195,7 +201,7 @@ def person_mask(
     raw: np.ndarray, body: np.ndarray, camera: Camera, points: np.ndarray, others: list[np.ndarray]
 ) -> tuple[np.ndarray, np.ndarray]:
     """The followed person's mask and the pixels of unknown owner, both (H, W) bool, from a view's ``raw`` segmenter
-    mask: the raw mask within the fitted ``body``'s neighbourhood (``checks.body_neighbourhood``), less the others
+    mask: the raw mask within the fitted ``body``'s neighbourhood (``body_neighbourhood``), less the others
     outside the body (:func:`without_others`) and less the unknown pixels (:func:`hidden_region`). ``points``: the
     person's (T, 3) targets; ``others``: the other people's; ``camera`` of the masks' size."""
     near = body_neighbourhood(body)
@@ -204,7 +210,7 @@ def person_mask(
 
 
 def leave_out_overlapped(cameras: list[Camera], found) -> list[int]:
-    """Mark as unused (``found.used``) each used view of ``found`` (``pipelines.prepare.person_targets.Triangulated``)
+    """Mark as unused (``found.used``) each used view of ``found`` (``pipelines.prepare.people.targets.Triangulated``)
     where the other people of its frame (``found.others``) cover more than ``OVERLAP_SHARE`` of the person
     (:func:`overlap_share`); their keypoints' confidences become 0 (the detector may have found somebody else).
     Returns the number of views left out per camera, also added to ``found.view_notes[v]["overlapped"]``."""

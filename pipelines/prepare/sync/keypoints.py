@@ -1,10 +1,10 @@
 """Cameras in step (docs/guides/real-captures.md, *Cameras in step*): each camera's time offset, estimated from the
-keypoints, told apart from a calibration error; :mod:`pipelines.prepare.sync_apply` corrects the whole-frame part
+keypoints, told apart from a calibration error; :mod:`pipelines.prepare.sync.apply` corrects the whole-frame part
 of it by renumbering that camera's frames.
 
 Camera c's offset d (frames) says that its frame t shows the instant of the other cameras' frame t + d: a camera
 started k frames late has d = +k. For a candidate d the other cameras' keypoints of frame t + d are triangulated
-(confidence-weighted DLT, ``pipelines.prepare.multiview``) and projected into camera c; the residual is c's own
+(confidence-weighted DLT, ``pipelines.prepare.people.multiview``) and projected into camera c; the residual is c's own
 keypoint minus that projection, as a fraction of the image height.
 
 A time offset and a calibration error leave different marks on the residual: an error of the camera's pose or
@@ -29,8 +29,8 @@ capture's error (the mean over cameras of the score in step) most is made, if it
 least, and the search repeats; what is left below a frame is reported. Beside it, Pose2Sim's calibration-free
 estimate (the lag that best correlates a camera's keypoint speeds with the others') is a second opinion, and with one
 person in view the silhouettes give another that does not go through the keypoints
-(:mod:`pipelines.prepare.sync_silhouettes`). The speed correlation shifts nothing; the silhouettes' look is averaged
-with this one where the two agree (:mod:`pipelines.prepare.sync_apply`).
+(:mod:`pipelines.prepare.sync.silhouettes`). The speed correlation shifts nothing; the silhouettes' look is averaged
+with this one where the two agree (:mod:`pipelines.prepare.sync.apply`).
 
 Each view's person is its most confident detection (summed confidence): one person in view, or the one nearest the
 cameras, dominates.
@@ -44,7 +44,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from pipelines.datasets.keypoints import TARGETS, mirror_index
-from pipelines.prepare.multiview import project, projection_matrix, triangulate_robust, undistort_points
+from pipelines.prepare.people.multiview import project, projection_matrix, triangulate_robust, undistort_points
 
 #: frames searched each way
 MAX_OFFSET = 10

@@ -7,8 +7,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from pipelines.body.silhouettes import distance_to_mask
-
 #: a camera is flagged when its median reprojection error exceeds this fraction of the image height and stands this
 #: many times above the median of the other cameras (cameras that all agree at a poor figure are a warning about the
 #: capture, :func:`reprojection_notice`, not a fault of each) ...
@@ -21,13 +19,6 @@ FLAG_IOU = 0.6
 FLAG_DISAGREED = 0.2
 #: or when the body fit had to turn it by more than this many degrees or move it by more than this many cm
 FLAG_TURN, FLAG_SHIFT = 2.0, 3.0
-
-
-def body_neighbourhood(body: np.ndarray, margin_fraction: float = 0.04) -> np.ndarray:
-    """(H, W) bool: the pixels within ``margin_fraction`` of the image height of the (H, W) bool ``body``."""
-    if not body.any():
-        return np.zeros_like(body)
-    return distance_to_mask(body) <= max(1.0, margin_fraction * body.shape[0])
 
 
 def iou(a: np.ndarray, b: np.ndarray) -> float:

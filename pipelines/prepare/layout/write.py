@@ -18,12 +18,12 @@ import numpy as np
 from fitting.files import write_image, write_npy
 from pipelines.datasets.camera import project_distorted, silhouette
 from pipelines.datasets.easymocap import write_easymocap_cameras
-from pipelines.datasets.floor import feet_against_floor
+from pipelines.datasets.floor import camera_up, feet_against_floor, floor_from_feet, write_floor
 from pipelines.datasets.keypoints import TARGET_NAMES
 from pipelines.datasets.zju_mocap import BODY_SURFACE, SmplParams, write_annots, write_body_surface, write_params
-from pipelines.prepare.checks import draw_overlay, flag_cameras, iou, reprojection_notice
-from pipelines.prepare.multiview import projection_matrix, relative_errors
-from pipelines.prepare.occlusion import person_mask
+from pipelines.prepare.body.masks import staged_person_mask
+from pipelines.prepare.layout.checks import draw_overlay, flag_cameras, iou, reprojection_notice
+from pipelines.prepare.people.multiview import projection_matrix, relative_errors
 
 OVERLAY_HEIGHT = 480  # rows of each camera's tile in overlay.mp4
 
@@ -61,19 +61,10 @@ def splits(n_frames: int, names: list[str], holdout: str | None, novel_fraction:
     }
 
 
-def staged_person_mask(root: Path, camera, found, i: int, body: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The person's mask and the pixels of unknown owner (``pipelines.prepare.occlusion.person_mask``) of frame ``i``
-    of ``found`` in ``camera``, from its raw mask staged in ``root/.frames/mask_raw`` and the fitted ``body``'s
-    silhouette (H, W) bool."""
-    source = found.frames[i]
-    raw = cv2.imread(str(root / ".frames" / "mask_raw" / camera.name / f"{source:06d}.png"), cv2.IMREAD_GRAYSCALE)
-    return person_mask(raw > 0, body, camera, found.points[i], found.others.get(source, []))
-
-
 def _check_pass(root: Path, seen, found, fitted, vertices, faces, ious: dict, progress=None):
-    """Final masks (``pipelines.prepare.occlusion.person_mask``: the raw ones limited to the body's neighbourhood,
-    less the other people; the pixels of unknown owner in ``mask_unknown/``), overlays and IoU (of the known pixels)
-    per (frame, view), a frame at a time: fills ``ious`` (camera -> list) and yields each frame of
+    """Final masks (``pipelines.prepare.people.occlusion.person_mask``: the raw ones limited to the body's
+    neighbourhood, less the other people; the pixels of unknown owner in ``mask_unknown/``), overlays and IoU (of the
+    known pixels) per (frame, view), a frame at a time: fills ``ious`` (camera -> list) and yields each frame of
     overlay.mp4 (RGB), so that nothing is held for the whole recording."""
     cameras = seen.cameras
     for cam in cameras:
@@ -146,9 +137,19 @@ def _camera_report(seen, found, triangulated, body, ious) -> dict:
         if cam.name in seen.corrections:  # how far the body fit moved the camera (docs/guides/real-captures.md)
             turn, shift = seen.corrections[cam.name]
             per_camera[cam.name]["calibration_correction"] = {"turn_degrees": turn, "shift_cm": shift}
-        if cam.name in seen.depths:  # then moved along its axis (pipelines.prepare.camera_depth)
+        if cam.name in seen.depths:  # then moved along its axis (pipelines.prepare.body.camera_depth)
             per_camera[cam.name].setdefault("calibration_correction", {}).update(seen.depths[cam.name])
     return per_camera
+
+
+def write_capture(root: Path, seen, found, fitted, vertices, faces, holdout, request, calibration) -> dict:
+    """The layout stage of a prepare: the frames, bodies and cameras (:func:`write_sequence`), the floor (the
+    request's, or found under the fitted feet) and the masks, overlays, splits and report (:func:`finish_capture`),
+    all in ``root``; returns the report."""
+    write_sequence(root, seen.cameras, found, fitted, vertices)
+    floor = request.floor or floor_from_feet(vertices, camera_up(seen.cameras))
+    write_floor(root, floor)
+    return finish_capture(root, seen, found, fitted, vertices, faces, holdout, request, calibration, floor)
 
 
 def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, request, calibration, floor) -> dict:
@@ -156,7 +157,7 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
     from tqdm import tqdm
 
     from fitting.video import write_mp4
-    from pipelines.prepare.colour import write_capture_colour
+    from pipelines.prepare.layout.colour import write_capture_colour
 
     cameras, names = seen.cameras, [c.name for c in seen.cameras]
     ious = {}
@@ -221,7 +222,7 @@ def finish_capture(root: Path, seen, found, fitted, vertices, faces, holdout, re
 
 
 def _displacement(fitted) -> dict:
-    """The surface's displacement along the template's normals (SMPL+D; ``pipelines.prepare.body_fit``), cm."""
+    """The surface's displacement along the template's normals (SMPL+D; ``pipelines.prepare.body.fit``), cm."""
     if fitted.displacement is None:
         return {}
     size = 100 * np.abs(fitted.displacement)

@@ -21,7 +21,7 @@ shrinks k geometrically to 1 (Geman-McClure) over its first half, a graduated no
 (docs/guides/real-captures.md, step 6); the global stage, where the limbs are still at rest, keeps k = 1.
 
 A last stage (``silhouette_iterations``) adds the person masks, ``w_s (E_out + E_in)`` of
-``pipelines.prepare.silhouettes`` on the posed vertices, and corrects every camera's pose
+``pipelines.prepare.body.masks`` on the posed vertices, and corrects every camera's pose
 (:class:`CameraCorrection`) against a prior of ``camera_turn`` degrees and ``camera_shift`` metres: a calibration a
 few pixels off moves every view's silhouette the same way in every frame, which no body pose can absorb. With
 ``surface``, that stage also fits one displacement ``d_i`` of every template vertex along its normal, shared by
@@ -71,7 +71,7 @@ class FitSettings:
     robust_reach: float = 4.0  # the keypoint stage's robust kernel starts saturating this many times further out
     shape_prior: float = 1e-3
     offset_prior: float = 5.0
-    silhouette_iterations: int = 400  # the last stage, when the masks take part (pipelines.prepare.silhouettes)
+    silhouette_iterations: int = 400  # the last stage, when the masks take part (pipelines.prepare.body.masks)
     silhouette_lr: float = 0.02
     silhouette_weight: float = 30.0
     refine_cameras: bool = True  # the last stage also corrects each camera's pose (CameraCorrection)
@@ -405,7 +405,7 @@ def fit_body(
         points: (F, T, 3) triangulated targets (NaN: missing).
         progress: optional callable(step, total) for a progress bar.
         silhouettes: optional ``(vertices (n, N, 3) of the keypoint fit, frames (n,) indices) -> term`` of those
-            frames: a last stage adds ``weight * term(vertices, P)`` (``pipelines.prepare.silhouettes``) to the
+            frames: a last stage adds ``weight * term(vertices, P)`` (``pipelines.prepare.body.masks``) to the
             energy, over every frame or window by window (module docstring).
         cameras: (K (V, 3, 3), cam_from_world (V, 3 or 4, 4)) of the undistorted cameras: with ``silhouettes`` and
             ``settings.refine_cameras``, the last stage also corrects the cameras' poses (:class:`CameraCorrection`).

@@ -1,13 +1,13 @@
 """Cameras in step, a second look from the silhouettes (docs/guides/real-captures.md, *Cameras in step*).
 
-The keypoint estimate (:mod:`pipelines.prepare.sync`) reads an offset from where a detector puts each joint. A
+The keypoint estimate (:mod:`pipelines.prepare.sync.keypoints`) reads an offset from where a detector puts each joint. A
 detector whose error in one view follows the motion (a swinging limb blurred or half hidden from that side) leaves the
 same mark there as a time offset. The masks give an estimate that does not go through the joints' places: for camera
 c and frame t, the cells of a grid around the person (the box of the joints triangulated at t, padded by ``PAD``
 metres, ``GRID`` cells a side) that project inside every other camera's mask at t are their visual hull; the share of
 those cells that project inside c's own mask at frame t - d (the frame that shows the others' instant t if c is d
 frames late), over the frames, scores the offset d (d, its sign and the whole-frame shifts as in
-:mod:`pipelines.prepare.sync`: a camera started k frames late has d = +k).
+:mod:`pipelines.prepare.sync.keypoints`: a camera started k frames late has d = +k).
 
 A calibration error moves c's projection of the hull by about the same image distance in every frame, and lowers the
 share at the offsets that move the mask the same way less than at the others: so at each d the share is taken with

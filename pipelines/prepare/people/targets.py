@@ -13,7 +13,7 @@ import numpy as np
 
 from pipelines.datasets.camera import Camera
 from pipelines.datasets.keypoints import TARGET_NAMES, TARGETS, mirror_index
-from pipelines.prepare.multiview import (
+from pipelines.prepare.people.multiview import (
     consensus,
     project,
     projection_matrix,
@@ -21,7 +21,7 @@ from pipelines.prepare.multiview import (
     triangulate_robust,
     undistort_points,
 )
-from pipelines.prepare.people import (
+from pipelines.prepare.people.tracks import (
     TRACK_RADIUS,
     Track,
     link_tracks,
@@ -55,7 +55,7 @@ class Triangulated:
         dropped: source frame -> reason.
         view_notes: per view, counts of views with nobody seen, views showing somebody else (another person the
             views agree on), views that disagreed, and views left out since other people overlapped the person
-            (``pipelines.prepare.occlusion``; counted by the caller).
+            (``pipelines.prepare.people.occlusion``; counted by the caller).
         others: source frame -> the other people's (T, 3) targets in it (``triangulate_people``'s ``others``).
     """
 
@@ -106,7 +106,8 @@ def _nearest(P, undistorted, person, chosen, xyz) -> np.ndarray:
 
 def find_tracks(cameras: list[Camera], people, frames: list[int], threshold: float) -> list[Track]:
     """Every person the views agree on in ``frames``, linked into tracks whose sides hold over time
-    (``pipelines.prepare.people``, ``orient_sides``); ``people`` and ``threshold`` as :func:`triangulate_people`'s."""
+    (``pipelines.prepare.people.tracks``, ``orient_sides``); ``people`` and ``threshold`` as
+    :func:`triangulate_people`'s."""
     P = np.stack([projection_matrix(c) for c in cameras])
     heights = np.array([c.height for c in cameras], np.float64)
     per_frame = {}
@@ -133,9 +134,9 @@ def triangulate_people(
     Args:
         people: ``people[v][frame]`` lists of (T, 3) targets (distorted pixels). frames: source frames to use.
         threshold: reprojection error (fraction of the image height) beyond which a view disagrees.
-        route: the followed person's targets by frame (``pipelines.prepare.people.guide``): each frame keeps the
+        route: the followed person's targets by frame (``pipelines.prepare.people.tracks.guide``): each frame keeps the
             person within ``TRACK_RADIUS`` of them, and a frame without them is dropped. None: the person is followed
-            from the first frame two views agree on, within ``pipelines.prepare.people.reach``.
+            from the first frame two views agree on, within ``pipelines.prepare.people.tracks.reach``.
         others: the other people's targets by frame (lists of (T, 3)): a view that shows one of them is counted as
             showing somebody else, not as disagreeing.
     """

@@ -17,9 +17,9 @@ import numpy as np
 from fitting.files import write_image
 from pipelines.datasets.camera import Camera, project_distorted
 from pipelines.datasets.keypoints import mirror_index, to_targets
-from pipelines.prepare.multiview import projection_matrix, undistort_points
-from pipelines.prepare.people import matches
-from pipelines.prepare.person_targets import MIN_CONFIDENCE
+from pipelines.prepare.people.multiview import projection_matrix, undistort_points
+from pipelines.prepare.people.targets import MIN_CONFIDENCE
+from pipelines.prepare.people.tracks import matches
 
 #: the box around the projected targets grows by this fraction of its size on each side (the targets are joints:
 #: the head's top, the hands and the feet lie outside them)
@@ -49,12 +49,13 @@ def crop_box(camera: Camera, points: np.ndarray) -> tuple[int, int, int, int] | 
 
 
 def redetect(folder: Path, seen, route: dict, crops: dict, detector, threshold: float, others=None, progress=None):
-    """Detect again, inside :func:`crop_box`, every view of a ``route`` frame (``pipelines.prepare.people.guide``)
-    whose detections all miss that person, with the other people of the frame (``others[frame]``: (T, 3) targets)
-    painted grey where they do not overlap the person (:func:`painted_crop`). A crop that finds somebody adds that
-    detection to the view (the consensus picks) and (box, cache key) to ``crops[(view, frame)]`` (:func:`crop_masks`
-    writes its mask if the person is kept). ``detector``: a ``pipelines.prepare.detections.CachedDetector``;
-    ``progress()`` is called once per view looked at. Returns the number of views detected again."""
+    """Detect again, inside :func:`crop_box`, every view of a ``route`` frame
+    (``pipelines.prepare.people.tracks.guide``) whose detections all miss that person, with the other people of the
+    frame (``others[frame]``: (T, 3) targets) painted grey where they do not overlap the person (:func:`painted_crop`).
+    A crop that finds somebody adds that detection to the view (the consensus picks) and (box, cache key) to
+    ``crops[(view, frame)]`` (:func:`crop_masks` writes its mask if the person is kept). ``detector``: a
+    ``pipelines.prepare.sources.detections.CachedDetector``; ``progress()`` is called once per view looked at. Returns
+    the number of views detected again."""
     count = 0
     for v, camera in enumerate(seen.cameras):
         for frame, points in route.items():
@@ -82,7 +83,7 @@ def redetect_masks(
     folder: Path, seen, found, crops: dict, detector, threshold: float, others=None, progress=None
 ) -> int:
     """With keypoints from files and masks from the segmenter: each view of ``found``'s frames
-    (``pipelines.prepare.person_targets.Triangulated``) whose mask came with a detection of somebody else, or that
+    (``pipelines.prepare.people.targets.Triangulated``) whose mask came with a detection of somebody else, or that
     has no mask since the detector found nobody (``seen.mask_owners``), is detected again around the person
     (:func:`redetect`), so that :func:`crop_masks` gives it the crop's mask or leaves it out; a mask that came with
     no detection (a segmenter alone) is kept. The files' people are left as they are. ``progress()`` is called once
@@ -131,7 +132,7 @@ def _near(shape: tuple[int, int], pixels: np.ndarray, radius: float) -> np.ndarr
 
 
 def crop_masks(folder: Path, seen, found, crops: dict, whole: dict, detector, threshold: float) -> int:
-    """Each used view of ``found`` (``pipelines.prepare.person_targets.Triangulated``) takes the mask that came with
+    """Each used view of ``found`` (``pipelines.prepare.people.targets.Triangulated``) takes the mask that came with
     a detection of the person: a crop's (:func:`redetect`; read back from the detection cache) replaces the raw mask
     in ``folder/mask_raw``; the whole image's detection (``whole[(view, frame)]``, targets) keeps it. A view where
     neither shows the person has only somebody else's mask: it is no longer used (``found.used``). Returns the
@@ -185,7 +186,7 @@ def cut_mask(mask: np.ndarray, pixels: np.ndarray) -> np.ndarray:
 
 def cut_masks(folder: Path, cameras: list[Camera], found) -> None:
     """Every kept view's raw mask in ``folder/mask_raw`` cut (:func:`cut_mask`) to the triangulated person of its
-    frame (``found``: ``pipelines.prepare.person_targets.Triangulated``)."""
+    frame (``found``: ``pipelines.prepare.people.targets.Triangulated``)."""
     for i, frame in enumerate(found.frames):
         for camera in cameras:
             path = folder / "mask_raw" / camera.name / f"{frame:06d}.png"

@@ -1,8 +1,8 @@
 """The cameras' time offsets applied to a capture (docs/guides/real-captures.md, *Cameras in step*): ``--sync``'s
 modes, each camera's frames renumbered by its whole shift, and the record the report keeps. The estimates are
-:mod:`pipelines.prepare.sync`'s (the keypoints) and :mod:`pipelines.prepare.sync_silhouettes`'s (the masks). Where the
-two looks agree within a frame, a camera's offset is their mean: on the Pose2Sim demo each is about a frame off in
-one camera where the other is not (the keypoints in cam03, the silhouettes half a frame in cam04), and their mean
+:mod:`pipelines.prepare.sync.keypoints`'s (the keypoints) and :mod:`pipelines.prepare.sync.silhouettes`'s (the masks).
+Where the two looks agree within a frame, a camera's offset is their mean: on the Pose2Sim demo each is about a frame
+off in one camera where the other is not (the keypoints in cam03, the silhouettes half a frame in cam04), and their mean
 finds a camera cut by 2-5 frames either way within half a frame in 24 of 24 cuts where the keypoints alone did in 18
 (docs/results/real-capture.md, *Cameras in step*). A camera whose mean calls for another whole shift than the
 keypoints' is shifted by it and every offset estimated again (:func:`combined_shifts`).
@@ -15,8 +15,8 @@ from dataclasses import replace
 import numpy as np
 
 from pipelines.datasets.errors import CaptureError
-from pipelines.prepare.sync import POSITION_AGREEMENT, find_offsets, triangulated_joints
-from pipelines.prepare.sync_silhouettes import silhouette_offsets
+from pipelines.prepare.sync.keypoints import POSITION_AGREEMENT, find_offsets, triangulated_joints
+from pipelines.prepare.sync.silhouettes import silhouette_offsets
 
 #: with several people in this share of the views or more, ``auto`` reports and applies nothing before the person
 #: is followed (each view's most confident detection may be somebody else)
@@ -130,9 +130,9 @@ def _shift_cameras(seen, folder, shifts: dict[str, int], stride: int):
 
 
 def _estimate(seen, folder, stride: int = 1) -> tuple[dict[str, dict], float]:
-    """(every camera's estimate, :func:`~pipelines.prepare.sync.find_offsets`' with the silhouettes' look and their
-    mean where one person is in view and the raw masks are there; the share of views with several people), in steps
-    of ``stride`` frames."""
+    """(every camera's estimate, :func:`~pipelines.prepare.sync.keypoints.find_offsets`' with the silhouettes' look and
+    their mean where one person is in view and the raw masks are there; the share of views with several people), in
+    steps of ``stride`` frames."""
     estimates = find_offsets(seen.cameras, seen.frames, seen.people)
     crowded = crowded_share(seen.people)
     if crowded < CROWDED and (folder / "mask_raw").is_dir():
@@ -157,9 +157,9 @@ def combined_shifts(estimates: dict[str, dict]) -> dict[str, int]:
 
 
 def with_silhouettes(estimates: dict[str, dict], seen, folder, stride: int = 1) -> dict[str, dict]:
-    """``estimates`` (:func:`~pipelines.prepare.sync.find_offsets`) with each camera's ``silhouettes``: the offset the
-    masks in ``folder`` (``<camera>/<source frame:06d>.png``) give near the keypoints' whole shifts
-    (:func:`pipelines.prepare.sync_silhouettes.silhouette_offsets`), and whether it ``agrees`` with the keypoints'
+    """``estimates`` (:func:`~pipelines.prepare.sync.keypoints.find_offsets`) with each camera's ``silhouettes``: the
+    offset the masks in ``folder`` (``<camera>/<source frame:06d>.png``) give near the keypoints' whole shifts
+    (:func:`pipelines.prepare.sync.silhouettes.silhouette_offsets`), and whether it ``agrees`` with the keypoints'
     within ``POSITION_AGREEMENT`` frames; where it does, :func:`combined`."""
     timeline, points = triangulated_joints(seen.cameras, seen.frames, seen.people)
     start = [estimates[c.name].get("whole_frames", 0) for c in seen.cameras]
@@ -179,8 +179,8 @@ def combined(entry: dict) -> dict:
     silhouettes'. A camera the keypoints left in place whose mean lies within half a frame of step is ``in step``
     (the silhouettes settle what the keypoints' own error called ``uncertain``); a shift of ``CONFIRMED`` frames or
     more that the mean rounds to is of high confidence (one frame is what the keypoints cannot tell from the
-    calibration, ``pipelines.prepare.sync.MIN_TOTAL_GAIN``, and on the demo both looks then read the cameras not cut a
-    frame off as often as the one cut)."""
+    calibration, ``pipelines.prepare.sync.keypoints.MIN_TOTAL_GAIN``, and on the demo both looks then read the cameras
+    not cut a frame off as often as the one cut)."""
     keypoints = {"offset_frames": entry["offset_frames"], "method": entry.get("method")}
     mean = round((entry["offset_frames"] + entry["silhouettes"]["offset_frames"]) / 2, 2)
     out = dict(entry, offset_frames=mean, keypoints=keypoints, method=METHOD_COMBINED)
@@ -208,7 +208,7 @@ def crowded_share(people: list[dict]) -> float:
 
 def report_followed(seen, found):
     """``seen`` with its ``report``-mode estimates made again on the followed person alone (``found``: the
-    ``pipelines.prepare.person_targets.Triangulated`` person, in the views that agreed on them): with other people
+    ``pipelines.prepare.people.targets.Triangulated`` person, in the views that agreed on them): with other people
     in view, each view's most confident detection, which the first estimate takes, may be somebody else. Other modes
     are returned as they are (their shifts were made before the person was followed)."""
     if seen.sync.get("mode") != "report":

@@ -22,7 +22,7 @@ import numpy as np
 from pipelines.datasets.camera import Camera, project_distorted
 from pipelines.datasets.errors import CaptureError
 from pipelines.datasets.keypoints import TARGETS, mirror_index
-from pipelines.prepare.multiview import consensus, project, triangulate_robust
+from pipelines.prepare.people.multiview import consensus, project, triangulate_robust
 
 #: metres a followed person may move per frame (a sprinter at 60 fps moves 0.2 m); beyond it, it is somebody else
 TRACK_RADIUS = 0.5

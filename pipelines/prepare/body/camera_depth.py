@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from pipelines.datasets.camera import Camera, silhouette
-from pipelines.prepare.layout import staged_person_mask
+from pipelines.prepare.body.masks import staged_person_mask
 
 #: the distances tried: within this fraction of the camera's distance to the body, either way ...
 DEPTH_RANGE = 0.03
@@ -149,8 +149,8 @@ def spread_views(used: np.ndarray, count: int = DEPTH_VIEWS) -> list[int]:
 def check_camera_depths(root: Path, seen, found, vertices: np.ndarray, faces: np.ndarray):
     """``seen`` with every camera checked and moved as the module docstring says, on its used views of ``found`` (the
     raw masks in ``root/.frames/mask_raw``, reduced to the person's as the capture's own masks are,
-    ``pipelines.prepare.layout.staged_person_mask``) against the fitted ``vertices`` (F, N, 3); the checks' records in
-    ``seen.depths`` (a camera not searched: ``{"depth_cm": 0.0, "depth_skipped": why}``)."""
+    ``pipelines.prepare.body.masks.staged_person_mask``) against the fitted ``vertices`` (F, N, 3); the checks' records
+    in ``seen.depths`` (a camera not searched: ``{"depth_cm": 0.0, "depth_skipped": why}``)."""
 
     def views_of(v: int, camera: Camera) -> list[View]:
         views = []
