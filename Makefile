@@ -78,11 +78,14 @@ test-fast: lint
 bench: $(STAMP)
 	$(PY) -m bench
 
-# The docs' picture of the real demo from current fits: the held-out camera's ground truth beside each run's render
-# (novel view, novel pose), e.g. `make docs-images DOCS_RUNS="RUN_CPU RUN_CPU_GRID"` with two 10-minute fits of
-# data/real/demo_dz (docs/results/detail.md says which made the picture in the docs).
-DOCS_RUNS ?= runs/demo-real
+# The docs' pictures from current runs (after `make demo` and `make demo-real`): the README's held-out pose of the
+# demo fit, the real capture's overlays, and the real demo's held-out camera beside each of DOCS_RUNS' renders, e.g.
+# `make docs-images DOCS_RUNS="RUN_CPU RUN_CPU_GRID"` with two 10-minute fits (docs/results/detail.md). The rigged
+# export's Blender renders and the viewer's screenshot are made by hand (docs/guides/viewer.md says how).
+DOCS_RUNS ?= $(REAL_RUN)
 docs-images: $(STAMP)
+	$(PY) -m bench.docs_images demo $(DEMO_RUN) docs/images/demo.png
+	$(PY) -m bench.docs_images overlay $(REAL_CAPTURE) docs/images/real-overlay.jpg
 	$(PY) -m bench.figure_side_by_side docs/images/real-novel-view.jpg $(DOCS_RUNS)
 
 # The behaviour-unchanged reference: the same fixed-seed tiny fits of every subject model, evaluations, videos and
