@@ -55,6 +55,46 @@ def test_reference_comparison_sees_any_difference():
     assert _stable(a) == _stable(b) and _stable(a) != _stable({**b, "splits": {"x": {"psnr": 20.5}}})
 
 
+def test_reference_compares_prepared_captures_file_by_file(tmp_path):
+    """Two prepared captures: the same when every file is (JSON without its volatile keys); one byte of one image,
+    a number of the report, or a file more, and they differ, naming the file."""
+    from bench.reference import _compare_captures
+
+    for side, cache in (("a", "/x/.a.detections"), ("b", "/y/.b.detections")):
+        (tmp_path / side / "cam01").mkdir(parents=True)
+        (tmp_path / side / "cam01" / "000000.jpg").write_bytes(b"\xff\xd8pixels")
+        report = {"detections": {"cache": cache, "reused": 3}, "iou": 0.9}
+        (tmp_path / side / "report.json").write_text(json.dumps(report))
+    a, b = tmp_path / "a", tmp_path / "b"
+    assert _compare_captures(a, b) == [("2 files", "same")]
+    (b / "cam01" / "000000.jpg").write_bytes(b"\xff\xd8pixelz")
+    assert _compare_captures(a, b) == [("2 files", "differs: cam01/000000.jpg")]
+    (b / "cam01" / "000000.jpg").write_bytes(b"\xff\xd8pixels")
+    (b / "report.json").write_text(json.dumps({"detections": {"cache": "/y", "reused": 3}, "iou": 0.91}))
+    assert _compare_captures(a, b) == [("2 files", "differs: report.json")]
+    (b / "extra.npy").write_bytes(b"")
+    assert _compare_captures(a, b)[0][1].startswith("differ: ['extra.npy']")
+
+
+def test_docs_overlay_puts_every_camera_side_by_side(tmp_path):
+    """``python -m bench.docs_images overlay``: one frame of each camera's overlay, scaled to the picture's height,
+    in the cameras' order; a capture without overlays is refused naming it."""
+    import cv2
+    import numpy as np
+
+    from bench.docs_images import OVERLAY_HEIGHT, overlay_row
+
+    for name, (width, value) in {"cam01": (90, 40), "cam02": (120, 200)}.items():
+        (tmp_path / "cap" / "overlay" / name).mkdir(parents=True)
+        cv2.imwrite(str(tmp_path / "cap" / "overlay" / name / "000050.jpg"), np.full((160, width, 3), value, np.uint8))
+    overlay_row(tmp_path / "cap", tmp_path / "out.jpg", 50)
+    picture = cv2.imread(str(tmp_path / "out.jpg"))
+    assert picture.shape == (OVERLAY_HEIGHT, 270 + 360, 3)  # 90 and 120 columns scaled by 480 / 160
+    assert abs(int(picture[:, :200].mean()) - 40) <= 2 and abs(int(picture[:, 400:].mean()) - 200) <= 2  # JPEG
+    with pytest.raises(SystemExit, match="no overlay"):
+        overlay_row(tmp_path, tmp_path / "none.jpg", 50)
+
+
 def test_reuse_reaches_a_benchmark_that_keeps_its_configurations(tmp_path, monkeypatch):
     """``--reuse`` is passed to a benchmark that keeps each finished configuration (``KEEPS_CONFIGURATIONS``) as an
     argument, and the others are called as before."""
