@@ -4,7 +4,7 @@ Detection uses the OpenCV >= 4.7 API (``CharucoDetector.detectBoard``, ``board.m
 sub-pixel corners. Intrinsics: pinhole + (k1, k2, p1, p2, k3; groups fixable) by ``cv2.calibrateCamera`` on
 every view with enough corners; views whose RMS exceeds max(``outlier_factor`` x the median, 1 px) are dropped
 and the solve repeated. These per-camera values initialise the joint bundle adjustment over all cameras and
-board poses (``pipelines/calibration_rig.py``), which is what reaches the accuracy targets.
+board poses (``pipelines/calibration/rig.py``), which is what reaches the accuracy targets.
 """
 
 from __future__ import annotations

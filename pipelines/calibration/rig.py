@@ -8,7 +8,7 @@ cameras at once.
 
 The bundle adjustment refines, jointly, every camera's pose and intrinsics (fx, fy, cx, cy, k1, k2, p1, p2, k3;
 any of ``FIXABLE`` held at their initial value, k3 = 0 by default) and every non-reference board pose,
-minimising the Huber-robust reprojection error of all detected corners (``pipelines/sparse_lm.py``: sparse
+minimising the Huber-robust reprojection error of all detected corners (``pipelines/calibration/sparse_lm.py``: sparse
 Levenberg-Marquardt). Design choice: the board is kept an exact rigid body (6 parameters per shot) instead of
 free 3-D points as in a structure-from-motion bundle adjustment (pycolmap), and partial ChArUco views need no
 fixed point set per frame (as ``cv2.calibrateMultiview`` expects).
