@@ -11,15 +11,13 @@ The picture of the real demo's held-out camera is ``bench.figure_side_by_side``'
 from __future__ import annotations
 
 import argparse
-import shutil
-import subprocess
-import sys
 import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from bench.figure_side_by_side import first_grid
 from fitting.files import write_image
 
 #: rows of the overlay picture
@@ -27,16 +25,9 @@ OVERLAY_HEIGHT = 480
 
 
 def demo_grid(run: Path, out: Path) -> None:
-    """The first ``novel_pose`` grid of ``run`` (a copy of it evaluated with one grid) written to ``out``."""
+    """The first ``novel_pose`` grid of ``run`` (``bench.figure_side_by_side.first_grid``) written to ``out``."""
     with tempfile.TemporaryDirectory(prefix="narf-docs-") as work:
-        copy = Path(work) / run.name
-        shutil.copytree(run, copy, ignore=shutil.ignore_patterns("eval", "val", "videos"))
-        command = [str(Path(sys.executable).with_name("narf-eval")), "--run", str(copy), "--split", "novel_pose"]
-        subprocess.run([*command, "--limit", "1", "--grids", "1", "--quiet"], check=True, stdout=subprocess.DEVNULL)
-        grids = sorted((copy / "eval" / "grids" / "novel_pose").glob("*.png"))
-        if not grids:
-            raise SystemExit(f"bench.docs_images: error: {run}: narf-eval wrote no novel_pose grid")
-        write_image(out, cv2.imread(str(grids[0])))
+        write_image(out, first_grid(run, "novel_pose", Path(work)))
 
 
 def overlay_row(capture: Path, out: Path, frame: int) -> None:

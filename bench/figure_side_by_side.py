@@ -21,14 +21,23 @@ import numpy as np
 from fitting.files import write_image
 
 
-def _grid_tiles(run: Path, split: str, work: Path) -> tuple[np.ndarray, np.ndarray]:
-    """(ground truth, render) of the first grid ``narf-eval`` writes for ``split`` on a copy of ``run``."""
+def first_grid(run: Path, split: str, work: Path) -> np.ndarray:
+    """The first grid row (ground truth | render | depth | parts | error, BGR) that ``narf-eval --limit 1 --grids 1``
+    writes for ``split`` on a copy of ``run`` in ``work`` (the run's own report stays as it is)."""
     copy = work / run.name
     shutil.rmtree(copy, ignore_errors=True)
     shutil.copytree(run, copy, ignore=shutil.ignore_patterns("eval", "val", "videos"))
     command = [str(Path(sys.executable).with_name("narf-eval")), "--run", str(copy), "--split", split]
     subprocess.run([*command, "--limit", "1", "--grids", "1", "--quiet"], check=True, stdout=subprocess.DEVNULL)
-    image = cv2.imread(str(sorted((copy / "eval" / "grids" / split).glob("*.png"))[0]))
+    grids = sorted((copy / "eval" / "grids" / split).glob("*.png"))
+    if not grids:
+        raise SystemExit(f"{run}: narf-eval wrote no {split} grid")
+    return cv2.imread(str(grids[0]))
+
+
+def _grid_tiles(run: Path, split: str, work: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(ground truth, render) of :func:`first_grid`."""
+    image = first_grid(run, split, work)
     width = _tile_width(image)
     return image[:, :width], image[:, width : 2 * width]
 
