@@ -97,6 +97,9 @@ class ModelConfig:
     grid_min_resolution: int = 8
     grid_max_resolution: int = 128
     grid_log2_rows: int = 12
+    #: narf_d: the trunk's residual blocks B, 2 + 2 B layers of ``width`` (the paper: 3); fewer make the small
+    #: network on top of the part grids (docs/model.md §2, *Part grids*)
+    trunk_blocks: int = 3
 
 
 @dataclass
@@ -481,6 +484,7 @@ RANGES = {
     "model.grid_min_resolution": (lambda v: 1 <= v <= 4096, "in [1, 4096]"),
     "model.grid_max_resolution": (lambda v: 1 <= v <= 4096, "in [1, 4096]"),
     "model.grid_log2_rows": (lambda v: 4 <= v <= 24, "in [4, 24]"),
+    "model.trunk_blocks": (lambda v: 0 <= v <= 8, "in [0, 8]"),
 }
 
 
@@ -520,7 +524,7 @@ def validate_config(config: FitConfig) -> None:
             f"model.grid_max_resolution: must be >= model.grid_min_resolution ({config.model.grid_min_resolution}), "
             f"got {config.model.grid_max_resolution}"
         )
-    for option in ("temperature", "pose_in_color", "image_size", "appearance_dim", "encoding"):
+    for option in ("temperature", "pose_in_color", "image_size", "appearance_dim", "encoding", "trunk_blocks"):
         if option not in spec.options and getattr(config.model, option) != getattr(defaults.model, option):
             users = ", ".join(name for name, other in MODEL_SPECS.items() if option in other.options)
             raise ConfigError(f"model.{option}: {config.model.name} does not take it (only {users})")

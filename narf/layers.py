@@ -117,14 +117,18 @@ def density_activation(name: str):
 
 
 class Trunk(nn.Module):
-    """8 linear layers of width H: Linear+ReLU, 3 residual blocks h + ReLU(Lin(ReLU(Lin(h)))), Linear+ReLU."""
+    """2 + 2 B linear layers of width H: Linear+ReLU, B residual blocks h + ReLU(Lin(ReLU(Lin(h)))), Linear+ReLU.
+    The paper's trunk has B = 3 (8 layers); fewer blocks make the small network on top of the part grids
+    (docs/model.md §2, *Part grids*)."""
 
-    def __init__(self, width: int, groups: int = 1):
+    def __init__(self, width: int, groups: int = 1, blocks: int = 3):
         super().__init__()
+        if blocks < 0:
+            raise ValueError(f"trunk blocks must be >= 0, got {blocks}")
         self.width, self.groups = width, groups
         self.first = WNLinear(width, width, groups)
         self.blocks = nn.ModuleList(
-            nn.ModuleList([WNLinear(width, width, groups), WNLinear(width, width, groups)]) for _ in range(3)
+            nn.ModuleList([WNLinear(width, width, groups), WNLinear(width, width, groups)]) for _ in range(blocks)
         )
         self.last = WNLinear(width, width, groups)
 
@@ -137,9 +141,10 @@ class Trunk(nn.Module):
         return torch.relu_(self.last(hidden, group_index))
 
     def extra_flops(self) -> int:
-        """+H per ReLU module (8) and per residual add (3)."""
-        return self.groups * self.width * (8 + 3)
+        """+H per ReLU module (2 + 2 B) and per residual add (B)."""
+        blocks = len(self.blocks)
+        return self.groups * self.width * (2 + 2 * blocks + blocks)
 
     def extra_memory(self) -> int:
         """+H per residual block."""
-        return self.groups * self.width * 3
+        return self.groups * self.width * len(self.blocks)

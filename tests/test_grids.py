@@ -145,15 +145,35 @@ def test_grid_encoding_is_narf_d_only_and_validated():
         validate_config(config)
 
 
+def test_a_smaller_trunk_drops_two_layers_a_block():
+    """model.trunk_blocks (docs/model.md §2): 2 + 2 B trunk layers of H. From the paper's B = 3 to 1, four (H, H)
+    layers of weight and bias leave: 4 (16 * 16 + 16) = 1,088 parameters at H = 16; the cost table's extras lose
+    3 H a block (two ReLUs and a residual add); the option is NARF_D's alone."""
+    from fitting.config import ConfigError, FitConfig, validate_config
+
+    paper, small = build_field("narf_d", width=16), build_field("narf_d", width=16, trunk_blocks=1)
+    count = lambda field: sum(p.numel() for p in field.parameters())  # noqa: E731
+    assert len(paper.head.trunk.blocks) == 3 and len(small.head.trunk.blocks) == 1
+    assert count(paper) - count(small) == 4 * (16 * 16 + 16)
+    assert paper.head.trunk.extra_flops() - small.head.trunk.extra_flops() == 2 * 3 * 16
+    config = FitConfig()
+    config.model.name, config.model.trunk_blocks = "narf_h", 1
+    with pytest.raises(ConfigError, match="model.trunk_blocks: narf_h does not take it"):
+        validate_config(config)
+    with pytest.raises(ValueError, match="trunk blocks"):
+        build_field("narf_d", trunk_blocks=-1)
+
+
 @pytest.fixture(scope="module")
 def grid_run(data_root_64, tmp_path_factory):
-    """A 3-step tiny NARF_D fit whose parts read grids (plumbing, not quality), through narf-fit."""
+    """A 3-step tiny NARF_D fit whose parts read grids under a one-block trunk (plumbing, not quality), through
+    narf-fit."""
     from pipelines.cli import fit as cli_fit
     from pipelines.cli.common import run_cli
 
     run = tmp_path_factory.mktemp("grid_run") / "run"
     sets = [f"data.data_root={data_root_64}", "data.ratio=1.0", "train.steps=3", "model.encoding=grid"]
-    sets += ["model.grid_log2_rows=10", "train.grid_smoothness=0.01"]
+    sets += ["model.grid_log2_rows=10", "train.grid_smoothness=0.01", "model.trunk_blocks=1"]
     args = ["--config", "tiny", "--out", str(run), "--quiet", *(a for s in sets for a in ("--set", s))]
     assert run_cli("narf-fit", cli_fit.main, args) == 0
     return run
@@ -194,7 +214,8 @@ def test_a_grid_fit_evaluates_exports_and_renders(grid_run, tmp_path, capsys):
 
     evaluate = ["--run", str(grid_run), "--split", "novel_pose", "--limit", "1", "--grids", "0", "--quiet"]
     assert run_cli("narf-eval", cli_eval.main, evaluate) == 0
-    assert json.loads((grid_run / "eval" / "metrics.json").read_text())["encoding"] == "grid"
+    header = json.loads((grid_run / "eval" / "metrics.json").read_text())
+    assert header["encoding"] == "grid" and header["trunk_blocks"] == 1
     mesh = ["--run", str(grid_run), "--resolution", "16", "--level", "1e-6", "--quiet", "--frame", "0"]
     assert run_cli("narf-export-mesh", cli_export.main, [*mesh, "--out", str(tmp_path / "f0.ply")]) == 0
     assert len(trimesh.load(tmp_path / "f0.ply", force="mesh").faces) > 0
@@ -209,8 +230,8 @@ def test_a_grid_fit_evaluates_exports_and_renders(grid_run, tmp_path, capsys):
 
 
 def test_a_run_saved_before_the_grids_loads_with_the_frequency_encoding(tmp_path):
-    """A checkpoint whose config has no ``model.encoding`` nor grid keys (every run fitted before them) loads as
-    the paper's frequency encoding, its weights as they were."""
+    """A checkpoint whose config has no ``model.encoding``, ``model.trunk_blocks`` nor grid keys (every run fitted
+    before them) loads as the paper's frequency encoding and trunk, its weights as they were."""
     from fitting.checkpoint import save_checkpoint
     from fitting.config import load_config
     from fitting.fitted import load_fitted
@@ -218,7 +239,7 @@ def test_a_run_saved_before_the_grids_loads_with_the_frequency_encoding(tmp_path
 
     config = load_config("tiny")
     saved = config.to_dict()
-    for key in [k for k in saved["model"] if k == "encoding" or k.startswith("grid_")]:
+    for key in [k for k in saved["model"] if k in ("encoding", "trunk_blocks") or k.startswith("grid_")]:
         del saved["model"][key]
     for key in [k for k in saved["train"] if k.startswith("grid_")]:
         del saved["train"][key]
@@ -226,4 +247,5 @@ def test_a_run_saved_before_the_grids_loads_with_the_frequency_encoding(tmp_path
     save_checkpoint(tmp_path, {"config": saved, "step": 3, "model": field.state_dict()})
     fitted = load_fitted(tmp_path)
     assert fitted.config.model.encoding == "frequency" and fitted.field.grids is None
+    assert fitted.config.model.trunk_blocks == 3 and len(fitted.field.head.trunk.blocks) == 3
     assert all(torch.equal(v, field.state_dict()[k]) for k, v in fitted.field.state_dict().items())

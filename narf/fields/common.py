@@ -189,6 +189,7 @@ class RadianceHead(nn.Module):
         appearance_dim: size of a per-frame appearance code, which takes z_a's place (W_a z_a; 0: none). A head has
             the autoencoder's latents or a per-frame code, never both.
         density_act: ``leaky_backward`` or ``softplus``.
+        trunk_blocks: the trunk's residual blocks B (:class:`narf.layers.Trunk`; the paper: 3).
     """
 
     def __init__(
@@ -200,6 +201,7 @@ class RadianceHead(nn.Module):
         latent_dim: int = 0,
         density_act: str = "leaky_backward",
         appearance_dim: int = 0,
+        trunk_blocks: int = 3,
     ):
         super().__init__()
         if latent_dim and appearance_dim:
@@ -210,7 +212,7 @@ class RadianceHead(nn.Module):
         self.latent_shape = EqualLinear(latent_dim, width, groups) if latent_dim else None
         code_dim = latent_dim or appearance_dim
         self.latent_appearance = EqualLinear(code_dim, width, groups) if code_dim else None
-        self.trunk = Trunk(width, groups)
+        self.trunk = Trunk(width, groups, trunk_blocks)
         self.sigma_out = WNLinear(width, 1, groups)
         self.color_hidden = WNLinear(width, width // 2, groups, paper_skip=True)
         self.rgb_out = WNLinear(width // 2, 3, groups)

@@ -82,6 +82,7 @@ _GRID_OPTIONS = (
     "grid_min_resolution",
     "grid_max_resolution",
     "grid_log2_rows",
+    "trunk_blocks",
 )
 
 #: Model name -> spec, in ``narf-cost``'s order.

@@ -30,6 +30,7 @@ class NarfH(Field):
         fast: evaluate only in-box (sample, part) pairs (``sparse_parts``); False runs the dense reference.
         grids: None (the paper): each part's density block reads gamma_10(u_i); a GridShape: it reads the part's
             learned multi-resolution grid features g_i(u_i) instead (``narf.grids``, docs/model.md §2, *Part grids*).
+        trunk_blocks: the trunk's residual blocks (the paper: 3, 8 layers; ``narf.layers.Trunk``).
     """
 
     def __init__(
@@ -41,6 +42,7 @@ class NarfH(Field):
         fast: bool = True,
         appearance_dim: int = 0,
         grids: GridShape | None = None,
+        trunk_blocks: int = 3,
     ):
         super().__init__(n_parts, latent_dim, appearance_dim)
         self.fast = fast
@@ -54,6 +56,7 @@ class NarfH(Field):
             latent_dim=latent_dim,
             appearance_dim=appearance_dim,
             density_act=density_act,
+            trunk_blocks=trunk_blocks,
         )
 
     def _density(self, inputs: FieldInputs):
