@@ -142,8 +142,7 @@ class Trunk(nn.Module):
 
     def extra_flops(self) -> int:
         """+H per ReLU module (2 + 2 B) and per residual add (B)."""
-        blocks = len(self.blocks)
-        return self.groups * self.width * (2 + 2 * blocks + blocks)
+        return self.groups * self.width * (2 + 3 * len(self.blocks))
 
     def extra_memory(self) -> int:
         """+H per residual block."""

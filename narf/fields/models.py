@@ -74,8 +74,9 @@ def _field(name, build, label, cost=None, extra=(), family: Family = "field", va
 
 
 _NARF_D_COST = (1.10e6, 205e6, 382e3)
-#: NARF_D's choice of point encoding (docs/model.md §2, *Part grids*); the paper's is ``frequency``
-_GRID_OPTIONS = (
+#: NARF_D's departures from the paper, off by default (docs/model.md §2, *Part grids*): its point encoding (the
+#: paper's is ``frequency``) and the trunk's residual blocks (the paper's 3)
+_NARF_D_OPTIONS = (
     "encoding",
     "grid_levels",
     "grid_features",
@@ -89,8 +90,8 @@ _GRID_OPTIONS = (
 MODEL_SPECS: dict[str, ModelSpec] = {
     spec.name: spec
     for spec in (
-        _field("narf_d", NarfD, "NARF_D", _NARF_D_COST, _GRID_OPTIONS),
-        _field("narf_d_sigmoid", partial(NarfD, selector="sigmoid"), "NARF_D sigmoid", _NARF_D_COST, _GRID_OPTIONS),
+        _field("narf_d", NarfD, "NARF_D", _NARF_D_COST, _NARF_D_OPTIONS),
+        _field("narf_d_sigmoid", partial(NarfD, selector="sigmoid"), "NARF_D sigmoid", _NARF_D_COST, _NARF_D_OPTIONS),
         _field("narf_h", NarfH, "NARF_H", (1.06e6, 197e6, 344e3)),
         _field(
             "narf_p",
