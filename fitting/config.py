@@ -100,6 +100,9 @@ class ModelConfig:
     #: narf_d: the trunk's residual blocks B, 2 + 2 B layers of ``width`` (the paper: 3); fewer make the small
     #: network on top of the part grids (docs/model.md §2, *Part grids*)
     trunk_blocks: int = 3
+    #: narf_d: Lambertian shading, the colour an albedo times a learned world lighting at a predicted normal
+    #: (docs/model.md §3, *Shading*; the paper has none): the texture stays put while the body turns under the lights
+    shading: bool = False
 
 
 @dataclass
@@ -524,7 +527,15 @@ def validate_config(config: FitConfig) -> None:
             f"model.grid_max_resolution: must be >= model.grid_min_resolution ({config.model.grid_min_resolution}), "
             f"got {config.model.grid_max_resolution}"
         )
-    for option in ("temperature", "pose_in_color", "image_size", "appearance_dim", "encoding", "trunk_blocks"):
+    for option in (
+        "temperature",
+        "pose_in_color",
+        "image_size",
+        "appearance_dim",
+        "encoding",
+        "trunk_blocks",
+        "shading",
+    ):
         if option not in spec.options and getattr(config.model, option) != getattr(defaults.model, option):
             users = ", ".join(name for name, other in MODEL_SPECS.items() if option in other.options)
             raise ConfigError(f"model.{option}: {config.model.name} does not take it (only {users})")

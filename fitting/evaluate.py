@@ -282,6 +282,8 @@ def markdown_table(report: dict) -> str:
     size = f"width {report['width']}" if model_spec(report["model"]).rays else f"{report['image_size']}^2 bone maps"
     if report.get("encoding") == "grid":
         size += ", part grids"
+    if report.get("shading"):
+        size += ", shading"
     if model_spec(report["model"]).rays and "samples" in report:
         size += ", {} + {} samples a ray".format(*report["samples"])
     lines = [

@@ -12,7 +12,7 @@ surface at nearly the same depth: floaters and ridges that no training camera sa
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 from torch import nn
@@ -200,6 +200,13 @@ def virtual_set(config: FitConfig, origins, dirs, frame, poses: PoseBatch, gener
     return RaySet(origins, dirs, frame, poses, uniforms)
 
 
+def sagittal_reflections(poses: PoseBatch) -> torch.Tensor:
+    """Each frame's reflection about its sagittal plane, S = I - 2 n n^T with n the root part's x axis: (B, 3, 3)."""
+    normal = poses.world_from_part[:, 0, :3, 0]
+    eye = torch.eye(3, dtype=normal.dtype, device=normal.device)
+    return eye - 2 * normal[:, :, None] * normal[:, None, :]
+
+
 def mirror_rays(
     origins: torch.Tensor, dirs: torch.Tensor, frame: torch.Tensor, poses: PoseBatch
 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -236,6 +243,8 @@ def mirror_terms(
         return []
     origins, dirs, frame = virtual_rays(poses, torch.unique(frames), config.train.mirror_rays, generator)
     seen = virtual_set(config, origins, dirs, frame, poses, generator)
+    # a shading field sees the mirror image under the mirror image of the light (docs/model.md §3, *Shading*)
+    mirrored = replace(mirrored, light_from_world=sagittal_reflections(poses))
     mirror = virtual_set(config, *mirror_rays(origins, dirs, frame, poses), frame, mirrored, generator)
 
     def asymmetry(out: list[RenderOutput]) -> torch.Tensor:

@@ -103,14 +103,18 @@ def test_smoothness_is_zero_on_a_constant_table_and_counts_neighbours():
     assert got.item() == pytest.approx((axis[:, 0] == 0).double().mean().item())
 
 
-def test_narf_d_with_grids_fast_path_matches_dense_reference():
+@pytest.mark.parametrize("shading", [False, True])
+def test_narf_d_with_grids_fast_path_matches_dense_reference(shading):
     """As test_fields' fast-path test, NARF_D reading part grids: the in-box pairs' lookups and per-part blocks equal
-    the dense model's (R, S, P) lookups with the out-of-box blocks masked."""
+    the dense model's (R, S, P) lookups with the out-of-box blocks masked; with shading, the blended part rotations
+    of the normals too."""
     options = dict(encoding="grid", grid_levels=4, grid_features=2, grid_min_resolution=4, grid_max_resolution=24)
     torch.manual_seed(0)
-    fast = build_field("narf_d", width=16, grid_log2_rows=10, **options).double()
+    fast = build_field("narf_d", width=16, grid_log2_rows=10, shading=shading, **options).double()
     torch.nn.init.normal_(fast.grids.table, std=0.5)  # features of order 1, so that the density reads them
-    dense = build_field("narf_d", width=16, grid_log2_rows=10, **options).double()
+    if shading:  # a lighting that varies with the normal, so that the rotations count
+        torch.nn.init.normal_(fast.head.lighting, std=1.0)
+    dense = build_field("narf_d", width=16, grid_log2_rows=10, shading=shading, **options).double()
     dense.load_state_dict(fast.state_dict())
     dense.fast = False
     half_extents = torch.linspace(0.05, 0.8, 19, dtype=torch.float64)[:, None].expand(19, 3)
@@ -166,14 +170,14 @@ def test_a_smaller_trunk_drops_two_layers_a_block():
 
 @pytest.fixture(scope="module")
 def grid_run(data_root_64, tmp_path_factory):
-    """A 3-step tiny NARF_D fit whose parts read grids under a one-block trunk (plumbing, not quality), through
-    narf-fit."""
+    """A 3-step tiny NARF_D fit whose parts read grids under a one-block trunk, with shading (plumbing, not quality),
+    through narf-fit."""
     from pipelines.cli import fit as cli_fit
     from pipelines.cli.common import run_cli
 
     run = tmp_path_factory.mktemp("grid_run") / "run"
     sets = [f"data.data_root={data_root_64}", "data.ratio=1.0", "train.steps=3", "model.encoding=grid"]
-    sets += ["model.grid_log2_rows=10", "train.grid_smoothness=0.01", "model.trunk_blocks=1"]
+    sets += ["model.grid_log2_rows=10", "train.grid_smoothness=0.01", "model.trunk_blocks=1", "model.shading=true"]
     args = ["--config", "tiny", "--out", str(run), "--quiet", *(a for s in sets for a in ("--set", s))]
     assert run_cli("narf-fit", cli_fit.main, args) == 0
     return run
@@ -215,7 +219,7 @@ def test_a_grid_fit_evaluates_exports_and_renders(grid_run, tmp_path, capsys):
     evaluate = ["--run", str(grid_run), "--split", "novel_pose", "--limit", "1", "--grids", "0", "--quiet"]
     assert run_cli("narf-eval", cli_eval.main, evaluate) == 0
     header = json.loads((grid_run / "eval" / "metrics.json").read_text())
-    assert header["encoding"] == "grid" and header["trunk_blocks"] == 1
+    assert header["encoding"] == "grid" and header["trunk_blocks"] == 1 and header["shading"] is True
     mesh = ["--run", str(grid_run), "--resolution", "16", "--level", "1e-6", "--quiet", "--frame", "0"]
     assert run_cli("narf-export-mesh", cli_export.main, [*mesh, "--out", str(tmp_path / "f0.ply")]) == 0
     assert len(trimesh.load(tmp_path / "f0.ply", force="mesh").faces) > 0
@@ -230,8 +234,9 @@ def test_a_grid_fit_evaluates_exports_and_renders(grid_run, tmp_path, capsys):
 
 
 def test_a_run_saved_before_the_grids_loads_with_the_frequency_encoding(tmp_path):
-    """A checkpoint whose config has no ``model.encoding``, ``model.trunk_blocks`` nor grid keys (every run fitted
-    before them) loads as the paper's frequency encoding and trunk, its weights as they were."""
+    """A checkpoint whose config has no ``model.encoding``, ``model.trunk_blocks``, ``model.shading`` nor grid keys
+    (every run fitted before them) loads as the paper's frequency encoding, trunk and colour, its weights as they
+    were."""
     from fitting.checkpoint import save_checkpoint
     from fitting.config import load_config
     from fitting.fitted import load_fitted
@@ -239,7 +244,7 @@ def test_a_run_saved_before_the_grids_loads_with_the_frequency_encoding(tmp_path
 
     config = load_config("tiny")
     saved = config.to_dict()
-    for key in [k for k in saved["model"] if k in ("encoding", "trunk_blocks") or k.startswith("grid_")]:
+    for key in [k for k in saved["model"] if k in ("encoding", "trunk_blocks", "shading") or k.startswith("grid_")]:
         del saved["model"][key]
     for key in [k for k in saved["train"] if k.startswith("grid_")]:
         del saved["train"][key]
@@ -248,4 +253,5 @@ def test_a_run_saved_before_the_grids_loads_with_the_frequency_encoding(tmp_path
     fitted = load_fitted(tmp_path)
     assert fitted.config.model.encoding == "frequency" and fitted.field.grids is None
     assert fitted.config.model.trunk_blocks == 3 and len(fitted.field.head.trunk.blocks) == 3
+    assert fitted.config.model.shading is False and fitted.field.head.lighting is None
     assert all(torch.equal(v, field.state_dict()[k]) for k, v in fitted.field.state_dict().items())

@@ -10,6 +10,7 @@ from torch import nn
 
 from narf.geometry import check_shape
 from narf.layers import EqualLinear, Trunk, WNLinear, density_activation, scaled_unit_rows
+from narf.shading import constant_lighting, irradiance
 
 
 @dataclass
@@ -25,6 +26,9 @@ class PoseBatch:
         world_from_joint: optional (B, 24, 4, 4) all SMPL joints (the CNN baseline's bone maps need the leaves).
         appearance: optional (B, A) per-frame appearance codes (docs/model.md §4, *Per-frame appearance*): training
             frames' only; None (evaluation, new poses) is the zero code.
+        light_from_world: optional (B, 3, 3) orthogonal: where a shading field looks its normals up in the lighting
+            (docs/model.md §3, *Shading*); None is the identity. A mirror-image body takes the reflection that made
+            it, so that its light is the mirror image of the light too (docs/model.md §6, *Left-right symmetry*).
     """
 
     world_from_part: torch.Tensor
@@ -34,6 +38,7 @@ class PoseBatch:
     rest_offsets: torch.Tensor
     world_from_joint: torch.Tensor | None = None
     appearance: torch.Tensor | None = None
+    light_from_world: torch.Tensor | None = None
 
     def __post_init__(self):
         check_shape("world_from_part", self.world_from_part, (-1, -1, 4, 4))
@@ -46,6 +51,8 @@ class PoseBatch:
             check_shape("world_from_joint", self.world_from_joint, (n_frames, 24, 4, 4))
         if self.appearance is not None:
             check_shape("appearance", self.appearance, (n_frames, -1))
+        if self.light_from_world is not None:
+            check_shape("light_from_world", self.light_from_world, (n_frames, 3, 3))
 
     def _map(self, fn) -> PoseBatch:
         return PoseBatch(*(None if (v := getattr(self, k)) is None else fn(v) for k in self.__dataclass_fields__))
@@ -84,6 +91,9 @@ def cat_poses(batches: list[PoseBatch]) -> PoseBatch:
                 v if v is not None else codes[0].new_zeros(len(b.reach), codes[0].shape[1])
                 for v, b in zip(values, batches)
             ]
+        if key == "light_from_world" and any(v is not None for v in values):  # None is the identity
+            eye = torch.eye(3, dtype=first.reach.dtype, device=first.reach.device)
+            values = [v if v is not None else eye.expand(len(b.reach), 3, 3) for v, b in zip(values, batches)]
         fields[key] = None if any(v is None for v in values) else torch.cat(values)
     return PoseBatch(**fields)
 
@@ -190,6 +200,9 @@ class RadianceHead(nn.Module):
             the autoencoder's latents or a per-frame code, never both.
         density_act: ``leaky_backward`` or ``softplus``.
         trunk_blocks: the trunk's residual blocks B (:class:`narf.layers.Trunk`; the paper: 3).
+        shading: c = albedo E(n_L) (docs/model.md §3, *Shading*; not in the paper): the colour above is the albedo,
+            the head also predicts a normal n from h1, in the frame that the caller's ``rotation`` turns into the
+            lighting's, and learns the lighting E (``narf.shading``, 9 coefficients a channel).
     """
 
     def __init__(
@@ -202,6 +215,7 @@ class RadianceHead(nn.Module):
         density_act: str = "leaky_backward",
         appearance_dim: int = 0,
         trunk_blocks: int = 3,
+        shading: bool = False,
     ):
         super().__init__()
         if latent_dim and appearance_dim:
@@ -217,6 +231,8 @@ class RadianceHead(nn.Module):
         self.color_hidden = WNLinear(width, width // 2, groups, paper_skip=True)
         self.rgb_out = WNLinear(width // 2, 3, groups)
         self.density_act = density_activation(density_act)
+        self.normal_out = WNLinear(width, 3, groups, paper_skip=True) if shading else None
+        self.lighting = nn.Parameter(constant_lighting()) if shading else None
 
     @staticmethod
     def _embed(layer, inputs: torch.Tensor, group_index: torch.Tensor | None = None) -> torch.Tensor:
@@ -237,11 +253,13 @@ class RadianceHead(nn.Module):
         z_s: torch.Tensor | None = None,
         z_a: torch.Tensor | None = None,
         group_index: torch.Tensor | None = None,
+        rotation: torch.Tensor | None = None,
     ):
-        """Returns sigma (G, R, S) and rgb (G, R, S, 3). Latents are (G or 1, R, 1, latent_dim)."""
+        """Returns sigma (G, R, S) and rgb (G, R, S, 3). Latents are (G or 1, R, 1, latent_dim); ``rotation``: with
+        shading, (G or 1, R, S, 3, 3) light_from_normal of each sample (see ``forward_embedded``)."""
         embedded = self._embed_sum(self.density_embed, density_inputs, group_index)
         colour = self._embed_sum(self.color_embed, color_inputs, group_index)
-        return self.forward_embedded(embedded, colour, {}, z_s, z_a, group_index)
+        return self.forward_embedded(embedded, colour, {}, z_s, z_a, group_index, rotation)
 
     def forward_embedded(
         self,
@@ -251,19 +269,33 @@ class RadianceHead(nn.Module):
         z_s=None,
         z_a=None,
         group_index: torch.Tensor | None = None,
+        rotation: torch.Tensor | None = None,
     ):
         """As ``forward`` from already embedded sums (G, R, S or 1, H) and (G, R, S or 1, H/2); blocks in
-        ``extra_density`` are embedded and added here."""
+        ``extra_density`` are embedded and added here. With shading, ``rotation`` (G or 1, R, S, 3, 3) turns the
+        predicted normal into the lighting's frame (NARF_D: the selector's blend of the part rotations), and is
+        required."""
         n_samples = max(embedded.shape[2], color_embedded.shape[2])
         hidden, sigma = self._trunk(embedded, extra_density, z_s, n_samples, group_index)
         h1 = scaled_unit_rows(hidden, math.sqrt(self.width), 1e-6).reshape(*sigma.shape, self.width)
         if self.latent_appearance is not None and z_a is not None:
             h1 = h1 + self._embed(self.latent_appearance, z_a.expand(sigma.shape[0], -1, -1, -1), group_index)
         # in place: h1 and the sum are fresh tensors used once
-        h2 = self._embed(self.color_hidden, nn.functional.leaky_relu(h1, 0.2, inplace=True), group_index)
+        a1 = nn.functional.leaky_relu(h1, 0.2, inplace=True)
+        h2 = self._embed(self.color_hidden, a1, group_index)
         h3 = nn.functional.leaky_relu(h2 + color_embedded, 0.2, inplace=True)
         rgb = torch.sigmoid(self._embed(self.rgb_out, h3, group_index))
+        if self.lighting is not None:
+            rgb = rgb * self._shading(a1, rotation, group_index)
         return sigma, rgb
+
+    def _shading(self, a1: torch.Tensor, rotation: torch.Tensor | None, group_index) -> torch.Tensor:
+        """E(n_L) (G, R, S, 3) of the normals n_L = normalise(rotation n), n = Lin_{H->3}(a1) (docs/model.md §3)."""
+        if rotation is None:
+            raise ValueError("a shading head needs each sample's rotation into the lighting's frame")
+        normal = self._embed(self.normal_out, a1, group_index)  # (G, R, S, 3) in the rotation's frame
+        lit = nn.functional.normalize((rotation.to(normal.dtype) @ normal[..., None])[..., 0], dim=-1, eps=1e-6)
+        return irradiance(lit, self.lighting.to(lit.dtype))
 
     def density_embedded(
         self, embedded: torch.Tensor, extra_density: dict[str, torch.Tensor], z_s=None, group_index=None

@@ -75,7 +75,7 @@ def _field(name, build, label, cost=None, extra=(), family: Family = "field", va
 
 _NARF_D_COST = (1.10e6, 205e6, 382e3)
 #: NARF_D's departures from the paper, off by default (docs/model.md §2, *Part grids*): its point encoding (the
-#: paper's is ``frequency``) and the trunk's residual blocks (the paper's 3)
+#: paper's is ``frequency``), the trunk's residual blocks (the paper's 3) and the shading (the paper has none)
 _NARF_D_OPTIONS = (
     "encoding",
     "grid_levels",
@@ -84,6 +84,7 @@ _NARF_D_OPTIONS = (
     "grid_max_resolution",
     "grid_log2_rows",
     "trunk_blocks",
+    "shading",
 )
 
 #: Model name -> spec, in ``narf-cost``'s order.

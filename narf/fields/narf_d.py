@@ -21,6 +21,7 @@ class NarfD(NarfH):
             cells per axis, 2^``grid_log2_rows`` rows a level and part; ``narf.grids``). The selector reads
             gamma_10(u_i) either way.
         trunk_blocks: the trunk's residual blocks (the paper: 3; fewer: the small network on the grids).
+        shading: albedo under a learned world lighting (``NarfH``; docs/model.md §3, *Shading*; not in the paper).
         (others as NarfH)
     """
 
@@ -40,13 +41,14 @@ class NarfD(NarfH):
         grid_max_resolution: int = 128,
         grid_log2_rows: int = 12,
         trunk_blocks: int = 3,
+        shading: bool = False,
     ):
         if encoding not in ("frequency", "grid"):
             raise ValueError(f"encoding must be 'frequency' or 'grid', got '{encoding}'")
         grids = None
         if encoding == "grid":
             grids = GridShape(grid_levels, grid_features, grid_min_resolution, grid_max_resolution, grid_log2_rows)
-        super().__init__(n_parts, width, latent_dim, density_act, fast, appearance_dim, grids, trunk_blocks)
+        super().__init__(n_parts, width, latent_dim, density_act, fast, appearance_dim, grids, trunk_blocks, shading)
         if selector not in ("softmax", "sigmoid"):
             raise ValueError(f"selector must be 'softmax' or 'sigmoid', got '{selector}'")
         self.selector_kind = selector

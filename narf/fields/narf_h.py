@@ -31,6 +31,8 @@ class NarfH(Field):
         grids: None (the paper): each part's density block reads gamma_10(u_i); a GridShape: it reads the part's
             learned multi-resolution grid features g_i(u_i) instead (``narf.grids``, docs/model.md §2, *Part grids*).
         trunk_blocks: the trunk's residual blocks (the paper: 3, 8 layers; ``narf.layers.Trunk``).
+        shading: the colour is an albedo under a learned world lighting, its normal turned into the lighting's frame
+            by the part rotations blended with the segmentation probabilities (``RadianceHead``; docs/model.md §3).
     """
 
     def __init__(
@@ -43,6 +45,7 @@ class NarfH(Field):
         appearance_dim: int = 0,
         grids: GridShape | None = None,
         trunk_blocks: int = 3,
+        shading: bool = False,
     ):
         super().__init__(n_parts, latent_dim, appearance_dim)
         self.fast = fast
@@ -57,6 +60,7 @@ class NarfH(Field):
             appearance_dim=appearance_dim,
             density_act=density_act,
             trunk_blocks=trunk_blocks,
+            shading=shading,
         )
 
     def _density(self, inputs: FieldInputs):
@@ -86,7 +90,10 @@ class NarfH(Field):
         if self.fast:
             encoded_zeta = self.zeta_encoding(pose)
             density, colour, probs = sparse_masked_inputs(self, u, in_box, d_local, pose, encoded_zeta)
-            sigma, rgb = self.head.forward_embedded(density, colour, {"zeta": encoded_zeta[None]}, z_s, z_a)
+            rotation = self._normal_rotation(probs, pose)
+            sigma, rgb = self.head.forward_embedded(
+                density, colour, {"zeta": encoded_zeta[None]}, z_s, z_a, rotation=rotation
+            )
             return FieldOutput(sigma[0], rgb[0], probs)
         r, s, p, _ = u.shape
         encoded_u = self.encode_points(u)  # (R, S, P, 60)
@@ -100,5 +107,21 @@ class NarfH(Field):
             "pose": (weights[..., None] * encoded_xi).reshape(1, r, s, p * XI_WIDTH),
             "dirs": (weights[..., None] * encoded_d).reshape(1, r, s, p * DIRECTION_WIDTH),
         }
-        sigma, rgb = self.head({"parts": masked_u, "zeta": encoded_zeta[None]}, colour, z_s, z_a)
+        density = {"parts": masked_u, "zeta": encoded_zeta[None]}
+        sigma, rgb = self.head(density, colour, z_s, z_a, rotation=self._normal_rotation(probs, pose))
         return FieldOutput(sigma[0], rgb[0], probs)
+
+    def _normal_rotation(self, probs: torch.Tensor, pose) -> torch.Tensor | None:
+        """With shading, each sample's light_from_normal: L sum_i p_i R_i over the parts' rotations R_i (R, P, 3, 3)
+        and the segmentation probabilities p (R, S, P), with L the ray's ``pose.light_from_world`` (the identity when
+        None), (1, R, S, 3, 3); None without. Neither the probabilities nor the poses take the shading's gradient (the
+        selector answers which part holds a point, as ``part_directions`` keeps the corrected poses to where the body
+        is)."""
+        if self.head.lighting is None:
+            return None
+        r, s, p = probs.shape
+        rotations = pose.world_from_part[:, :, :3, :3].detach().reshape(r, p, 9).to(probs.dtype)
+        world_from_normal = torch.bmm(probs.detach(), rotations).reshape(1, r, s, 3, 3)
+        if pose.light_from_world is None:
+            return world_from_normal
+        return pose.light_from_world.to(probs.dtype)[None, :, None] @ world_from_normal

@@ -135,6 +135,7 @@ def evaluate_run(run: Path | SavedRun, request: EvalRequest) -> dict:
             # the density part blocks' point encoding: frequencies (the paper) or part grids (docs/model.md §2)
             "encoding": config.model.encoding,
             "trunk_blocks": config.model.trunk_blocks,  # the trunk's residual blocks (the paper: 3)
+            "shading": config.model.shading,  # albedo under a learned world lighting (docs/model.md §3)
             "image_size": config.model.image_size,
             # the renders' estimator: coarse + importance samples a ray (a figure depends on it, docs/model.md §5)
             "samples": [config.render.eval_coarse, config.render.eval_fine],
