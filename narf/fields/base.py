@@ -20,7 +20,8 @@ from narf.occupancy import flat_cell_index
 
 @dataclass
 class FieldOutput:
-    """sigma (R, S) >= 0; rgb (R, S, 3) in [0, 1]; part_probs (R, S, P) for segmentation, or None."""
+    """sigma (R, S) >= 0; rgb (R, S, 3) in [0, 1] (with shading >= 0: an albedo in [0, 1] times the irradiance,
+    docs/model.md §3); part_probs (R, S, P) for segmentation, or None."""
 
     sigma: torch.Tensor
     rgb: torch.Tensor
