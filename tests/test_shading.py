@@ -1,13 +1,15 @@
 """Shading (narf.shading, docs/model.md §3): the spherical harmonics against scipy's and by quadrature, and NARF_D's
 shaded colour: the albedo under a constant light, and turning the world with its light changes nothing."""
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 import torch
 from scipy.special import sph_harm_y
 
 from fitting.config import ConfigError, FitConfig, validate_config
-from narf.fields import PoseBatch, build_field
+from narf.fields import build_field
 from narf.shading import SH_C0, SH_C1, SH_C20, constant_lighting, irradiance, sh_basis
 from tests.test_fields import _points, _random_pose
 
@@ -99,8 +101,7 @@ def test_turning_the_world_and_its_light_together_changes_no_colour():
     q = torch.linalg.qr(torch.randn(3, 3, generator=torch.Generator().manual_seed(7), dtype=torch.float64))[0]
     turned = torch.eye(4, dtype=torch.float64)
     turned[:3, :3] = q
-    turned_pose = PoseBatch(turned @ pose.world_from_part, *(getattr(pose, k) for k in ("reach", "bone_lengths")),
-                            pose.pose_features, pose.rest_offsets)  # fmt: skip
+    turned_pose = replace(pose, world_from_part=turned @ pose.world_from_part)  # the pose features kept
     with torch.no_grad():
         unturned_light = field(points @ q.T, dirs @ q.T, turned_pose).rgb
         xyz = lighting[:, [3, 1, 2]]  # (x, y, z) components of each channel's first degree
@@ -122,8 +123,6 @@ def test_shading_is_narf_d_only():
 def test_a_pose_looks_its_normals_up_in_its_own_light_frame():
     """PoseBatch.light_from_world = L: the normal n is looked up at L n, the same as a first-degree light b . n turned
     by L^T (b -> L^T b); a mirror image takes its sagittal reflection (S = I - 2 n n^T, n the root's x axis)."""
-    from dataclasses import replace
-
     from fitting.unseen import sagittal_reflections
     from narf.fields.common import cat_poses
 
@@ -148,3 +147,28 @@ def test_a_pose_looks_its_normals_up_in_its_own_light_frame():
     both = cat_poses([frame_pose, lit])  # a batch without the frame counts as the identity
     assert torch.equal(both.light_from_world[0], torch.eye(3, dtype=torch.float64))
     assert torch.equal(both.light_from_world[1], reflection[0])
+
+
+def test_the_mirror_term_lights_the_mirror_image_by_the_reflected_light():
+    """mirror_terms: its first set keeps the frames' light (none: the identity), its second, the mirror images, carries
+    each frame's sagittal reflection as light_from_world."""
+    from fitting.unseen import mirror_terms, sagittal_reflections
+
+    config = FitConfig()
+    config.train.mirror_weight, config.train.mirror_rays = 0.1, 8
+    poses, mirrored = _random_pose(n_frames=2, seed=1), _random_pose(n_frames=2, seed=2)
+    (term,) = mirror_terms(config, poses, mirrored, torch.tensor([0, 1]), torch.Generator().manual_seed(0))
+    seen, mirror = term.sets
+    assert seen.poses.light_from_world is None
+    assert torch.equal(mirror.poses.light_from_world, sagittal_reflections(poses))
+
+
+def test_a_shading_head_refuses_a_missing_rotation_and_a_pose_a_misshapen_light_frame():
+    from narf.fields.common import RadianceHead
+
+    head = RadianceHead({"x": 4}, {"d": 2}, width=8, shading=True)
+    with pytest.raises(ValueError, match="rotation into the lighting"):
+        head({"x": torch.randn(1, 2, 3, 4)}, {"d": torch.randn(1, 2, 3, 2)})
+    pose = _random_pose(n_frames=2)
+    with pytest.raises(ValueError, match="light_from_world"):
+        replace(pose, light_from_world=torch.eye(3).expand(3, 3, 3))
