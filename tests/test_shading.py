@@ -9,7 +9,9 @@ import torch
 from scipy.special import sph_harm_y
 
 from fitting.config import ConfigError, FitConfig, validate_config
+from fitting.unseen import mirror_terms, sagittal_reflections
 from narf.fields import build_field
+from narf.fields.common import RadianceHead, cat_poses
 from narf.shading import SH_C0, SH_C1, SH_C20, constant_lighting, irradiance, sh_basis
 from tests.test_fields import _points, _random_pose
 
@@ -123,9 +125,6 @@ def test_shading_is_narf_d_only():
 def test_a_pose_looks_its_normals_up_in_its_own_light_frame():
     """PoseBatch.light_from_world = L: the normal n is looked up at L n, the same as a first-degree light b . n turned
     by L^T (b -> L^T b); a mirror image takes its sagittal reflection (S = I - 2 n n^T, n the root's x axis)."""
-    from fitting.unseen import sagittal_reflections
-    from narf.fields.common import cat_poses
-
     field = _shaded_field()
     lighting = constant_lighting().double()
     lighting[:, 1:4] = torch.tensor([[0.9, -0.4, 0.3], [0.2, 0.8, -0.5], [-0.6, 0.1, 0.7]], dtype=torch.float64)
@@ -152,8 +151,6 @@ def test_a_pose_looks_its_normals_up_in_its_own_light_frame():
 def test_the_mirror_term_lights_the_mirror_image_by_the_reflected_light():
     """mirror_terms: its first set keeps the frames' light (none: the identity), its second, the mirror images, carries
     each frame's sagittal reflection as light_from_world."""
-    from fitting.unseen import mirror_terms, sagittal_reflections
-
     config = FitConfig()
     config.train.mirror_weight, config.train.mirror_rays = 0.1, 8
     poses, mirrored = _random_pose(n_frames=2, seed=1), _random_pose(n_frames=2, seed=2)
@@ -164,8 +161,6 @@ def test_the_mirror_term_lights_the_mirror_image_by_the_reflected_light():
 
 
 def test_a_shading_head_refuses_a_missing_rotation_and_a_pose_a_misshapen_light_frame():
-    from narf.fields.common import RadianceHead
-
     head = RadianceHead({"x": 4}, {"d": 2}, width=8, shading=True)
     with pytest.raises(ValueError, match="rotation into the lighting"):
         head({"x": torch.randn(1, 2, 3, 4)}, {"d": torch.randn(1, 2, 3, 2)})
