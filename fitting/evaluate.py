@@ -165,6 +165,8 @@ def crop_error_breakdown(
         sigma ``COARSE_PX``): the error of the colour and shading, without the detail's (None without any);
         ``psnr_person_gain``: over the person pixels once the render's channels are scaled by the gains that fit the
         view best (:func:`best_gains`): what a camera's colour gain could not explain (None without any).
+        ``psnr_band_bound``: the crop's PSNR were every pixel outside the band exact, the most a render reaches while
+        the band's error stays (None when the band has no error).
         With ``unseen``: ``pixels_unseen``, its part of the person pixels; ``share_unseen``, its part of their
         summed squared error; ``psnr_person_seen`` and ``psnr_person_unseen``, the PSNR over the person pixels
         outside and inside it (None without any).
@@ -184,6 +186,8 @@ def crop_error_breakdown(
     for name, where in classes.items():
         out[f"share_{name}"] = float(error[where].sum() / total) if total > 0 else 0.0
         out[f"pixels_{name}"] = float(where.mean())
+    band_error = error[classes["band"]].sum()
+    out["psnr_band_bound"] = float(psnr(torch.as_tensor(band_error / error.size))) if band_error > 0 else None
     person_error = error[classes["person"]]
     out["psnr_person"] = float(psnr(torch.as_tensor(person_error.mean()))) if person_error.size else None
     inner_error = error[classes["person"] & inner]
@@ -346,7 +350,8 @@ def _breakdown_line(split: str, breakdown: dict | None) -> str | None:
         f"{dB('psnr_person_coarse')} low-passed at {COARSE_PX:g} px, {dB('psnr_person_gain')} with the view's best "
         f"colour gains, {pixels('person')} of the crop); silhouette "
         f"disagreement {share('silhouette')} ({pixels('silhouette')} of the crop); the mask's boundary band "
-        f"{share('band')} ({pixels('band')}); background {share('background')}{seen}"
+        f"{share('band')} ({pixels('band')}; the crop at {dB('psnr_band_bound')} were every other pixel exact); "
+        f"background {share('background')}{seen}"
     )
 
 

@@ -150,6 +150,7 @@ def test_crop_error_breakdown_by_hand():
     assert b["share_background"] == pytest.approx(0.0025 / 0.3125)
     assert [b[f"pixels_{k}"] for k in ("person", "silhouette", "band", "background")] == [0.25, 0.125, 0.25, 0.375]
     assert b["psnr_person"] == pytest.approx(20.0)  # MSE 0.01 over the two person pixels
+    assert b["psnr_band_bound"] == pytest.approx(10 * np.log10(8 / 0.25))  # the band's 0.25 alone over R's 8 pixels
     # a view without person pixels: its psnr_person is None and left out of the mean, its shares are not
     no_one = np.zeros((12, 12))
     empty = frame_metrics({"rgb": pred, "mask": no_one}, gt, no_one, region, 0.0, band)["nb_crop"]
