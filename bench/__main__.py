@@ -21,6 +21,7 @@ from pathlib import Path
 
 from fitting.files import atomic_write_text
 from pipelines.cli.common import flush_subnormals, keep_freed_memory, short_openmp_wait
+from pipelines.datasets.smpl_files import cache_dir
 
 BENCHMARKS = {
     "synth": "bench.bench_synth",
@@ -81,7 +82,7 @@ def main() -> None:
     os.environ.setdefault("NARF_CACHE", os.path.join(os.getcwd(), ".cache", "bench"))
     from bench.bench_models import machine
 
-    rows_dir = Path(os.environ["NARF_CACHE"]) / "rows"
+    rows_dir = cache_dir() / "rows"
     rows = []
     for name in args.names or [name for name in BENCHMARKS if name not in ON_REQUEST]:
         rows += _rows(name, rows_dir / f"{name}.json", args.reuse, machine())

@@ -27,6 +27,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
+from pipelines.datasets.smpl_files import cache_dir
+
 SPLITS = ("same_pose_same_view", "novel_view", "novel_pose")
 CAPTURES = {
     "synthetic": (Path("data/synthetic/taichi"), ["data.protocol=neuralbody"]),
@@ -87,7 +89,7 @@ def run() -> list[dict]:
     presets = _listed("NARF_BENCH_DETAIL_PRESETS", "cpu,cpu_grid")
     budgets = [float(m) for m in _listed("NARF_BENCH_DETAIL_MINUTES", "1,3,10")]
     views = int(os.environ.get("NARF_BENCH_DETAIL_VIEWS", "17"))
-    cache = Path(os.environ.get("NARF_CACHE", Path.home() / ".cache" / "narf-avatar")) / "bench-detail"
+    cache = cache_dir() / "bench-detail"
     rows = []
     for name in _listed("NARF_BENCH_DETAIL_CAPTURES", "synthetic,real"):
         if not (CAPTURES[name][0] / "annots.npy").is_file():

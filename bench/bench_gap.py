@@ -29,6 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipelines.datasets.smpl_files import cache_dir
+
 REAL = Path("data/real/demo_single_person")
 SYNTHETIC = Path("data/synthetic/taichi")
 ANALOGUE = Path("data/synthetic/taichi_like_demo")
@@ -128,7 +130,7 @@ def measured(label: str, out: Path) -> dict:
 
 def run() -> list[dict]:
     wanted = {s.strip() for s in os.environ.get("NARF_BENCH_GAP", ";".join(DEFAULT_ROWS)).split(";") if s.strip()}
-    cache = Path(os.environ.get("NARF_CACHE", Path.home() / ".cache" / "narf-avatar")) / "bench-gap"
+    cache = cache_dir() / "bench-gap"
     jobs = int(os.environ.get("NARF_BENCH_GAP_JOBS", "1"))
     env = dict(os.environ)
     if os.environ.get("NARF_BENCH_GAP_THREADS"):

@@ -26,6 +26,8 @@ from pathlib import Path
 
 import numpy as np
 
+from pipelines.datasets.smpl_files import cache_dir
+
 REAL = Path("data/real/demo_single_person")
 REAL_KEYPOINTS = Path("data/real/demo_single_person_keypoints")  # prepared with --silhouette-iterations 0
 REAL_KEPT = Path("data/real/demo_single_person_kept")  # prepared with --keep-calibration
@@ -115,7 +117,7 @@ def measured(label: str, capture: Path, out: Path) -> dict:
 
 def run() -> list[dict]:
     wanted = {s.strip() for s in os.environ.get("NARF_BENCH_LEVERS", "").split(";") if s.strip()}
-    cache = Path(os.environ.get("NARF_CACHE", Path.home() / ".cache" / "narf-avatar")) / "bench-levers"
+    cache = cache_dir() / "bench-levers"
     rows = []
     for index, (label, capture, sets, minutes) in enumerate(ROWS):
         if wanted and label not in wanted:

@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 from bench.bench_levers import PERTURBED, SYNTHETIC, _ensure_perturbed, _row, _venv
+from pipelines.datasets.smpl_files import cache_dir
 
 STEPS = 400
 ON = ["train.pose_correction=true"]
@@ -70,7 +71,7 @@ def _fixed_row(label: str, sets: list[str], stride: int, field: Path) -> dict:
 
 def run() -> list[dict]:
     wanted = {s.strip() for s in os.environ.get("NARF_BENCH_POSES", "").split(";") if s.strip()}
-    cache = Path(os.environ.get("NARF_CACHE", Path.home() / ".cache" / "narf-avatar")) / "bench-poses"
+    cache = cache_dir() / "bench-poses"
     _ensure_perturbed()
     rows = []
     for label, sets, stride in FIXED:

@@ -20,6 +20,7 @@ import sys
 from pathlib import Path
 
 from fitting.files import atomic_write_text
+from pipelines.datasets.smpl_files import cache_dir
 
 #: (row label, ``--set`` overrides of the CPU preset, frames of the capture: None = the default capture)
 SIXTEEN = ["render.train_coarse=16", "render.train_fine=16"]
@@ -123,7 +124,7 @@ KEEPS_CONFIGURATIONS = True
 def run(configs: list[tuple[str, list[str], int | None]] | None = None, reuse: bool = False) -> list[dict]:
     """One row per configuration (``CONFIGS`` by default); ``reuse``: a configuration's row saved on this machine is
     taken instead of fitting it again."""
-    cache = Path(os.environ.get("NARF_CACHE", ".cache/bench"))
+    cache = cache_dir()
     return [
         _row(label, overrides, cache / "quality_runs", _capture_root(cache, frames), reuse)
         for label, overrides, frames in configs or CONFIGS

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from pipelines.datasets.smpl_files import cache_dir
 from pipelines.viewer.avatar import camera_from_viewer, viewer_from_camera, z_depth
 
 SIDES = (128, 192, 256)
@@ -101,7 +102,7 @@ def first_image_seconds(data) -> float | None:
 def run() -> list[dict]:
     from pipelines.viewer.app import viewer_data
 
-    run_dir = Path(os.environ.get("NARF_CACHE", ".cache/bench")) / "viewer_run"
+    run_dir = cache_dir() / "viewer_run"
     _fit(run_dir)
     data = viewer_data(run_dir, None, "cpu", preview=192, full=512)
     rows = []

@@ -17,6 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
+from pipelines.datasets.smpl_files import cache_dir
 from pipelines.datasets.zju_mocap import read_annots, write_annots
 from pipelines.synthetic.capture import SynthConfig, generate_capture, is_complete
 
@@ -57,7 +58,7 @@ def one_step_fit(capture: Path, run_dir: Path, ratio: float) -> tuple[float, flo
 
 
 def run() -> list[dict]:
-    cache = Path(os.environ.get("NARF_CACHE", ".cache/bench"))
+    cache = cache_dir()
     template = cache / "views_template"
     if not is_complete(template):
         generate_capture(template, TEMPLATE, progress=False)
