@@ -42,12 +42,12 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--config",
         default=None,
-        help="preset name (cpu, cpu_grid, gpu_grid, paper, paper_sparse, tiny, cnn, ae_cpu, ae_paper, ae_tiny, "
-        "ae_cnn, ae_cnn_paper, rigid_cpu, rigid_paper, rigid_tiny) or YAML file; default: cnn for --model cnn, "
-        "ae_paper / ae_cpu for --kind autoencoder (ae_cnn_paper / ae_cnn with --model cnn), rigid_paper / rigid_cpu "
-        "for --kind rigid, else paper with CUDA and cpu without (cpu_grid: the cpu preset whose NARF_D parts read "
-        "learned grids; gpu_grid: the grids at GPU scale; paper_sparse: the paper's network with the cpu preset's "
-        "colour and shells, for rigs of few cameras)",
+        help="preset name (cpu, cpu_grid, gpu_grid, paper, paper_sparse, tiny, cnn, ae_cpu, ae_paper, ae_tiny, ae_cnn, "
+        "ae_cnn_paper, rigid_cpu, rigid_paper, rigid_tiny) or YAML file; default: cnn for --model cnn, ae_paper / "
+        "ae_cpu for --kind autoencoder (ae_cnn_paper / ae_cnn with --model cnn), rigid_paper / rigid_cpu for --kind "
+        "rigid, else paper with CUDA and cpu without (cpu_grid: the cpu preset whose NARF_D parts read learned grids, "
+        "on a random background; gpu_grid: the grids at GPU scale; paper_sparse: the paper's network with the cpu "
+        "preset's colour and shells, for rigs of few cameras)",
     )
     parser.add_argument(
         "--model",
