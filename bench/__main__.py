@@ -4,9 +4,10 @@ hour, and ``gap``, the training images against the held-out camera on the real r
 about an hour for its four default rows, and ``detail``, the part grids' time to quality against the preset before them,
 about an hour and a half: these run only when named).
 
-Each benchmark's rows are saved under ``$NARF_CACHE/rows/`` as it finishes, so that an interrupted run loses only the
-benchmark it was in (the time-to-quality benchmark, the longest, also keeps each finished configuration): ``--reuse``
-takes the saved rows of benchmarks already measured on this machine and runs the rest.
+Each benchmark's rows are saved under ``$NARF_CACHE/rows/`` (``.cache/bench/rows/`` when unset) as it finishes, so that
+an interrupted run loses only the benchmark it was in (the time-to-quality benchmark, the longest, also keeps each
+finished configuration): ``--reuse`` takes the saved rows of benchmarks already measured on this machine and runs the
+rest.
 """
 
 from __future__ import annotations
@@ -21,7 +22,7 @@ from pathlib import Path
 
 from fitting.files import atomic_write_text
 from pipelines.cli.common import flush_subnormals, keep_freed_memory, short_openmp_wait
-from pipelines.datasets.smpl_files import cache_dir
+from pipelines.datasets.smpl_files import cache_dir, chosen_cache
 
 BENCHMARKS = {
     "synth": "bench.bench_synth",
@@ -77,15 +78,15 @@ def main() -> None:
     short_openmp_wait()
     flush_subnormals()
     keep_freed_memory()
-    # the benchmarks' own cache (runs, captures, rows) unless the user names one: the project's cache setting, read by
-    # this process's cache_dir() and inherited by the commands the benchmarks start
-    os.environ.setdefault("NARF_CACHE", os.path.join(os.getcwd(), ".cache", "bench"))
+    # the benchmarks' own cache (runs, captures, rows) unless the user names one ($NARF_CACHE): chosen for this
+    # process's calls, and passed to the commands the benchmarks start in their environment (command_environment)
+    cache = os.environ.get("NARF_CACHE") or Path.cwd() / ".cache" / "bench"
     from bench.bench_models import machine
 
-    rows_dir = cache_dir() / "rows"
     rows = []
-    for name in args.names or [name for name in BENCHMARKS if name not in ON_REQUEST]:
-        rows += _rows(name, rows_dir / f"{name}.json", args.reuse, machine())
+    with chosen_cache(cache):
+        for name in args.names or [name for name in BENCHMARKS if name not in ON_REQUEST]:
+            rows += _rows(name, cache_dir() / "rows" / f"{name}.json", args.reuse, machine())
     columns = list(dict.fromkeys(k for row in rows for k in row))
     print("| " + " | ".join(columns) + " |")
     print("|" + "---|" * len(columns))

@@ -28,7 +28,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from pipelines.datasets.smpl_files import cache_dir
+from pipelines.datasets.smpl_files import cache_dir, command_environment
 
 SPLITS = ("same_pose_same_view", "novel_view", "novel_pose")
 CAPTURES = {
@@ -79,7 +79,7 @@ def measured(label: dict, out: Path) -> dict:
 def _pair(capture_name: str, presets: list[str], minutes: float, cache: Path, views: int) -> list[dict]:
     """The presets fitted side by side for ``minutes`` on one capture, one thread each, then evaluated side by side."""
     capture, sets = CAPTURES[capture_name]
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    env = command_environment(OMP_NUM_THREADS="1")
     outs = [cache / f"{capture_name}_{preset}_{minutes:g}min" for preset in presets]
     with ThreadPoolExecutor(max_workers=len(presets)) as pool:
         list(pool.map(lambda job: _fit(capture, sets, job[0], minutes, job[1], env), zip(presets, outs)))

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.datasets.smpl_files import cache_dir
+from pipelines.datasets.smpl_files import cache_dir, command_environment
 
 REAL = Path("data/real/demo_single_person")
 SYNTHETIC = Path("data/synthetic/taichi")
@@ -78,9 +78,9 @@ def _ensure_analogue() -> None:
     if (ANALOGUE / "splits.json").is_file():
         return
     if not (SYNTHETIC / "annots.npy").is_file():
-        subprocess.run([_venv("narf-synth"), "--subject", "taichi"], check=True)
+        subprocess.run([_venv("narf-synth"), "--subject", "taichi"], check=True, env=command_environment())
     command = [sys.executable, "-m", "pipelines.synthetic.views_like", str(SYNTHETIC), str(REAL), str(ANALOGUE)]
-    subprocess.run(command, check=True)
+    subprocess.run(command, check=True, env=command_environment())
 
 
 def _budget() -> list[str]:
@@ -132,7 +132,7 @@ def run() -> list[dict]:
     wanted = {s.strip() for s in os.environ.get("NARF_BENCH_GAP", ";".join(DEFAULT_ROWS)).split(";") if s.strip()}
     cache = cache_dir() / "bench-gap"
     jobs = int(os.environ.get("NARF_BENCH_GAP_JOBS", "1"))
-    env = dict(os.environ)
+    env = command_environment()
     if os.environ.get("NARF_BENCH_GAP_THREADS"):
         env["OMP_NUM_THREADS"] = os.environ["NARF_BENCH_GAP_THREADS"]
     if not (REAL / "annots.npy").is_file():

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipelines.datasets.smpl_files import cache_dir
+from pipelines.datasets.smpl_files import cache_dir, command_environment
 
 REAL = Path("data/real/demo_single_person")
 REAL_KEYPOINTS = Path("data/real/demo_single_person_keypoints")  # prepared with --silhouette-iterations 0
@@ -62,10 +62,11 @@ def _venv(name: str) -> str:
 
 def _ensure_perturbed() -> None:
     if not (PERTURBED / "degraded.json").is_file():
-        subprocess.run([_venv("narf-synth"), "--subject", "taichi"], check=True)
+        subprocess.run([_venv("narf-synth"), "--subject", "taichi"], check=True, env=command_environment())
         subprocess.run(
             [_venv("narf-synth"), "--degrade", str(SYNTHETIC), "--out", str(PERTURBED), "--pose-noise", "4"],
             check=True,
+            env=command_environment(),
         )
 
 
@@ -86,10 +87,15 @@ def _joint_errors(run: Path, truth: Path) -> dict:
 def _row(label: str, capture: Path, sets: list[str], minutes: float, out: Path) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     fit = [_venv("narf-fit"), "--subject", str(capture), "--out", str(out), "--max-minutes", str(minutes), "--quiet"]
-    subprocess.run([*fit, *(a for s in sets for a in ("--set", s))], check=True)
+    subprocess.run([*fit, *(a for s in sets for a in ("--set", s))], check=True, env=command_environment())
     splits = REAL_SPLITS if capture in (REAL, REAL_KEYPOINTS, REAL_KEPT) else SYNTHETIC_SPLITS
     evaluate = [_venv("narf-eval"), "--run", str(out), "--limit", str(VIEWS), "--quiet"]
-    subprocess.run([*evaluate, *(a for s in splits for a in ("--split", s))], check=True, stdout=subprocess.DEVNULL)
+    subprocess.run(
+        [*evaluate, *(a for s in splits for a in ("--split", s))],
+        check=True,
+        stdout=subprocess.DEVNULL,
+        env=command_environment(),
+    )
     return measured(label, capture, out)
 
 

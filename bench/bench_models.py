@@ -14,6 +14,8 @@ import subprocess
 import sys
 import time
 
+from pipelines.datasets.smpl_files import command_environment
+
 #: (row label, model, constructor kwargs, train (Nc, Nf), render (Nc, Nf), rays per train step)
 CONFIGS = [
     ("NARF_D width 64", "narf_d", {"width": 64}, (16, 16), (16, 16), 1024),
@@ -214,7 +216,7 @@ def run() -> list[dict]:
     for index in range(len(CONFIGS)):
         code = f"import json, bench.bench_models as b; print(json.dumps(b._measure({index})))"
         command = [sys.executable, "-c", code]
-        done = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
+        done = subprocess.run(command, capture_output=True, text=True, env=command_environment())
         if done.returncode != 0:
             lines = done.stderr.strip().splitlines()
             reason = lines[-1] if lines else f"killed by signal {-done.returncode}"

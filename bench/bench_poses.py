@@ -20,7 +20,7 @@ import sys
 from pathlib import Path
 
 from bench.bench_levers import PERTURBED, SYNTHETIC, _ensure_perturbed, _row, _venv
-from pipelines.datasets.smpl_files import cache_dir
+from pipelines.datasets.smpl_files import cache_dir, command_environment
 
 STEPS = 400
 ON = ["train.pose_correction=true"]
@@ -50,7 +50,7 @@ def _field_run(cache: Path) -> Path:
     run = cache / "exact-field"
     if not (run / "checkpoint.pt").is_file():
         fit = [_venv("narf-fit"), "--subject", str(SYNTHETIC), "--out", str(run), "--max-minutes", "3", "--quiet"]
-        subprocess.run(fit, check=True)
+        subprocess.run(fit, check=True, env=command_environment())
     return run
 
 

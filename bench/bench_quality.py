@@ -13,14 +13,13 @@ poses are the last 24 of a shorter motion, closer to the training poses than the
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 import sys
 from pathlib import Path
 
 from fitting.files import atomic_write_text
-from pipelines.datasets.smpl_files import cache_dir
+from pipelines.datasets.smpl_files import cache_dir, command_environment
 
 #: (row label, ``--set`` overrides of the CPU preset, frames of the capture: None = the default capture)
 SIXTEEN = ["render.train_coarse=16", "render.train_fine=16"]
@@ -44,7 +43,7 @@ def _run(args: list[str]) -> None:
     """Run a console script (``pipelines.cli.<name>``, then its arguments) as a user would."""
     code = f"from {args[0]} import entrypoint; entrypoint()"
     command = [sys.executable, "-c", code, *args[1:]]
-    done = subprocess.run(command, capture_output=True, text=True, env=os.environ.copy())
+    done = subprocess.run(command, capture_output=True, text=True, env=command_environment())
     if done.returncode != 0:
         lines = done.stderr.strip().splitlines()
         raise RuntimeError(lines[-1] if lines else f"{args[0]} failed with code {done.returncode}")

@@ -12,7 +12,6 @@ installed.
 
 from __future__ import annotations
 
-import os
 import subprocess
 import sys
 import time
@@ -21,7 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipelines.datasets.smpl_files import cache_dir
+from pipelines.datasets.smpl_files import cache_dir, command_environment
 from pipelines.viewer.avatar import camera_from_viewer, viewer_from_camera, z_depth
 
 SIDES = (128, 192, 256)
@@ -34,7 +33,7 @@ def _fit(run: Path) -> None:
     shutil.rmtree(run, ignore_errors=True)
     command = [sys.executable, "-c", "from pipelines.cli.fit import entrypoint; entrypoint()"]
     command += ["--subject", "taichi", "--out", str(run), "--max-minutes", "2", "--quiet"]
-    subprocess.run(command, check=True, env=os.environ.copy())
+    subprocess.run(command, check=True, env=command_environment())
 
 
 def _orbit(data, side: int) -> list:

@@ -17,7 +17,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from pipelines.datasets.smpl_files import cache_dir
+from pipelines.datasets.smpl_files import cache_dir, command_environment
 from pipelines.datasets.zju_mocap import read_annots, write_annots
 from pipelines.synthetic.capture import SynthConfig, generate_capture, is_complete
 
@@ -48,7 +48,9 @@ def one_step_fit(capture: Path, run_dir: Path, ratio: float) -> tuple[float, flo
     command += ["--config", "cpu", "--set", "train.steps=1", "--set", f"data.ratio={ratio}"]
     with tempfile.TemporaryFile("w+") as errors:  # a file, not a pipe: a pipe nobody reads fills and blocks the fit
         start = time.perf_counter()
-        child = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=errors, text=True)
+        child = subprocess.Popen(
+            command, stdout=subprocess.DEVNULL, stderr=errors, text=True, env=command_environment()
+        )
         _, status, usage = os.wait4(child.pid, 0)
         seconds = time.perf_counter() - start
         if status != 0:

@@ -3,6 +3,7 @@ measured on the same machine (an interrupted 70-minute run loses only the benchm
 
 import json
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -34,6 +35,37 @@ def test_unknown_benchmark_is_a_usage_error(monkeypatch, capsys):
         bench_main.main()
     assert stop.value.code == 2
     assert "unknown benchmark 'fast'" in capsys.readouterr().err
+
+
+def test_the_benchmarks_cache_is_passed_down_not_written_to_the_environment(tmp_path, monkeypatch, capsys):
+    """Without ``$NARF_CACHE`` the benchmarks keep their runs and rows under ``.cache/bench`` of the working folder:
+    the calls inside ``python -m bench`` see it (``cache_dir``), the commands they start get it in their
+    environment (``command_environment``), and the process's own environment is left as it was."""
+    import os
+
+    module = tmp_path / "cache_bench.py"
+    module.write_text(
+        "import subprocess, sys\n"
+        "from pipelines.datasets.smpl_files import cache_dir, command_environment\n"
+        "def run():\n"
+        "    code = 'import os; print(os.environ[\"NARF_CACHE\"])'\n"
+        "    child = subprocess.run([sys.executable, '-c', code], env=command_environment(), capture_output=True,"
+        " text=True, check=True)\n"
+        "    return [{'model': 'cache', 'here': str(cache_dir()), 'child': child.stdout.strip()}]\n"
+    )
+    monkeypatch.syspath_prepend(str(tmp_path))
+    monkeypatch.setitem(bench_main.BENCHMARKS, "cache", "cache_bench")
+    monkeypatch.delenv("NARF_CACHE", raising=False)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "argv", ["python -m bench", "cache"])
+    bench_main.main()
+    expected = str(tmp_path / ".cache" / "bench")
+    assert f"| cache | {expected} | {expected} |" in capsys.readouterr().out
+    assert (tmp_path / ".cache" / "bench" / "rows" / "cache.json").is_file()
+    assert "NARF_CACHE" not in os.environ
+    from pipelines.datasets.smpl_files import cache_dir
+
+    assert cache_dir() == Path.home() / ".cache" / "narf-avatar"  # the choice ended with the command
 
 
 def test_reference_comparison_sees_any_difference():

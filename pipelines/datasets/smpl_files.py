@@ -9,6 +9,9 @@ from __future__ import annotations
 import io
 import os
 import pickle
+from collections.abc import Iterator
+from contextlib import contextmanager
+from contextvars import ContextVar
 from pathlib import Path
 
 import numpy as np
@@ -31,9 +34,33 @@ class SmplFileError(ValueError):
     """An SMPL model file is missing, unreadable or malformed (the message names the file)."""
 
 
+#: The cache folder chosen for the calls inside :func:`chosen_cache` (a benchmark's own), never written to the
+#: environment, so that nothing outlives the block that chose it (as ``pipelines.body.locate``'s SMPL model).
+_CHOSEN_CACHE: ContextVar[str | None] = ContextVar("narf_cache", default=None)
+
+
 def cache_dir() -> Path:
-    """Project cache folder: ``$NARF_CACHE`` or ``~/.cache/narf-avatar``."""
-    return Path(os.environ.get("NARF_CACHE", Path.home() / ".cache" / "narf-avatar"))
+    """Project cache folder: the one chosen for the current context (:func:`chosen_cache`), else ``$NARF_CACHE``,
+    else ``~/.cache/narf-avatar``."""
+    chosen = _CHOSEN_CACHE.get() or os.environ.get("NARF_CACHE")
+    return Path(chosen) if chosen else Path.home() / ".cache" / "narf-avatar"
+
+
+@contextmanager
+def chosen_cache(path: str | Path) -> Iterator[None]:
+    """``path`` is the cache folder of the calls inside the block (:func:`cache_dir`), and of the commands they
+    start with :func:`command_environment`; no longer after it."""
+    token = _CHOSEN_CACHE.set(str(path))
+    try:
+        yield
+    finally:
+        _CHOSEN_CACHE.reset(token)
+
+
+def command_environment(**extra: str) -> dict[str, str]:
+    """The environment of a command this process starts: its own, with ``NARF_CACHE`` set to :func:`cache_dir` (so
+    that the command shares the cache chosen here) and the variables ``extra``."""
+    return {**os.environ, "NARF_CACHE": str(cache_dir()), **extra}
 
 
 class _LegacyPickler(pickle._Pickler):  # the pure-Python pickler lets us rename modules of globals
