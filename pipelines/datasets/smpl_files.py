@@ -49,7 +49,8 @@ def cache_dir() -> Path:
 @contextmanager
 def chosen_cache(path: str | Path) -> Iterator[None]:
     """``path`` is the cache folder of the calls inside the block (:func:`cache_dir`), and of the commands they
-    start with :func:`command_environment`; no longer after it."""
+    start with :func:`command_environment`; no longer after it. A thread pool's workers do not inherit the choice:
+    take the paths and environments they need before handing them work."""
     token = _CHOSEN_CACHE.set(str(path))
     try:
         yield
