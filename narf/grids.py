@@ -115,10 +115,13 @@ def corner_rows_and_weights(u: torch.Tensor, part: torch.Tensor, shape: GridShap
     frac = x - base  # gradient through x
     low = base.long() * multipliers & (shape.rows - 1)  # (3, M, L)
     high = (base.long() + 1) * multipliers & (shape.rows - 1)
-    tx, ty, tz = (torch.stack([low[a], high[a]]) for a in range(3))  # (2, M, L) each
+    # the table's offset of (level, part), a multiple of T, has no bit below log2 T: the xor carries it unchanged,
+    # so it is added to the x parts (2, M, L) once, not to the 8 corners
+    offset = (torch.arange(shape.levels, device=u.device) * n_parts + part[:, None]) * shape.rows  # (M, L)
+    tx = torch.stack([low[0] + offset, high[0] + offset])  # (2, M, L)
+    ty, tz = (torch.stack([low[a], high[a]]) for a in (1, 2))
     rows = torch.bitwise_xor(torch.bitwise_xor(tz[:, None, None], ty[None, :, None]), tx[None, None, :])
-    level = torch.arange(shape.levels, device=u.device)
-    rows = rows.reshape(8, *x.shape[1:]) + (level * n_parts + part[:, None]) * shape.rows
+    rows = rows.reshape(8, *x.shape[1:])
     wx, wy, wz = (torch.stack([1 - frac[a], frac[a]]) for a in range(3))
     weights = (wz[:, None, None] * wy[None, :, None] * wx[None, None, :]).reshape(8, *x.shape[1:])
     return rows, weights
