@@ -46,8 +46,8 @@ def build_parser() -> argparse.ArgumentParser:
         "ae_cnn_paper, rigid_cpu, rigid_paper, rigid_tiny) or YAML file; default: cnn for --model cnn, ae_paper / "
         "ae_cpu for --kind autoencoder (ae_cnn_paper / ae_cnn with --model cnn), rigid_paper / rigid_cpu for --kind "
         "rigid, else paper with CUDA and cpu without (cpu_grid: the cpu preset whose NARF_D parts read learned grids, "
-        "on a random background, with Adam's beta2 0.99; gpu_grid: the grids at GPU scale; paper_sparse: the paper's "
-        "network with the cpu preset's colour and shells, for rigs of few cameras)",
+        "on a random background, with Adam's beta2 0.99 and 32 images of 16 rays a step; gpu_grid: the grids at GPU "
+        "scale; paper_sparse: the paper's network with the cpu preset's colour and shells, for rigs of few cameras)",
     )
     parser.add_argument(
         "--model",
