@@ -558,8 +558,6 @@ def validate_config(config: FitConfig) -> None:
         raise ConfigError("model.body_shell: the CNN baseline has no part boxes; leave it at 0")
     if config.model.surface_shell and not config.model.body_shell:
         raise ConfigError("model.surface_shell: shells are off (model.body_shell is 0); set both or neither")
-    if config.train.s3im_weight and config.train.random_background:  # the band's targets hold the recording's colour
-        raise ConfigError("train.s3im_weight: not with train.random_background; set one of them off")
     rays_only = ("pose_correction", "camera_colour", "random_background", "holdout_every", "entropy_weight")
     for key in (*rays_only, "smoothness_weight", "mirror_weight", "outline_weight", "s3im_weight"):
         if getattr(config.train, key) and not spec.rays:

@@ -153,9 +153,16 @@ def stochastic_ssim_loss(
     return 1 - grouped_ssim(rendered[order], target[order]).mean()
 
 
-def structure_term(config: FitConfig, out: RenderOutput, batch, generator, camera_colour=None):
+def structure_term(config: FitConfig, out: RenderOutput, batch, generator, camera_colour=None, backgrounds=None):
     """``train.s3im_weight`` times :func:`stochastic_ssim_loss` of the rays' colours composited as :func:`batch_loss`
-    composites them, against their targets (docs/model.md §6, *Structure across rays*). A 0-dim tensor."""
-    background = 1.0 if config.data.white_background else 0.0
-    rendered = composited_colour(out, batch, background, camera_colour)
-    return config.train.s3im_weight * stochastic_ssim_loss(rendered, batch.rgb, config.train.s3im_repeats, generator)
+    composites them, against their targets (docs/model.md §6, *Structure across rays*). With random ``backgrounds``
+    (R, 3) the rays are composited over them, the targets outside the mask are those colours, and the band's rays
+    (mask weight 0) leave the groups as they leave the colour term. A 0-dim tensor."""
+    if backgrounds is None:
+        background = 1.0 if config.data.white_background else 0.0
+        rendered, target = composited_colour(out, batch, background, camera_colour), batch.rgb
+    else:
+        kept = batch.mask_weight > 0
+        rendered = composited_colour(out, batch, backgrounds, camera_colour)[kept]
+        target = torch.where(batch.mask[:, None] > 0.5, batch.rgb, backgrounds)[kept]
+    return config.train.s3im_weight * stochastic_ssim_loss(rendered, target, config.train.s3im_repeats, generator)

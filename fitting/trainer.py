@@ -336,7 +336,8 @@ class Trainer:
             )
             loss = loss + terms_value(terms, out[1:]) / self.processes.world_size
             if t.s3im_weight:  # over this process's rays (docs/model.md §6)
-                term = structure_term(self.config, out[0], mine, self.generator, self.colour_response)
+                mine_backgrounds = None if backgrounds is None else backgrounds[share]
+                term = structure_term(self.config, out[0], mine, self.generator, self.colour_response, mine_backgrounds)
                 loss = loss + term / self.processes.world_size
         # every process adds the penalty; the summed gradients then hold it once
         loss = loss + (self.correction_penalty(index) + self.grid_penalty()) / self.processes.world_size

@@ -96,8 +96,35 @@ def test_the_option_is_for_subject_fits_that_render_rays():
         load_config("cpu", ["train.s3im_weight=-1"])
     with pytest.raises(ConfigError, match="s3im_repeats"):
         load_config("cpu", ["train.s3im_repeats=0"])
-    with pytest.raises(ConfigError, match="s3im_weight: not with train.random_background"):
-        load_config("cpu", ["train.s3im_weight=0.2", "train.random_background=true"])
+    assert load_config("cpu_grid", ["train.s3im_weight=0.2"]).train.random_background  # beside random backgrounds
+
+
+def test_the_term_over_random_backgrounds_leaves_the_band_out():
+    """With random backgrounds the rays are composited over them and the targets outside the mask are those colours
+    (as the colour term takes them); the band's rays (mask weight 0), whose targets keep the recording's colour, leave
+    the groups: the term is the loss of the other rays alone, and a band ray's colour does not move it."""
+    config = FitConfig()
+    config.train.s3im_weight = 0.5
+    n = 80
+    generator = torch.Generator().manual_seed(5)
+    mask = (torch.rand(n, generator=generator) > 0.5).float()
+    weight = torch.ones(n)
+    weight[:16] = 0  # the band: 16 rays, so 64 kept, four whole groups
+    backgrounds = torch.rand(n, 3, generator=generator)
+    colour = torch.rand(n, 3, generator=generator) * mask[:, None]
+    target = torch.rand(n, 3, generator=generator)
+    frames = torch.zeros(n, dtype=torch.long)
+    batch = RayBatch(*(torch.zeros(n, 3),) * 2, frames, target, mask, weight, frames)
+    out = RenderOutput(colour, mask, torch.zeros(n))
+    value = structure_term(config, out, batch, torch.Generator().manual_seed(9), backgrounds=backgrounds)
+    kept = weight > 0
+    rendered = (colour + (1 - mask)[:, None] * backgrounds)[kept]
+    expected_target = torch.where(mask[:, None] > 0.5, target, backgrounds)[kept]
+    expected = 0.5 * stochastic_ssim_loss(rendered, expected_target, 10, torch.Generator().manual_seed(9))
+    torch.testing.assert_close(value, expected)  # the same orderings of the same 64 rays: the same sums
+    batch.rgb[:16] = 1 - batch.rgb[:16]
+    moved = structure_term(config, out, batch, torch.Generator().manual_seed(9), backgrounds=backgrounds)
+    torch.testing.assert_close(moved, expected)
 
 
 def test_a_step_adds_the_term_and_draws_nothing_without_it(data_root_64, tmp_path):
