@@ -127,15 +127,18 @@ def test_the_term_over_random_backgrounds_leaves_the_band_out():
     torch.testing.assert_close(moved, expected)
 
 
-def test_a_step_adds_the_term_and_draws_nothing_without_it(data_root_64, tmp_path):
-    """One training step on the same batch with and without train.s3im_weight: the loss differs by the term (the
-    step's losses are logged), and the term's random orders come from the fit's generator only when it is on."""
+@pytest.mark.parametrize("random_background", [False, True])
+def test_a_step_adds_the_term_and_draws_nothing_without_it(data_root_64, tmp_path, random_background):
+    """One training step on the same batch with and without train.s3im_weight, on the data's background and on random
+    ones: the loss differs by the term (the step's losses are logged), and the term's random orders come from the
+    fit's generator only when it is on."""
     from fitting.run_folder import prepare_run_dir
     from pipelines.runs.fit import start_run
 
     losses, states = [], []
     for weight in (0.0, 1.0):
         sets = [f"data.data_root={data_root_64}", "data.ratio=1.0", "train.steps=1", f"train.s3im_weight={weight}"]
+        sets.append(f"train.random_background={random_background}")
         folder = prepare_run_dir(tmp_path / f"run{weight}", False)
         trainer = start_run(folder, torch.device("cpu"), load_config("tiny", sets), progress=False)
         losses.append(trainer.train_step()[0])
