@@ -379,6 +379,12 @@ def composited_colour(out, batch, background: float | torch.Tensor, camera_colou
     return rgb + (1 - out.mask)[:, None] * background
 
 
+def background_target(batch, backgrounds: torch.Tensor) -> torch.Tensor:
+    """(R, 3) the colour targets under random ``backgrounds`` (R, 3): the recording's colour inside the mask, the ray's
+    background colour outside it (docs/model.md §6, *Random background*)."""
+    return torch.where(batch.mask[:, None] > 0.5, batch.rgb, backgrounds)
+
+
 def corrected_colour_error(
     out, batch, background, camera_colour, backgrounds, colour_count, mask_count, penalty=torch.square
 ):
@@ -388,6 +394,6 @@ def corrected_colour_error(
     ``colour_count`` / ``mask_count``: the normalisers of ``ray_loss``; ``penalty``: of each channel's residual."""
     if backgrounds is None:
         return penalty(composited_colour(out, batch, background, camera_colour) - batch.rgb).sum() / colour_count
-    target = torch.where(batch.mask[:, None] > 0.5, batch.rgb, backgrounds)
+    target = background_target(batch, backgrounds)
     error = penalty(composited_colour(out, batch, backgrounds, camera_colour) - target).sum(dim=-1)
     return (batch.mask_weight * error).sum() / (3 * mask_count)

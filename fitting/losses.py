@@ -10,7 +10,7 @@ from kornia.filters import get_gaussian_kernel1d
 from kornia.losses import charbonnier_loss
 
 from fitting.config import FitConfig
-from fitting.corrections import composited_colour, corrected_colour_error
+from fitting.corrections import background_target, composited_colour, corrected_colour_error
 from fitting.training_rays import render_training_rays
 from narf.renderer import RenderOutput
 
@@ -164,5 +164,5 @@ def structure_term(config: FitConfig, out: RenderOutput, batch, generator, camer
     else:
         kept = batch.mask_weight > 0
         rendered = composited_colour(out, batch, backgrounds, camera_colour)[kept]
-        target = torch.where(batch.mask[:, None] > 0.5, batch.rgb, backgrounds)[kept]
+        target = background_target(batch, backgrounds)[kept]
     return config.train.s3im_weight * stochastic_ssim_loss(rendered, target, config.train.s3im_repeats, generator)

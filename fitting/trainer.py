@@ -318,6 +318,7 @@ class Trainer:
         if self.frame_appearance is not None:  # training rays only: evaluation reads the zero code
             poses = self.frame_appearance.attach(poses, index)
         share = self.processes.share(n)
+        my_backgrounds = None if backgrounds is None else backgrounds[share]
         with self.autocast(), torch.profiler.record_function("narf.forward"):
             mine = batch.take(share)
             training = RaySet(mine.origins, mine.dirs, mine.frames, poses, [u[share] for u in uniforms])
@@ -332,12 +333,11 @@ class Trainer:
                 mine,
                 normalisers=(3 * n, batch.mask_weight.sum().clamp_min(1)),
                 camera_colour=self.colour_response,
-                backgrounds=None if backgrounds is None else backgrounds[share],
+                backgrounds=my_backgrounds,
             )
             loss = loss + terms_value(terms, out[1:]) / self.processes.world_size
             if t.s3im_weight:  # over this process's rays (docs/model.md §6)
-                mine_backgrounds = None if backgrounds is None else backgrounds[share]
-                term = structure_term(self.config, out[0], mine, self.generator, self.colour_response, mine_backgrounds)
+                term = structure_term(self.config, out[0], mine, self.generator, self.colour_response, my_backgrounds)
                 loss = loss + term / self.processes.world_size
         # every process adds the penalty; the summed gradients then hold it once
         loss = loss + (self.correction_penalty(index) + self.grid_penalty()) / self.processes.world_size
