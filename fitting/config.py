@@ -190,6 +190,9 @@ class TrainConfig:
     outline_beside: float = 1.0  #: with the outline: weight of its rays that pass beside the body (0: through it only)
     s3im_weight: float = 0.0  #: weight of the stochastic structural similarity over the training rays (0: off)
     s3im_repeats: int = 10  #: with S3IM: random groupings of the batch's rays per step
+    #: with S3IM: "batch", a group takes rays from anywhere in the batch; "camera", from one training camera only
+    s3im_groups: Literal["batch", "camera"] = "batch"
+    s3im_fade: bool = False  #: with S3IM: its weight falls linearly from train.s3im_weight to 0 over the fit's budget
     holdout_every: int = 0  #: subject fits: every n-th training frame is held back to choose the step kept (0: none)
     select_every: int = 500  #: with a holdout: steps between scores of the held-back frames
     select_rays: int = 4096  #: with a holdout: the person pixels of the held-back frames each score renders

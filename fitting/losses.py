@@ -139,30 +139,54 @@ def grouped_ssim(x: torch.Tensor, y: torch.Tensor, side: int = SIDE) -> torch.Te
 
 
 def stochastic_ssim_loss(
-    rendered: torch.Tensor, target: torch.Tensor, repeats: int, generator: torch.Generator
+    rendered: torch.Tensor,
+    target: torch.Tensor,
+    repeats: int,
+    generator: torch.Generator,
+    labels: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """S3IM (Xie et al., ICCV 2023): 1 - the mean :func:`grouped_ssim` over ``repeats`` random orderings of the
     rays, each cut into groups of SIDE^2 (the rays past the last whole group of an ordering are left out of it).
     A ray's colour is then judged with others' from anywhere in the batch: their means, contrasts and correlation,
-    which a per-ray loss does not see. rendered, target: (R, 3). Returns a 0-dim tensor."""
-    count = rendered.shape[0] // SIDE**2 * SIDE**2
-    if count == 0:
-        return rendered.sum() * 0
-    orders = [torch.randperm(rendered.shape[0], generator=generator)[:count] for _ in range(repeats)]
+    which a per-ray loss does not see. With ``labels`` (R,) ints, a group takes rays of one label only (an ordering
+    is random within each label, and each label's rays past its last whole group are left out). rendered, target:
+    (R, 3). Returns a 0-dim tensor."""
+    orders = [_grouped_order(rendered.shape[0], labels, generator) for _ in range(repeats)]
     order = torch.cat(orders).to(rendered.device)
+    if order.numel() == 0:
+        return rendered.sum() * 0
     return 1 - grouped_ssim(rendered[order], target[order]).mean()
+
+
+def _grouped_order(count: int, labels: torch.Tensor | None, generator: torch.Generator) -> torch.Tensor:
+    """A random order of ``count`` rays cut to whole groups of SIDE^2, each group of one label when ``labels``
+    (count,) is given: a random permutation, sorted stably by label, then the rays past each label's last whole
+    group dropped. (N,) indices, N a multiple of SIDE^2."""
+    order = torch.randperm(count, generator=generator)
+    if labels is None:
+        return order[: count // SIDE**2 * SIDE**2]
+    label = labels.cpu()[order]
+    sorted_label, by_label = torch.sort(label, stable=True)
+    order = order[by_label]
+    _, sizes = torch.unique_consecutive(sorted_label, return_counts=True)
+    starts = torch.repeat_interleave(torch.cumsum(sizes, 0) - sizes, sizes)
+    whole = torch.repeat_interleave(sizes // SIDE**2 * SIDE**2, sizes)
+    return order[torch.arange(count) - starts < whole]
 
 
 def structure_term(config: FitConfig, out: RenderOutput, batch, generator, camera_colour=None, backgrounds=None):
     """``train.s3im_weight`` times :func:`stochastic_ssim_loss` of the rays' colours composited as :func:`batch_loss`
     composites them, against their targets (docs/model.md §6, *Structure across rays*). With random ``backgrounds``
     (R, 3) the rays are composited over them, the targets outside the mask are those colours, and the band's rays
-    (mask weight 0) leave the groups as they leave the colour term. A 0-dim tensor."""
+    (mask weight 0) leave the groups as they leave the colour term. With ``train.s3im_groups`` "camera", a group takes
+    the rays of one training camera only. A 0-dim tensor."""
     if backgrounds is None:
         background = 1.0 if config.data.white_background else 0.0
-        rendered, target = composited_colour(out, batch, background, camera_colour), batch.rgb
+        rendered, target, cameras = composited_colour(out, batch, background, camera_colour), batch.rgb, batch.cameras
     else:
         kept = batch.mask_weight > 0
         rendered = composited_colour(out, batch, backgrounds, camera_colour)[kept]
-        target = background_target(batch, backgrounds)[kept]
-    return config.train.s3im_weight * stochastic_ssim_loss(rendered, target, config.train.s3im_repeats, generator)
+        target, cameras = background_target(batch, backgrounds)[kept], batch.cameras[kept]
+    labels = cameras if config.train.s3im_groups == "camera" else None
+    loss = stochastic_ssim_loss(rendered, target, config.train.s3im_repeats, generator, labels)
+    return config.train.s3im_weight * loss

@@ -338,7 +338,8 @@ class Trainer:
             loss = loss + terms_value(terms, out[1:]) / self.processes.world_size
             if t.s3im_weight:  # over this process's rays (docs/model.md §6)
                 term = structure_term(self.config, out[0], mine, self.generator, self.colour_response, my_backgrounds)
-                loss = loss + term / self.processes.world_size
+                fade = 1.0 - self.budget.progress(self.step) if t.s3im_fade else 1.0
+                loss = loss + fade * term / self.processes.world_size
         # every process adds the penalty; the summed gradients then hold it once
         loss = loss + (self.correction_penalty(index) + self.grid_penalty()) / self.processes.world_size
         return self.optimise(loss, colour)

@@ -69,6 +69,21 @@ def test_the_stochastic_loss_groups_rays_at_random():
     assert float(small.detach()) == 0.0 and few.grad is not None
 
 
+def test_groups_by_label_take_one_label_each():
+    """With labels, a group holds rays of one label: two labels of 16 rays each, constant within a label, give
+    SSIM's luminance term for each group alone (no contrast, whatever the order), by hand; a third label's 5 rays,
+    less than a group, are left out. Without labels the groups mix the labels, and their contrasts count."""
+    labels = torch.tensor([0, 1] * 16 + [2] * 5)[torch.randperm(37, generator=torch.Generator().manual_seed(1))]
+    x = torch.tensor([0.2, 0.7, 0.0], dtype=torch.float64)[labels][:, None].expand(-1, 3)
+    y = torch.tensor([0.3, 0.7, 1.0], dtype=torch.float64)[labels][:, None].expand(-1, 3)
+    luminance = (2 * 0.2 * 0.3 + 1e-4) / (0.2**2 + 0.3**2 + 1e-4)
+    expected = 1 - (luminance + 1) / 2
+    value = stochastic_ssim_loss(x, y, 3, torch.Generator().manual_seed(2), labels)
+    assert float(value) == pytest.approx(expected, rel=0, abs=1e-12)  # float64 sums of 16 terms
+    mixed = stochastic_ssim_loss(x, y, 3, torch.Generator().manual_seed(2))
+    assert abs(float(mixed) - expected) > 0.05
+
+
 def test_the_term_composites_as_the_colour_loss_does():
     """structure_term renders over the data's background (white here) and weighs by train.s3im_weight; a render
     that matches its targets once composited costs nothing, the same render over black does."""
@@ -96,13 +111,17 @@ def test_the_option_is_for_subject_fits_that_render_rays():
         load_config("cpu", ["train.s3im_weight=-1"])
     with pytest.raises(ConfigError, match="s3im_repeats"):
         load_config("cpu", ["train.s3im_repeats=0"])
+    assert load_config("cpu", ["train.s3im_groups=camera"]).train.s3im_groups == "camera"
+    with pytest.raises(ConfigError, match="s3im_groups"):
+        load_config("cpu", ["train.s3im_groups=image"])
     assert load_config("cpu_grid", ["train.s3im_weight=0.2"]).train.random_background  # beside random backgrounds
 
 
 def test_the_term_over_random_backgrounds_leaves_the_band_out():
     """With random backgrounds the rays are composited over them and the targets outside the mask are those colours
     (as the colour term takes them); the band's rays (mask weight 0), whose targets keep the recording's colour, leave
-    the groups: the term is the loss of the other rays alone, and a band ray's colour does not move it."""
+    the groups: the term is the loss of the other rays alone, and a band ray's colour does not move it; grouped by
+    camera, the kept rays' cameras label the groups."""
     config = FitConfig()
     config.train.s3im_weight = 0.5
     n = 80
@@ -125,6 +144,11 @@ def test_the_term_over_random_backgrounds_leaves_the_band_out():
     batch.rgb[:16] = 1 - batch.rgb[:16]
     moved = structure_term(config, out, batch, torch.Generator().manual_seed(9), backgrounds=backgrounds)
     torch.testing.assert_close(moved, expected)
+    config.train.s3im_groups, batch.cameras = "camera", torch.arange(n) % 2  # the kept rays' cameras label them
+    by_camera = structure_term(config, out, batch, torch.Generator().manual_seed(9), backgrounds=backgrounds)
+    labels = batch.cameras[kept]
+    expected = 0.5 * stochastic_ssim_loss(rendered, expected_target, 10, torch.Generator().manual_seed(9), labels)
+    torch.testing.assert_close(by_camera, expected)
 
 
 @pytest.mark.parametrize("random_background", [False, True])
@@ -146,3 +170,21 @@ def test_a_step_adds_the_term_and_draws_nothing_without_it(data_root_64, tmp_pat
     # 1 - S3IM of a field a step old lies well above 0.05 (SSIM of noise against the images)
     assert losses[1] > losses[0] + 0.05
     assert not torch.equal(states[0], states[1])
+
+
+def test_the_fading_weight_falls_with_the_budget(data_root_64, tmp_path):
+    """With train.s3im_fade the term's weight is train.s3im_weight x (1 - the budget's progress): halfway through the
+    budget a step's loss lies halfway between the step without the term and the step with all of it (the same batch
+    and orders: every trainer starts from the same seed). Tolerance: float32 sums of a few hundred rays' losses."""
+    from fitting.run_folder import prepare_run_dir
+    from pipelines.runs.fit import start_run
+
+    losses = []
+    for name, extra in (("off", ["train.s3im_weight=0"]), ("on", []), ("fade", ["train.s3im_fade=true"])):
+        sets = [f"data.data_root={data_root_64}", "data.ratio=1.0", "train.steps=1", "train.s3im_weight=1", *extra]
+        folder = prepare_run_dir(tmp_path / name, False)
+        trainer = start_run(folder, torch.device("cpu"), load_config("tiny", sets), progress=False)
+        trainer.budget._clock = 0.5  # half the budget's minutes spent
+        losses.append(trainer.train_step()[0])
+    assert losses[1] > losses[0] + 0.05
+    assert losses[2] == pytest.approx((losses[0] + losses[1]) / 2, abs=1e-5)
