@@ -151,27 +151,26 @@ def stochastic_ssim_loss(
     which a per-ray loss does not see. With ``labels`` (R,) ints, a group takes rays of one label only (an ordering
     is random within each label, and each label's rays past its last whole group are left out). rendered, target:
     (R, 3). Returns a 0-dim tensor."""
-    orders = [_grouped_order(rendered.shape[0], labels, generator) for _ in range(repeats)]
+    count = rendered.shape[0]
+    labels = torch.zeros(count, dtype=torch.long) if labels is None else labels.cpu()  # one label: the whole batch
+    orders = [_grouped_order(labels, generator) for _ in range(repeats)]
     order = torch.cat(orders).to(rendered.device)
     if order.numel() == 0:
         return rendered.sum() * 0
     return 1 - grouped_ssim(rendered[order], target[order]).mean()
 
 
-def _grouped_order(count: int, labels: torch.Tensor | None, generator: torch.Generator) -> torch.Tensor:
-    """A random order of ``count`` rays cut to whole groups of SIDE^2, each group of one label when ``labels``
-    (count,) is given: a random permutation, sorted stably by label, then the rays past each label's last whole
-    group dropped. (N,) indices, N a multiple of SIDE^2."""
-    order = torch.randperm(count, generator=generator)
-    if labels is None:
-        return order[: count // SIDE**2 * SIDE**2]
-    label = labels.cpu()[order]
-    sorted_label, by_label = torch.sort(label, stable=True)
+def _grouped_order(labels: torch.Tensor, generator: torch.Generator) -> torch.Tensor:
+    """A random order of the rays cut to whole groups of SIDE^2, each group of one label (``labels`` (R,) ints on the
+    CPU): a random permutation, sorted stably by label, then the rays past each label's last whole group dropped.
+    (N,) indices, N a multiple of SIDE^2."""
+    order = torch.randperm(labels.shape[0], generator=generator)
+    sorted_label, by_label = torch.sort(labels[order], stable=True)
     order = order[by_label]
     _, sizes = torch.unique_consecutive(sorted_label, return_counts=True)
     starts = torch.repeat_interleave(torch.cumsum(sizes, 0) - sizes, sizes)
     whole = torch.repeat_interleave(sizes // SIDE**2 * SIDE**2, sizes)
-    return order[torch.arange(count) - starts < whole]
+    return order[torch.arange(labels.shape[0]) - starts < whole]
 
 
 def structure_term(config: FitConfig, out: RenderOutput, batch, generator, camera_colour=None, backgrounds=None):
