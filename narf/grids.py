@@ -93,7 +93,9 @@ def vertex_rows(vertex: torch.Tensor, multipliers, rows: int) -> torch.Tensor:
     return torch.bitwise_xor(torch.bitwise_xor(terms[..., 0], terms[..., 1]), terms[..., 2]) & (rows - 1)
 
 
-def corner_rows_and_weights(u: torch.Tensor, part: torch.Tensor, shape: GridShape, n_parts: int):
+def corner_rows_and_weights(
+    u: torch.Tensor, part: torch.Tensor, shape: GridShape, n_parts: int, gradient_levels: int | None = None
+):
     """Rows and trilinear weights of the 8 corners of each point's cell at every level, corner-major.
 
     The work is done per axis on (3, M, L) tensors, and the 8 corners are formed by broadcasting the three axes'
@@ -103,6 +105,8 @@ def corner_rows_and_weights(u: torch.Tensor, part: torch.Tensor, shape: GridShap
 
     Args:
         u: (M, 3) box coordinates (clamped to [-1, 1]). part: (M,) long part of each point.
+        gradient_levels: the weights' gradient w.r.t. u passes through the levels l < gradient_levels only (None:
+            all): the pose's gradient band-limited to the coarse levels (docs/model.md §6).
 
     Returns:
         rows (8, M, L) long into the flat (L P T, F) table, weights (8, M, L) in u's dtype (differentiable in u);
@@ -111,6 +115,8 @@ def corner_rows_and_weights(u: torch.Tensor, part: torch.Tensor, shape: GridShap
     resolutions = torch.tensor(shape.resolutions(), dtype=u.dtype, device=u.device)
     multipliers = torch.tensor(shape.multipliers(), dtype=torch.long, device=u.device).T[:, None, :]  # (3, 1, L)
     x = (u.clamp(-1, 1).T[:, :, None] + 1) * (0.5 * resolutions)  # (3, M, L)
+    if gradient_levels is not None and gradient_levels < shape.levels and x.requires_grad:
+        x = torch.where(torch.arange(shape.levels, device=u.device) < gradient_levels, x, x.detach())
     base = x.detach().floor().clamp_max(resolutions - 1)  # the far face belongs to the last cell
     frac = x - base  # gradient through x
     low = base.long() * multipliers & (shape.rows - 1)  # (3, M, L)
@@ -132,11 +138,13 @@ class _BlendRows(torch.autograd.Function):
     ``embedding_bag`` (the gather and the weighted sum in one kernel, on the bags' (N, 8) layout); the backward
     scatter-adds w[c, n] g[n] into the table's rows with one ``index_add_`` over the corner-major layout
     (``embedding_bag``'s own dense backward sorts the 8 N rows first, several times slower on a CPU); the weights'
-    gradient g[n] . table[rows[c, n]] only when asked."""
+    gradient g[n] . table[rows[c, n]] only when asked, and with N = M L bags laid out level fastest, only for the
+    bags of the levels l < ``passing`` (the others' is zero: :func:`corner_rows_and_weights` holds their u)."""
 
     @staticmethod
-    def forward(ctx, table, rows, weights):
+    def forward(ctx, table, rows, weights, levels, passing):
         ctx.save_for_backward(table, rows, weights)
+        ctx.levels, ctx.passing = levels, passing
         bags, bag_weights = rows.T.contiguous(), weights.T.contiguous()
         return nn.functional.embedding_bag(bags, table, per_sample_weights=bag_weights, mode="sum")
 
@@ -148,15 +156,26 @@ class _BlendRows(torch.autograd.Function):
             spread = (weights[:, :, None] * grad[None]).reshape(-1, table.shape[1]).to(table.dtype)
             grad_table = torch.zeros_like(table).index_add_(0, rows.reshape(-1), spread)
         if ctx.needs_input_grad[2]:
-            grad_weights = (table[rows] * grad[None]).sum(-1).to(weights.dtype)
-        return grad_table, None, grad_weights
+            levels, passing = ctx.levels, ctx.passing
+            if passing >= levels:
+                grad_weights = (table[rows] * grad[None]).sum(-1).to(weights.dtype)
+            else:  # (8, M, L) bags: the gather of the passing levels' corners only
+                coarse_rows = rows.unflatten(1, (-1, levels))[:, :, :passing]
+                coarse_grad = grad.unflatten(0, (-1, levels))[:, :passing]
+                grad_weights = weights.new_zeros(8, grad.shape[0] // levels, levels)
+                grad_weights[:, :, :passing] = (table[coarse_rows] * coarse_grad[None]).sum(-1)
+                grad_weights = grad_weights.flatten(1)
+        return grad_table, None, grad_weights, None, None
 
 
-def grid_features(table: torch.Tensor, u: torch.Tensor, part: torch.Tensor, shape: GridShape) -> torch.Tensor:
+def grid_features(
+    table: torch.Tensor, u: torch.Tensor, part: torch.Tensor, shape: GridShape, gradient_levels: int | None = None
+) -> torch.Tensor:
     """g_part(u) of M points: the fast path (one gather-and-blend over every level and part, one scatter-add back).
 
     Args:
         table: (L P T, F) level-major rows. u: (M, 3) box coordinates. part: (M,) long.
+        gradient_levels: u's gradient passes through the levels l < gradient_levels only (None: all).
 
     Returns:
         (M, L F), level by level; gradients reach ``table`` (a scatter-add of the weighted output gradient) and
@@ -166,19 +185,24 @@ def grid_features(table: torch.Tensor, u: torch.Tensor, part: torch.Tensor, shap
     m = u.shape[0]
     if m == 0:
         return table.new_zeros(0, shape.width)
-    rows, weights = corner_rows_and_weights(u, part, shape, n_parts)  # (8, M, L): bags of (point, level)
-    out = _BlendRows.apply(table, rows.reshape(8, -1), weights.to(table.dtype).reshape(8, -1))
+    rows, weights = corner_rows_and_weights(u, part, shape, n_parts, gradient_levels)  # (8, M, L): bags
+    passing = shape.levels if gradient_levels is None else min(gradient_levels, shape.levels)
+    out = _BlendRows.apply(table, rows.reshape(8, -1), weights.to(table.dtype).reshape(8, -1), shape.levels, passing)
     return out.reshape(m, shape.width)
 
 
-def grid_features_reference(table: torch.Tensor, u: torch.Tensor, part: torch.Tensor, shape: GridShape) -> torch.Tensor:
+def grid_features_reference(
+    table: torch.Tensor, u: torch.Tensor, part: torch.Tensor, shape: GridShape, gradient_levels: int | None = None
+) -> torch.Tensor:
     """The slow, obvious g_part(u): a loop over points' parts, levels and the 8 corners, the vertex's row from
-    :func:`vertex_rows` and its weight the product of per-axis weights. The test oracle of :func:`grid_features`."""
+    :func:`vertex_rows` and its weight the product of per-axis weights, the levels l >= ``gradient_levels`` reading
+    u without its gradient. The test oracle of :func:`grid_features`."""
     n_parts = table.shape[0] // (shape.levels * shape.rows)
     tables = table.reshape(shape.levels, n_parts, shape.rows, shape.features)
     out = []
     for level, (resolution, multipliers) in enumerate(zip(shape.resolutions(), shape.multipliers())):
-        x = (u.clamp(-1, 1) + 1) / 2 * resolution  # (M, 3)
+        passing = gradient_levels is None or level < gradient_levels
+        x = ((u if passing else u.detach()).clamp(-1, 1) + 1) / 2 * resolution  # (M, 3)
         base = torch.clamp(torch.floor(x.detach()), max=resolution - 1)
         frac = x - base
         level_sum = torch.zeros(u.shape[0], shape.features, dtype=table.dtype, device=u.device)
@@ -211,9 +235,12 @@ class PartGrids(nn.Module):
         rows = shape.levels * n_parts * shape.rows
         self.table = nn.Parameter(torch.empty(rows, shape.features).uniform_(-1e-4, 1e-4))
 
-    def forward(self, u: torch.Tensor, part: torch.Tensor, alpha: float | None = None) -> torch.Tensor:
-        """(M, 3) box coordinates and (M,) parts -> (M, L F) features, the levels past the window ``alpha`` faded."""
-        features = grid_features(self.table, u, part, self.shape)
+    def forward(
+        self, u: torch.Tensor, part: torch.Tensor, alpha: float | None = None, gradient_levels: int | None = None
+    ) -> torch.Tensor:
+        """(M, 3) box coordinates and (M,) parts -> (M, L F) features, the levels past the window ``alpha`` faded,
+        u's gradient through the levels l < ``gradient_levels`` only (None: all)."""
+        features = grid_features(self.table, u, part, self.shape, gradient_levels)
         window = level_window(alpha, self.shape.levels, u.device, features.dtype)
         if window is None:
             return features

@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from narf.fields import build_field
+from narf.fields.common import PoseBatch
 from narf.grids import (
     GridShape,
     PartGrids,
@@ -62,6 +63,30 @@ def test_fast_lookup_matches_the_loop_in_value_and_gradient():
     for a, b in zip(grads_fast, grads_slow):
         assert torch.allclose(a, b, atol=1e-10)  # sums of up to ~100 products of order 1 per row, float64
     assert grads_fast[1][(u.abs() > 1).any(-1)].abs().max() > 0  # clamped on a face, gradient of the other axes
+
+
+def test_the_pose_gradient_passes_the_coarse_levels_only():
+    """With gradient_levels = k, u's gradient is that of the first k levels' features alone (docs/model.md §6), the
+    fast path's as the loop's; the values and the tables' gradient do not change."""
+    n_parts, k = 4, 2
+    table = _table(n_parts=n_parts).requires_grad_(True)
+    gen = torch.Generator().manual_seed(3)
+    u = (torch.rand(300, 3, generator=gen, dtype=torch.float64) * 2 - 1).requires_grad_(True)
+    part = torch.randint(0, n_parts, (300,), generator=gen)
+    weights = torch.randn(300, SHAPE.width, generator=gen, dtype=torch.float64)
+    full = grid_features(table, u, part, SHAPE)
+    limited = grid_features(table, u, part, SHAPE, gradient_levels=k)
+    slow = grid_features_reference(table, u, part, SHAPE, gradient_levels=k)
+    assert torch.equal(full, limited)
+    coarse = k * SHAPE.features
+    coarse_only = torch.autograd.grad((full[:, :coarse] * weights[:, :coarse]).sum(), u, retain_graph=True)[0]
+    table_full, u_full = torch.autograd.grad((full * weights).sum(), [table, u])
+    got_table, got_u = torch.autograd.grad((limited * weights).sum(), [table, u])
+    slow_u = torch.autograd.grad((slow * weights).sum(), u)[0]
+    # float64 sums of the same products in the same order: exact; against the loop as in the test above
+    assert torch.equal(got_u, coarse_only) and torch.equal(got_table, table_full)
+    assert torch.allclose(slow_u, got_u, atol=1e-10)
+    assert (got_u - u_full).abs().max() > 1e-3  # the fine levels held
 
 
 def test_trilinear_interpolation_reproduces_a_linear_function():
@@ -132,6 +157,33 @@ def test_narf_d_with_grids_fast_path_matches_dense_reference(shading):
     for ga, gb in zip(grad_a, grad_b):
         assert torch.allclose(ga, gb, atol=1e-8)  # through gamma_10 of the selector, as test_fields says
     assert grad_a[1].abs().max() > 0  # the tables learn (fast.grids.table is the first parameter)
+
+
+def test_a_grid_field_passes_the_pose_gradient_through_its_coarse_levels(monkeypatch):
+    """The field's wiring of the band limit (docs/model.md §6): pose_gradient_freqs K gives the lookups the
+    round(K L / 10) coarsest levels (here 8 levels: K = 4 -> 3, 10 -> 8, unset -> all), and the tables' gradient
+    does not change, to the bit (the same operations on the tables' path)."""
+    import narf.grids
+
+    seen, lookup = [], narf.grids.grid_features
+    monkeypatch.setattr(narf.grids, "grid_features", lambda *a: seen.append(a[4]) or lookup(*a))
+    options = dict(encoding="grid", grid_levels=8, grid_features=2, grid_min_resolution=4, grid_max_resolution=32)
+    torch.manual_seed(0)
+    field = build_field("narf_d", width=16, grid_log2_rows=10, **options).double()
+    torch.nn.init.normal_(field.grids.table, std=0.5)
+    field.set_boxes(torch.zeros(19, 3, dtype=torch.float64), torch.full((19, 3), 0.5, dtype=torch.float64))
+    points, dirs = _points(8, 12, seed=5, dtype=torch.float64)
+    base = _random_pose(n_frames=2, dtype=torch.float64).select(torch.tensor([0, 1] * 4))
+    table_grads = []
+    for freqs in (None, 10, 4):
+        field.pose_gradient_freqs = freqs
+        turned = base.world_from_part.clone().requires_grad_(True)
+        out = field(points, dirs, PoseBatch(**{**base.__dict__, "world_from_part": turned}))
+        grads = torch.autograd.grad(out.sigma.sum() + out.rgb.sum(), [field.grids.table, turned])
+        assert grads[1].abs().max() > 0  # the pose learns
+        table_grads.append(grads[0])
+    assert seen == [None, 8, 3]
+    assert torch.equal(table_grads[0], table_grads[2])
 
 
 def test_grid_encoding_is_narf_d_only_and_validated():

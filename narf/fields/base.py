@@ -70,8 +70,8 @@ class Field(nn.Module):
     #: whether ``_forward`` reads x_local (R, S, P, 3); the others get None and skip computing it
     uses_part_points = False
     #: the point encodings' frequencies through which gradient reaches the part-local points, and so the pose
-    #: (``narf.encodings.point_encoding``); None: all. Set while poses are corrected; no effect on the field's own
-    #: gradients or on any value.
+    #: (``narf.encodings.point_encoding``; part grids: their round(freqs L / 10) coarsest levels); None: all. Set
+    #: while poses are corrected; no effect on the field's own gradients or on any value.
     pose_gradient_freqs: int | None = None
     #: what the colour may depend on (docs/model.md §4, *Colour conditioning*), set from the model config by
     #: ``fitting.trainer.configure_field``: the direction encoding's kept frequencies (0: no view direction), the

@@ -74,11 +74,16 @@ class NarfH(Field):
     def grid_points(self, u: torch.Tensor, part: torch.Tensor | None) -> torch.Tensor:
         """The part grids' features g_i(u) (M, L F) of box coordinates u (M, 3) in parts ``part`` (M,) long; None:
         u holds every part in turn, (R S P, 3) laid out part fastest. The levels open with the coarse-to-fine window
-        (``point_window`` over gamma_10's 10 frequencies, mapped onto the L levels; docs/model.md §2)."""
+        (``point_window`` over gamma_10's 10 frequencies, mapped onto the L levels; docs/model.md §2), and the pose's
+        gradient passes through the round(``pose_gradient_freqs`` L / 10) coarsest levels only, the same map
+        (docs/model.md §6)."""
         if part is None:
             part = torch.arange(self.n_parts, device=u.device).repeat(u.shape[0] // self.n_parts)
-        alpha = None if self.point_window is None else self.point_window * self.grids.shape.levels / POINT_FREQS
-        return self.grids(u, part, alpha)
+        levels = self.grids.shape.levels
+        alpha = None if self.point_window is None else self.point_window * levels / POINT_FREQS
+        freqs = self.pose_gradient_freqs
+        gradient_levels = None if freqs is None else max(1, round(freqs * levels / POINT_FREQS))
+        return self.grids(u, part, alpha, gradient_levels)
 
     def part_weights(self, encoded_u, in_box, encoded_zeta):
         """Per-sample part weights used to mask the blocks (R, S, P) and the segmentation probabilities."""
