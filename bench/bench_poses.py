@@ -2,9 +2,10 @@
 synthetic capture with every joint turned 4 degrees and the body moved 2 cm (``narf-synth --degrade``), the truth
 kept beside it.
 
-* **Field fixed**: a field fitted for 3 minutes on the exact poses (``narf-fit``), held fixed while only the
-  perturbed poses are corrected (``pipelines.runs.subject.pose_check``), with and without the refinement against
-  the masks first: the joint error before, after and along the way.
+* **Field fixed**: a field fitted for 3 minutes on the exact poses (``narf-fit``, the ``cpu`` preset, and
+  ``cpu_grid`` for the part grids' rows), held fixed while only the perturbed poses are corrected
+  (``pipelines.runs.subject.pose_check``), with and without the refinement against the masks first: the joint error
+  before, after and along the way.
 * **Jointly from scratch**, as a user runs it: ``narf-fit --max-minutes 3`` on the perturbed capture (and on the
   exact one, which must not lose), then ``narf-eval`` on ``same_pose_novel_view`` and ``novel_pose`` and the joint
   error of ``RUN/refined_params`` (``narf-eval --reference-params``).
@@ -24,16 +25,24 @@ from pipelines.datasets.smpl_files import cache_dir, command_environment
 
 STEPS = 400
 ON = ["train.pose_correction=true"]
-#: (label, overrides of the field-fixed correction, frame stride)
+#: (label, overrides of the field-fixed correction, frame stride, the field's preset)
 FIXED = [
-    ("field fixed, photometric only, every 10th frame", ["train.mask_body_iterations=0"], 10),
+    ("field fixed, photometric only, every 10th frame", ["train.mask_body_iterations=0"], 10, "cpu"),
     (
         "field fixed, photometric only, every 10th frame, every frequency",
         ["train.mask_body_iterations=0", "train.pose_gradient_freqs=10"],
         10,
+        "cpu",
     ),
-    ("field fixed, photometric only, every frame", ["train.mask_body_iterations=0"], 1),
-    ("field fixed, masks then photometric", [], 1),
+    ("field fixed, photometric only, every frame", ["train.mask_body_iterations=0"], 1, "cpu"),
+    ("field fixed, masks then photometric", [], 1, "cpu"),
+    ("grid field fixed, photometric only, every 10th frame", ["train.mask_body_iterations=0"], 10, "cpu_grid"),
+    (
+        "grid field fixed, photometric only, every 10th frame, every level",
+        ["train.mask_body_iterations=0", "train.pose_gradient_freqs=10"],
+        10,
+        "cpu_grid",
+    ),
 ]
 #: (label, capture, ``--set`` overrides, minutes)
 JOINT = [
@@ -45,11 +54,12 @@ JOINT = [
 ]
 
 
-def _field_run(cache: Path) -> Path:
-    """The exact-pose field the fixed rows hold (fitted once, kept under the bench cache)."""
-    run = cache / "exact-field"
+def _field_run(cache: Path, preset: str) -> Path:
+    """The exact-pose field of ``preset`` that the fixed rows hold (fitted once, kept under the bench cache)."""
+    run = cache / ("exact-field" if preset == "cpu" else f"exact-field-{preset}")
     if not (run / "checkpoint.pt").is_file():
-        fit = [_venv("narf-fit"), "--subject", str(SYNTHETIC), "--out", str(run), "--max-minutes", "3", "--quiet"]
+        fit = [_venv("narf-fit"), "--subject", str(SYNTHETIC), "--config", preset, "--out", str(run)]
+        fit += ["--max-minutes", "3", "--quiet"]
         subprocess.run(fit, check=True, env=command_environment())
     return run
 
@@ -74,9 +84,9 @@ def run() -> list[dict]:
     cache = cache_dir() / "bench-poses"
     _ensure_perturbed()
     rows = []
-    for label, sets, stride in FIXED:
+    for label, sets, stride, preset in FIXED:
         if not wanted or label in wanted:
-            rows.append(_fixed_row(label, sets, stride, _field_run(cache)))
+            rows.append(_fixed_row(label, sets, stride, _field_run(cache, preset)))
     for index, (label, capture, sets, minutes) in enumerate(JOINT):
         if not wanted or label in wanted:
             rows.append(_row(label, capture, sets, minutes, cache / f"run{index}"))
