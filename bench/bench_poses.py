@@ -10,7 +10,7 @@ kept beside it.
   exact one, which must not lose), then ``narf-eval`` on ``same_pose_novel_view`` and ``novel_pose`` and the joint
   error of ``RUN/refined_params`` (``narf-eval --reference-params``).
 
-Takes about 30 minutes on 2 cores and runs only when named (``python -m bench poses``); ``NARF_BENCH_POSES`` (row
+Takes about 40 minutes on 2 cores and runs only when named (``python -m bench poses``); ``NARF_BENCH_POSES`` (row
 labels separated by semicolons) picks rows."""
 
 from __future__ import annotations
