@@ -93,9 +93,7 @@ def vertex_rows(vertex: torch.Tensor, multipliers, rows: int) -> torch.Tensor:
     return torch.bitwise_xor(torch.bitwise_xor(terms[..., 0], terms[..., 1]), terms[..., 2]) & (rows - 1)
 
 
-def corner_rows_and_weights(
-    u: torch.Tensor, part: torch.Tensor, shape: GridShape, n_parts: int, gradient_levels: int | None = None
-):
+def corner_rows_and_weights(u: torch.Tensor, part: torch.Tensor, shape: GridShape, n_parts: int):
     """Rows and trilinear weights of the 8 corners of each point's cell at every level, corner-major.
 
     The work is done per axis on (3, M, L) tensors, and the 8 corners are formed by broadcasting the three axes'
@@ -105,8 +103,6 @@ def corner_rows_and_weights(
 
     Args:
         u: (M, 3) box coordinates (clamped to [-1, 1]). part: (M,) long part of each point.
-        gradient_levels: the weights' gradient w.r.t. u passes through the levels l < gradient_levels only (None:
-            all): the pose's gradient band-limited to the coarse levels (docs/model.md §6).
 
     Returns:
         rows (8, M, L) long into the flat (L P T, F) table, weights (8, M, L) in u's dtype (differentiable in u);
@@ -115,8 +111,6 @@ def corner_rows_and_weights(
     resolutions = torch.tensor(shape.resolutions(), dtype=u.dtype, device=u.device)
     multipliers = torch.tensor(shape.multipliers(), dtype=torch.long, device=u.device).T[:, None, :]  # (3, 1, L)
     x = (u.clamp(-1, 1).T[:, :, None] + 1) * (0.5 * resolutions)  # (3, M, L)
-    if gradient_levels is not None and gradient_levels < shape.levels and x.requires_grad:
-        x = torch.where(torch.arange(shape.levels, device=u.device) < gradient_levels, x, x.detach())
     base = x.detach().floor().clamp_max(resolutions - 1)  # the far face belongs to the last cell
     frac = x - base  # gradient through x
     low = base.long() * multipliers & (shape.rows - 1)  # (3, M, L)
@@ -139,7 +133,7 @@ class _BlendRows(torch.autograd.Function):
     scatter-adds w[c, n] g[n] into the table's rows with one ``index_add_`` over the corner-major layout
     (``embedding_bag``'s own dense backward sorts the 8 N rows first, several times slower on a CPU); the weights'
     gradient g[n] . table[rows[c, n]] only when asked, and with N = M L bags laid out level fastest, only for the
-    bags of the levels l < ``passing`` (the others' is zero: :func:`corner_rows_and_weights` holds their u)."""
+    bags of the levels l < ``passing``: the others' is zero, so u's gradient passes the coarse levels only."""
 
     @staticmethod
     def forward(ctx, table, rows, weights, levels, passing):
@@ -156,15 +150,10 @@ class _BlendRows(torch.autograd.Function):
             spread = (weights[:, :, None] * grad[None]).reshape(-1, table.shape[1]).to(table.dtype)
             grad_table = torch.zeros_like(table).index_add_(0, rows.reshape(-1), spread)
         if ctx.needs_input_grad[2]:
-            levels, passing = ctx.levels, ctx.passing
-            if passing >= levels:
-                grad_weights = (table[rows] * grad[None]).sum(-1).to(weights.dtype)
-            else:  # (8, M, L) bags: the gather of the passing levels' corners only
-                coarse_rows = rows.unflatten(1, (-1, levels))[:, :, :passing]
-                coarse_grad = grad.unflatten(0, (-1, levels))[:, :passing]
-                grad_weights = weights.new_zeros(8, grad.shape[0] // levels, levels)
-                grad_weights[:, :, :passing] = (table[coarse_rows] * coarse_grad[None]).sum(-1)
-                grad_weights = grad_weights.flatten(1)
+            levels, passing = ctx.levels, ctx.passing  # (8, M, L) bags: the passing levels' corners gathered only
+            coarse_rows = rows.unflatten(1, (-1, levels))[:, :, :passing]
+            coarse = (table[coarse_rows] * grad.unflatten(0, (-1, levels))[None, :, :passing]).sum(-1)
+            grad_weights = nn.functional.pad(coarse, (0, levels - passing)).flatten(1).to(weights.dtype)
         return grad_table, None, grad_weights, None, None
 
 
@@ -185,7 +174,7 @@ def grid_features(
     m = u.shape[0]
     if m == 0:
         return table.new_zeros(0, shape.width)
-    rows, weights = corner_rows_and_weights(u, part, shape, n_parts, gradient_levels)  # (8, M, L): bags
+    rows, weights = corner_rows_and_weights(u, part, shape, n_parts)  # (8, M, L): bags of (point, level)
     passing = shape.levels if gradient_levels is None else min(gradient_levels, shape.levels)
     out = _BlendRows.apply(table, rows.reshape(8, -1), weights.to(table.dtype).reshape(8, -1), shape.levels, passing)
     return out.reshape(m, shape.width)
