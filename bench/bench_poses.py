@@ -56,7 +56,7 @@ JOINT = [
 
 def _field_run(cache: Path, preset: str) -> Path:
     """The exact-pose field of ``preset`` that the fixed rows hold (fitted once, kept under the bench cache)."""
-    run = cache / ("exact-field" if preset == "cpu" else f"exact-field-{preset}")
+    run = cache / f"exact-field-{preset}"
     if not (run / "checkpoint.pt").is_file():
         fit = [_venv("narf-fit"), "--subject", str(SYNTHETIC), "--config", preset, "--out", str(run)]
         fit += ["--max-minutes", "3", "--quiet"]
