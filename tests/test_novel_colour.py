@@ -1,4 +1,5 @@
-"""The colour of frames a fit did not train on (docs/model.md §4, *Colour of frames not trained on*)."""
+"""The colour of frames a fit did not train on (docs/model.md §4, *Colour of frames not trained on*), and narf-eval's
+other overrides of a run's evaluation (--samples, --frame-step)."""
 
 import dataclasses
 
@@ -77,6 +78,33 @@ def test_narf_eval_samples_override_the_runs_render_counts(tiny_run, tmp_path, c
     capsys.readouterr()
     assert run_cli("narf-eval", cli_eval.main, [*argv, "--samples", "1", "8"]) == 2
     assert "--samples 1 8: COARSE must be >= 2" in capsys.readouterr().err
+
+
+def test_narf_eval_frame_step_takes_every_nth_frame_of_a_split(tiny_run, tmp_path, capsys):
+    """narf-eval --frame-step N scores every Nth frame of the split's frames in place of the protocol's interval (the
+    tiny capture's narf protocol: 9 training frames, 1 novel, so every frame by default: docs/formats.md §1.8) and
+    records it; with --capture (every frame of another recording) it is one line, exit 2."""
+    import json
+    import shutil
+
+    from pipelines.cli import eval as cli_eval
+    from pipelines.cli.common import run_cli
+
+    run = tmp_path / "run"
+    shutil.copytree(tiny_run, run)
+    shutil.rmtree(run / "eval", ignore_errors=True)
+    argv = ["--run", str(run), "--split", "same_pose_same_view", "--grids", "0", "--quiet"]
+    splits = []
+    for extra in ([], ["--frame-step", "4"]):
+        assert run_cli("narf-eval", cli_eval.main, [*argv, *extra]) == 0
+        splits.append(json.loads((run / "eval" / "metrics.json").read_text())["splits"]["same_pose_same_view"])
+    assert [s["frame_step"] for s in splits] == [1, 4]
+    assert [sorted({v["frame"] for v in s["per_view"]}) for s in splits] == [list(range(9)), [0, 4, 8]]
+    assert {v["camera"] for v in splits[1]["per_view"]} == {v["camera"] for v in splits[0]["per_view"]}
+    capsys.readouterr()
+    argv = ["--run", str(run), "--capture", str(tmp_path), "--frame-step", "2", "--quiet"]
+    assert run_cli("narf-eval", cli_eval.main, argv) == 2
+    assert "as the split 'capture'" in capsys.readouterr().err
 
 
 def test_narf_render_video_samples_override_the_runs_render_counts(tiny_run, tmp_path, capsys, monkeypatch):

@@ -71,6 +71,14 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--limit", type=at_least(1), default=None, help="evaluate at most N views per split, evenly spread"
     )
+    parser.add_argument(
+        "--frame-step",
+        type=at_least(1),
+        metavar="N",
+        default=None,
+        help="subject runs: evaluate every Nth frame of each split's frames, in place of the protocol's (every 30th; "
+        "about five frames a range on a capture with fewer than 150 novel frames); 1: every frame",
+    )
     parser.add_argument("--grids", type=at_least(0), default=4, help="image grids to write per split")
     parser.add_argument(
         "--mesh",
@@ -159,6 +167,7 @@ def main(argv: list[str] | None = None) -> int:
             capture=args.capture,
             novel_colour=args.novel_colour,
             samples=samples,
+            frame_step=args.frame_step,
         )
         report = kind.evaluate(run, request)
     print(kind.markdown(report))

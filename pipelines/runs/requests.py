@@ -74,6 +74,7 @@ class EvalRequest:
     capture: Path | None = None
     novel_colour: str | None = None  #: subject runs: ``model.novel_colour`` for this evaluation (None: the run's)
     samples: tuple[int, int] | None = None  #: subject runs: ``render.eval_coarse`` / ``eval_fine`` (None: the run's)
+    frame_step: int | None = None  #: subject runs: every Nth frame of a split's range (None: the protocol's interval)
 
 
 @dataclass(frozen=True)

@@ -292,7 +292,8 @@ def evaluate_autoencoder_run(run: Path | SavedRun, request: EvalRequest) -> dict
     refuse_options(
         run_dir, "autoencoder", options, "subject runs (an autoencoder run has no true surfaces or captures)"
     )
-    refuse_options(run_dir, "autoencoder", {"--novel-colour": r.novel_colour, "--samples": r.samples}, "subject runs")
+    subject_only = {"--novel-colour": r.novel_colour, "--samples": r.samples, "--frame-step": r.frame_step}
+    refuse_options(run_dir, "autoencoder", subject_only, "subject runs")
     if r.refine_steps and "cross_dataset" not in r.splits:
         raise ValueError(f"{run_dir}: --refine-steps refines SURREAL codes; it needs --split cross_dataset or all")
     loaded = load_autoencoder_run(saved, r.device)

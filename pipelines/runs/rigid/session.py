@@ -76,7 +76,8 @@ def evaluate_rigid_run(run: Path | SavedRun, request: EvalRequest) -> dict:
     run_dir, r = saved.run_dir, request
     options = {"--mesh": r.mesh, "--surreal": r.surreal, "--refine-steps": r.refine_steps, "--capture": r.capture}
     refuse_options(run_dir, "rigid", options, "subject and autoencoder runs")
-    refuse_options(run_dir, "rigid", {"--novel-colour": r.novel_colour, "--samples": r.samples}, "subject runs")
+    subject_only = {"--novel-colour": r.novel_colour, "--samples": r.samples, "--frame-step": r.frame_step}
+    refuse_options(run_dir, "rigid", subject_only, "subject runs")
     fitted = load_fitted(saved, r.device, kind="rigid")
     config, field = fitted.config, fitted.field
     rigid: RigidSet = open_rigid(resolve_rigid(config, quiet=True, generate=False))

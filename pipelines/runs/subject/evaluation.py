@@ -75,17 +75,21 @@ def _view_metrics(run, split: str, items, out_dir: Path, request: EvalRequest, c
 def _score_split(run, split: str, out_dir: Path, request: EvalRequest, coverage: np.ndarray) -> dict:
     """One split's report: the averages of both protocols, each view's record and, with ``request.mesh``, the
     surface against the true one (``pipelines.runs.subject.mesh.mesh_accuracy``, meshes in ``eval/meshes/``)."""
+    protocol = run.protocol
+    if request.frame_step is not None:  # in place of the protocol's every 30th frame (docs/formats.md §1.8)
+        protocol = dataclasses.replace(protocol, interval=request.frame_step)
     if split == "capture":
         every = run.other.protocol()
         items = spread(every.usable(range(run.other.n_frames), range(run.other.n_cameras)), request.limit)
     else:
-        items = spread(run.protocol.split(split), request.limit)
+        items = spread(protocol.split(split), request.limit)
     if not items:
         raise ValueError(f"split '{split}' is empty for {run.capture.root} under the {run.protocol.name} protocol")
     records = _view_metrics(run, split, items, out_dir, request, coverage)
     result = {
         "n_views": len(records),
         "limit": request.limit,
+        **({} if split == "capture" else {"frame_step": protocol.interval}),  # the split's frames: every Nth
         "full": average_metrics(records, "full"),
         "nb_crop": average_metrics(records, "nb_crop"),
         "per_view": records,
@@ -112,7 +116,7 @@ def evaluate_run(run: Path | SavedRun, request: EvalRequest) -> dict:
     run_dir, r = saved.run_dir, request
     users = "autoencoder runs"
     refuse_options(run_dir, "subject", {"--surreal": r.surreal, "--refine-steps": r.refine_steps}, users)
-    if r.capture is not None and tuple(r.splits) != ("capture",):
+    if r.capture is not None and (tuple(r.splits) != ("capture",) or r.frame_step is not None):
         raise ValueError("--capture evaluates every frame and camera of the other recording as the split 'capture'")
     loaded = load_run(saved, r.device)
     if r.novel_colour is not None:  # docs/model.md §4, *Colour of frames not trained on*
