@@ -324,11 +324,17 @@ def markdown_table(report: dict) -> str:
     versions = ", ".join(f"{k} {v}" for k, v in report["versions"].items())
     lines += [
         "",
-        "Views per split: " + ", ".join(f"{_SHORT[s]} {report['splits'][s]['n_views']}" for s in splits),
+        "Views per split: " + ", ".join(_views(_SHORT[s], report["splits"][s]) for s in splits),
         f"Versions: {versions}",
         "",
     ]
     return "\n".join(lines)
+
+
+def _views(name: str, split: dict) -> str:
+    """'SS 12 (frame step 6)': a split's view count and, where the report records it, every how many frames."""
+    step = split.get("frame_step")
+    return f"{name} {split['n_views']}" + (f" (frame step {step})" if step else "")
 
 
 def _breakdown_line(split: str, breakdown: dict | None) -> str | None:

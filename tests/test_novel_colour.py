@@ -101,6 +101,7 @@ def test_narf_eval_frame_step_takes_every_nth_frame_of_a_split(tiny_run, tmp_pat
     assert [s["frame_step"] for s in splits] == [1, 4]
     assert [sorted({v["frame"] for v in s["per_view"]}) for s in splits] == [list(range(9)), [0, 4, 8]]
     assert {v["camera"] for v in splits[1]["per_view"]} == {v["camera"] for v in splits[0]["per_view"]}
+    assert "(frame step 4)" in (run / "eval" / "metrics.md").read_text()
     capsys.readouterr()
     argv = ["--run", str(run), "--capture", str(tmp_path), "--frame-step", "2", "--quiet"]
     assert run_cli("narf-eval", cli_eval.main, argv) == 2
