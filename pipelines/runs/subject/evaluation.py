@@ -75,21 +75,18 @@ def _view_metrics(run, split: str, items, out_dir: Path, request: EvalRequest, c
 def _score_split(run, split: str, out_dir: Path, request: EvalRequest, coverage: np.ndarray) -> dict:
     """One split's report: the averages of both protocols, each view's record and, with ``request.mesh``, the
     surface against the true one (``pipelines.runs.subject.mesh.mesh_accuracy``, meshes in ``eval/meshes/``)."""
-    protocol = run.protocol
-    if request.frame_step is not None:  # in place of the protocol's every 30th frame (docs/formats.md §1.8)
-        protocol = dataclasses.replace(protocol, interval=request.frame_step)
     if split == "capture":
         every = run.other.protocol()
         items = spread(every.usable(range(run.other.n_frames), range(run.other.n_cameras)), request.limit)
     else:
-        items = spread(protocol.split(split), request.limit)
+        items = spread(run.protocol.split(split), request.limit)
     if not items:
         raise ValueError(f"split '{split}' is empty for {run.capture.root} under the {run.protocol.name} protocol")
     records = _view_metrics(run, split, items, out_dir, request, coverage)
     result = {
         "n_views": len(records),
         "limit": request.limit,
-        **({} if split == "capture" else {"frame_step": protocol.interval}),  # the split's frames: every Nth
+        **({} if split == "capture" else {"frame_step": run.protocol.interval}),  # the split's frames: every Nth
         "full": average_metrics(records, "full"),
         "nb_crop": average_metrics(records, "nb_crop"),
         "per_view": records,
@@ -124,6 +121,8 @@ def evaluate_run(run: Path | SavedRun, request: EvalRequest) -> dict:
         loaded.config = dataclasses.replace(loaded.config, model=model)
     if r.samples is not None:  # the renders' estimator of the volume integral (docs/model.md §7)
         loaded.config = with_eval_samples(loaded.config, *r.samples)
+    if r.frame_step is not None:  # in place of the protocol's every 30th frame (docs/formats.md §1.8)
+        loaded.protocol = dataclasses.replace(loaded.protocol, interval=r.frame_step)
     if r.capture is not None:
         loaded.other = open_other_capture(loaded, run_dir, Path(r.capture))
     out_dir = run_dir / "eval"
