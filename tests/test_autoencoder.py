@@ -179,6 +179,9 @@ def test_mixed_up_runs_and_settings_fail_clearly(sets, tmp_path, capsys, data_ro
     argv = ["--run", str(tmp_path / "ae"), "--split", "novel_pose_same_view", "--samples", "4", "4"]
     assert run_cli("narf-eval", cli_eval.main, argv) == 2
     assert "an autoencoder run; --samples is for subject runs\n" in capsys.readouterr().err
+    argv = ["--run", str(tmp_path / "ae"), "--split", "novel_pose_same_view", "--frame-step", "2"]
+    assert run_cli("narf-eval", cli_eval.main, argv) == 2
+    assert "an autoencoder run; --frame-step is for subject runs\n" in capsys.readouterr().err
     argv = ["--run", str(tmp_path / "subject"), "--refine-steps", "5"]
     assert run_cli("narf-eval", cli_eval.main, argv) == 2
     assert "--refine-steps is for autoencoder runs" in capsys.readouterr().err

@@ -62,6 +62,8 @@ def test_fit_eval_and_bad_input(rigid_set, tmp_path, capsys):
     assert "a rigid run; it renders no videos" in capsys.readouterr().err
     assert run_cli("narf-eval", cli_eval.main, ["--run", str(run), "--samples", "4", "4", "--quiet"]) == 2
     assert "a rigid run; --samples is for subject runs" in capsys.readouterr().err
+    assert run_cli("narf-eval", cli_eval.main, ["--run", str(run), "--frame-step", "2", "--quiet"]) == 2
+    assert "a rigid run; --frame-step is for subject runs" in capsys.readouterr().err
     assert run_cli("narf-fit", fit.main, [*argv[:-1], str(tmp_path / "x"), "--model", "narf_d"]) == 2
     assert "'narf_d' is not a rigid-object model" in capsys.readouterr().err
     broken = tmp_path / "broken"
